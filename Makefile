@@ -1,0 +1,54 @@
+# tissuebench: the two commands of the README, and their helpers.
+#   make report   install what is missing, then write the default report under reports/
+#   make test     install what is missing, then lint and run the test suite
+# Set-up is idempotent: it checks Debian packages and the venv, and reinstalls the project only when
+# pyproject.toml changed.
+
+SHELL := /bin/bash
+VENV := .venv
+PY := $(VENV)/bin/python
+APT_PACKAGES := python3-dolfinx python3-gmsh python3-meshio python3-venv python3-scipy
+STAMP := $(VENV)/.tissuebench-installed
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+export OMPI_ALLOW_RUN_AS_ROOT := 1
+export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM := 1
+export OMPI_MCA_rmaps_base_oversubscribe := 1
+
+.PHONY: setup apt venv report test lint bench clean-cache
+
+setup: apt $(STAMP)
+
+apt:
+	@missing=""; for p in $(APT_PACKAGES); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q --no-install-recommends $$missing; \
+	fi
+
+$(VENV)/bin/python:
+	/usr/bin/python3 -m venv --system-site-packages $(VENV)
+
+# numpy is pinned to Debian's own version: dolfinx and scipy are compiled against it.
+$(STAMP): pyproject.toml | $(VENV)/bin/python
+	echo "numpy==$$(/usr/bin/python3 -c 'import numpy; print(numpy.__version__)')" > $(VENV)/constraints.txt
+	$(PY) -m pip install -q -c $(VENV)/constraints.txt -e '.[dev]'
+	$(PY) -c "import dolfinx, gmsh, meshio, numba, numpy; assert numpy.__version__.startswith('1.')"
+	touch $(STAMP)
+
+report: setup
+	$(VENV)/bin/tissuebench report
+
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+test: setup lint
+	$(PY) -m pytest -q
+
+bench: setup
+	$(VENV)/bin/tissuebench bench
+
+clean-cache:
+	rm -rf $${TISSUEBENCH_CACHE:-$$HOME/.cache/tissuebench}

@@ -1,0 +1,136 @@
+"""Region selectors (DESIGN.md section 3): box, sphere, tag, all.
+
+A region answers two questions: which vertices of a mesh it holds (``vertices``), and whether
+arbitrary points lie in it (``contains``), the second for the finer meshes and the P2 nodes of the
+reference, which must see the same region as the scene mesh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .tetmesh import TetMesh
+
+#: Points within this distance (relative to the mesh size) of a region's boundary count as inside:
+#: gmsh places boundary vertices on the geometry to ~1e-12 relative, and regions drawn on a face
+#: (x = 0) must catch them.
+GEOMETRIC_TOL = 1e-9
+
+
+@dataclass(frozen=True)
+class Region:
+    """Base class. ``describe()`` gives the scene-file text of the region."""
+
+    def vertices(self, mesh: TetMesh) -> np.ndarray:
+        return np.flatnonzero(self.contains(mesh.points, mesh))
+
+    def contains(self, x: np.ndarray, mesh: TetMesh) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class BoxRegion(Region):
+    lo: tuple
+    hi: tuple
+
+    def contains(self, x, mesh=None):
+        return np.all((x >= np.asarray(self.lo)) & (x <= np.asarray(self.hi)), axis=1)
+
+    def describe(self):
+        return f"box = [{list(self.lo)}, {list(self.hi)}]"
+
+
+@dataclass(frozen=True)
+class SphereRegion(Region):
+    center: tuple
+    radius: float
+
+    def contains(self, x, mesh=None):
+        return np.linalg.norm(x - np.asarray(self.center), axis=1) <= self.radius
+
+    def describe(self):
+        return f"sphere = {{ center = {list(self.center)}, radius = {self.radius} }}"
+
+
+@dataclass(frozen=True)
+class AllRegion(Region):
+    def contains(self, x, mesh=None):
+        return np.ones(len(x), dtype=bool)
+
+    def describe(self):
+        return "all = true"
+
+
+@dataclass(frozen=True)
+class TagRegion(Region):
+    """A named group of the mesh. Face groups hold the points on their triangles; volume groups the
+    points inside their tetrahedra (so a refined mesh or P2 nodes see the same region)."""
+
+    name: str
+
+    def vertices(self, mesh):
+        return mesh.select_tag(self.name)
+
+    def contains(self, x, mesh):
+        x = np.asarray(x, dtype=float)
+        scale = float(np.ptp(mesh.points, axis=0).max())
+        tol = GEOMETRIC_TOL * scale
+        if self.name in mesh.cell_tags:
+            tets = mesh.tets[np.asarray(mesh.cell_tags[self.name])]
+            return _inside_tets(mesh.points, tets, x, tol)
+        verts = mesh.select_tag(self.name)
+        faces = mesh.boundary
+        faces = faces[np.all(np.isin(faces, verts), axis=1)]
+        return _on_triangles(mesh.points, faces, x, tol)
+
+    def describe(self):
+        return f'tag = "{self.name}"'
+
+
+def _on_triangles(points, faces, x, tol):
+    """Whether each point of x (K, 3) lies on one of the triangles (F, 3), within tol (m)."""
+    out = np.zeros(len(x), dtype=bool)
+    if len(faces) == 0:
+        return out
+    tri = points[faces]
+    centroid = tri.mean(axis=1)
+    radius = np.linalg.norm(tri - centroid[:, None], axis=2).max()
+    tree = cKDTree(centroid)
+    for k, cand in enumerate(tree.query_ball_point(x, radius + tol)):
+        for f in cand:
+            a, b, c = tri[f]
+            n = np.cross(b - a, c - a)
+            area2 = np.linalg.norm(n)
+            if abs(np.dot(x[k] - a, n)) / area2 > tol:
+                continue
+            # barycentric coordinates in the triangle's plane
+            l1 = np.dot(np.cross(c - b, x[k] - b), n) / area2**2
+            l2 = np.dot(np.cross(a - c, x[k] - c), n) / area2**2
+            l3 = 1.0 - l1 - l2
+            eps = tol / np.sqrt(area2)
+            if min(l1, l2, l3) >= -eps:
+                out[k] = True
+                break
+    return out
+
+
+def _inside_tets(points, tets, x, tol):
+    """Whether each point of x (K, 3) lies in one of the tetrahedra (T, 4), within tol."""
+    out = np.zeros(len(x), dtype=bool)
+    X = points[tets]
+    centroid = X.mean(axis=1)
+    radius = np.linalg.norm(X - centroid[:, None], axis=2).max()
+    D = np.stack([X[:, 1] - X[:, 0], X[:, 2] - X[:, 0], X[:, 3] - X[:, 0]], axis=2)
+    Dinv = np.linalg.inv(D)
+    tree = cKDTree(centroid)
+    scale = np.cbrt(np.abs(np.linalg.det(D)))
+    for k, cand in enumerate(tree.query_ball_point(x, radius + tol)):
+        for t in cand:
+            lam = Dinv[t] @ (x[k] - X[t, 0])
+            if min(lam.min(), 1.0 - lam.sum()) >= -tol / scale[t]:
+                out[k] = True
+                break
+    return out

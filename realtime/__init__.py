@@ -1,0 +1,40 @@
+"""tissuebench's real-time engine: tensor-mass and related soft-tissue models, numba kernels.
+
+Imports only numpy, scipy and numba, so that it can be embedded in a simulator on its own.
+"""
+
+from .integrators import (
+    INTEGRATORS,
+    CentralDifference,
+    DivergenceError,
+    NotConvergedError,
+    SymplecticEuler,
+    element_critical_dt,
+    make_integrator,
+    max_eigenvalue,
+    solve_static,
+)
+from .material import Material, MaterialError
+from .model import TOOL_ROTATION, TOOL_TRANSLATION, Loading, Model, State
+from .models import MODELS, build_model
+
+__all__ = [
+    "INTEGRATORS",
+    "MODELS",
+    "TOOL_ROTATION",
+    "TOOL_TRANSLATION",
+    "CentralDifference",
+    "DivergenceError",
+    "Loading",
+    "Material",
+    "MaterialError",
+    "Model",
+    "NotConvergedError",
+    "State",
+    "SymplecticEuler",
+    "build_model",
+    "element_critical_dt",
+    "make_integrator",
+    "max_eigenvalue",
+    "solve_static",
+]

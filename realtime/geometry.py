@@ -1,0 +1,157 @@
+"""Geometry of linear tetrahedra: volumes, shape-function gradients, edges, boundary faces.
+
+Arrays:
+    points: (N, 3) float64, m.
+    tets:   (M, 4) integer vertex indices, positively oriented
+            (det[x1 - x0, x2 - x0, x3 - x0] > 0).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: A tetrahedron whose volume is below this fraction of (mean edge length)^3 / (6 sqrt 2) is
+#: degenerate: a regular tetrahedron's volume is L^3 / (6 sqrt 2), and 1e-8 of that is far below any
+#: element a mesher produces on purpose yet far above round-off (~1e-16).
+DEGENERATE_RATIO = 1e-8
+
+
+class InvalidMeshError(ValueError):
+    """A mesh that cannot be simulated; the message names the element and the value."""
+
+
+def edge_matrices(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Edge vectors D[e] = [x1 - x0, x2 - x0, x3 - x0] as columns, (M, 3, 3) float64, m."""
+    x = points[tets]
+    return np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=2)
+
+
+def signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Signed volumes det(D)/6, (M,) float64, m^3; positive for positively oriented tetrahedra."""
+    return np.linalg.det(edge_matrices(points, tets)) / 6.0
+
+
+def check_tets(points: np.ndarray, tets: np.ndarray, where: str = "mesh") -> np.ndarray:
+    """Validate a tetrahedral mesh and return its volumes (M,) float64, m^3.
+
+    Raises InvalidMeshError naming the first bad element: index out of range, repeated vertex,
+    non-finite coordinate, inverted (negative volume) or degenerate (near-zero volume).
+    """
+    points = np.asarray(points)
+    tets = np.asarray(tets)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InvalidMeshError(f"{where}: points must have shape (N, 3), got {points.shape}")
+    if tets.ndim != 2 or tets.shape[1] != 4:
+        raise InvalidMeshError(f"{where}: tets must have shape (M, 4), got {tets.shape}")
+    if len(tets) == 0:
+        raise InvalidMeshError(f"{where}: no tetrahedra")
+    if not np.all(np.isfinite(points)):
+        bad = int(np.argwhere(~np.isfinite(points))[0, 0])
+        raise InvalidMeshError(f"{where}: vertex {bad} has a non-finite coordinate {points[bad]}")
+    if tets.min() < 0 or tets.max() >= len(points):
+        bad = int(np.argwhere((tets < 0) | (tets >= len(points)))[0, 0])
+        raise InvalidMeshError(
+            f"{where}: tetrahedron {bad} {tets[bad].tolist()} refers to a vertex outside 0..{len(points) - 1}"
+        )
+    srt = np.sort(tets, axis=1)
+    repeated = np.any(srt[:, 1:] == srt[:, :-1], axis=1)
+    if np.any(repeated):
+        bad = int(np.argmax(repeated))
+        raise InvalidMeshError(f"{where}: tetrahedron {bad} {tets[bad].tolist()} repeats a vertex")
+    vol = signed_volumes(points, tets)
+    x = points[tets]
+    pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    mean_edge = np.mean([np.linalg.norm(x[:, a] - x[:, b], axis=1) for a, b in pairs], axis=0)
+    scale = mean_edge**3 / (6.0 * np.sqrt(2.0))
+    degenerate = np.abs(vol) <= DEGENERATE_RATIO * scale
+    if np.any(degenerate):
+        bad = int(np.argmax(degenerate))
+        raise InvalidMeshError(
+            f"{where}: tetrahedron {bad} {tets[bad].tolist()} is degenerate "
+            f"(volume {vol[bad]:.3e} m^3 for edges of {mean_edge[bad]:.3e} m)"
+        )
+    if np.any(vol < 0.0):
+        bad = int(np.argmax(vol < 0.0))
+        raise InvalidMeshError(
+            f"{where}: tetrahedron {bad} {tets[bad].tolist()} is inverted (volume {vol[bad]:.3e} m^3)"
+        )
+    return vol
+
+
+def orient_positive(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Tets (M, 4) with the last two vertices swapped wherever the volume is negative."""
+    tets = np.array(tets, dtype=np.int64, copy=True)
+    neg = signed_volumes(points, tets) < 0.0
+    tets[neg, 2], tets[neg, 3] = tets[neg, 3].copy(), tets[neg, 2].copy()
+    return tets
+
+
+def shape_gradients(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gradients of the four barycentric shape functions and the volumes.
+
+    Returns:
+        grads: (M, 4, 3) float64, 1/m; grads[e, a] = grad N_a on tetrahedron e, sum over a is zero.
+        vol:   (M,) float64, m^3.
+    """
+    d = edge_matrices(points, tets)
+    inv = np.linalg.inv(d)  # rows of D^-1 are grad N_1..N_3
+    grads = np.empty((len(tets), 4, 3))
+    grads[:, 1:, :] = inv
+    grads[:, 0, :] = -inv.sum(axis=1)
+    return grads, np.linalg.det(d) / 6.0
+
+
+def unique_edges(tets: np.ndarray) -> np.ndarray:
+    """The mesh's edges (E, 2) int64 with edges[:, 0] < edges[:, 1], sorted lexicographically."""
+    pairs = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
+    e = np.sort(np.asarray(tets, dtype=np.int64)[:, pairs].reshape(-1, 2), axis=1)
+    return np.unique(e, axis=0)
+
+
+#: Local faces of a tetrahedron, each ordered so that its normal (right-hand rule) points outwards
+#: for a positively oriented tetrahedron.
+TET_FACES = np.array([(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)])
+
+
+def boundary_faces(tets: np.ndarray) -> np.ndarray:
+    """Boundary triangles (F, 3) int64 with outward normals: faces belonging to one tetrahedron."""
+    faces = np.asarray(tets, dtype=np.int64)[:, TET_FACES].reshape(-1, 3)
+    key = np.sort(faces, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return faces[counts[inverse.ravel()] == 1]
+
+
+def face_areas(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Areas of triangles (F,) float64, m^2."""
+    x = points[faces]
+    return 0.5 * np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1)
+
+
+def lumped_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Volume attached to each vertex, a quarter of each tetrahedron around it, (N,) float64, m^3."""
+    vol = np.abs(signed_volumes(points, tets))
+    out = np.zeros(len(points))
+    np.add.at(out, np.asarray(tets).ravel(), np.repeat(vol / 4.0, 4))
+    return out
+
+
+def lumped_areas(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Boundary area attached to each vertex, a third of each triangle around it, (N,), m^2."""
+    out = np.zeros(len(points))
+    if len(faces):
+        np.add.at(out, np.asarray(faces).ravel(), np.repeat(face_areas(points, faces) / 3.0, 3))
+    return out
+
+
+def min_altitudes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Smallest altitude of each tetrahedron (M,) float64, m: 3 V / (largest face area).
+
+    This is the length L_min of the element estimate of the critical time step L_min / c_p.
+    """
+    vol = np.abs(signed_volumes(points, tets))
+    faces = np.asarray(tets)[:, TET_FACES]  # (M, 4, 3)
+    x = points[faces]
+    areas = 0.5 * np.linalg.norm(
+        np.cross(x[:, :, 1] - x[:, :, 0], x[:, :, 2] - x[:, :, 0]), axis=2
+    )
+    return 3.0 * vol / areas.max(axis=1)

@@ -1,0 +1,330 @@
+"""Time integrators, critical time steps, and static equilibrium by damped dynamics.
+
+Every integrator advances a ``State`` by n steps of size dt in one compiled call
+(``integrator.step(model, state, dt, n)``): the loop, the model's force kernel, the tools and the
+blow-up check all run in numba with the GIL released, so a haptic thread can call it.
+
+Equations of motion, with lumped masses m_i and Rayleigh damping C = alpha M + beta K:
+
+    m_i a_i = f_int(u + beta v)_i + f_ext_i - alpha m_i v_i
+
+Evaluating the internal force at u + beta v is exactly -K u - beta K v for a linear model and the
+tangent stiffness damping to first order for a non-linear one, with no extra matrix.
+
+Stability: both explicit schemes are stable for dt <= dt_crit = (2 / omega_max)(sqrt(1 + xi^2) - xi),
+omega_max^2 the largest eigenvalue of M^-1 K on the free components and xi = (alpha / omega_max +
+beta omega_max) / 2 its damping ratio. A run whose displacement leaves a bound (ten times the mesh's
+bounding-box diagonal: an unstable run grows geometrically and crosses it in a few dozen steps) or
+becomes NaN raises ``DivergenceError`` naming the step, dt and dt_crit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+import scipy.sparse.linalg as spla
+
+from .geometry import min_altitudes
+from .model import Model, State, _tool_value
+
+_JIT = dict(nogil=True, cache=True)
+
+
+class DivergenceError(RuntimeError):
+    """An explicit run blew up; carries the step, the time step and the critical one."""
+
+    def __init__(self, model: str, step: int, dt: float, dt_crit: float, integrator: str):
+        self.step, self.dt, self.dt_crit = step, dt, dt_crit
+        super().__init__(
+            f"{model} with {integrator} diverged at step {step}: dt = {dt:.4g} s, "
+            f"critical dt = {dt_crit:.4g} s (ratio {dt / dt_crit:.3g})"
+        )
+
+
+class NotConvergedError(RuntimeError):
+    """Damped dynamics did not reach static equilibrium within the step budget."""
+
+
+@nb.njit(**_JIT)
+def _apply_tools(points, tools, t, dt, u, v, tmp):
+    """Set the prescribed components to their value at t and their velocity to the last increment."""
+    vert, mask, tid, kind, vector, axis, center, angle, ramp = tools
+    for p in range(vert.shape[0]):
+        k = tid[p]
+        i = vert[p]
+        _tool_value(points[i], kind[k], vector[k], axis[k], center[k], angle[k], ramp[k], t, tmp)
+        for c in range(3):
+            if mask[p, c] != 0.0:
+                v[i, c] = (tmp[c] - u[i, c]) / dt
+                u[i, c] = tmp[c]
+
+
+@nb.njit(**_JIT)
+def _damped_arg(u, v, beta, w):
+    """w = u + beta v: where the internal force is evaluated (Rayleigh stiffness damping)."""
+    for i in range(u.shape[0]):
+        for c in range(3):
+            w[i, c] = u[i, c] + beta * v[i, c]
+
+
+@nb.njit(**_JIT)
+def _run_symplectic_euler(
+    n, dt, t0, force, data, points, inv_mass, free, fext, tools, alpha, beta, bound, u, v, f, w
+):
+    """n steps of v += dt a(u, v); u += dt v. Returns -1, or the index of the step that blew up."""
+    tmp = np.empty(3)
+    for s in range(n):
+        _damped_arg(u, v, beta, w)
+        force(data, w, f)
+        ok = True
+        for i in range(u.shape[0]):
+            im = inv_mass[i]
+            for c in range(3):
+                if free[i, c] != 0.0:
+                    vi = v[i, c] + dt * ((f[i, c] + fext[i, c]) * im - alpha * v[i, c])
+                    ui = u[i, c] + dt * vi
+                    v[i, c] = vi
+                    u[i, c] = ui
+                    if not abs(ui) < bound:
+                        ok = False
+        _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
+        if not ok:
+            return s
+    return -1
+
+
+@nb.njit(**_JIT)
+def _run_central_difference(
+    n, dt, t0, force, data, points, inv_mass, free, fext, tools, alpha, beta, bound, u, v, a, f, w
+):
+    """n steps of velocity Verlet (central difference): half kick, drift, force, half kick.
+
+    a (N, 3) holds the acceleration at entry and at exit. Damping uses the half-step velocity.
+    """
+    tmp = np.empty(3)
+    h = 0.5 * dt
+    for s in range(n):
+        for i in range(u.shape[0]):
+            for c in range(3):
+                if free[i, c] != 0.0:
+                    v[i, c] += h * a[i, c]
+                    u[i, c] += dt * v[i, c]
+        _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
+        _damped_arg(u, v, beta, w)
+        force(data, w, f)
+        ok = True
+        for i in range(u.shape[0]):
+            im = inv_mass[i]
+            for c in range(3):
+                if free[i, c] != 0.0:
+                    ai = (f[i, c] + fext[i, c]) * im - alpha * v[i, c]
+                    a[i, c] = ai
+                    vi = v[i, c] + h * ai
+                    v[i, c] = vi
+                    if not abs(u[i, c]) < bound:
+                        ok = False
+        if not ok:
+            return s
+    return -1
+
+
+def blowup_bound(model: Model) -> float:
+    """Displacement beyond which a run is declared diverged: 10 x the bounding-box diagonal, m."""
+    return 10.0 * float(np.linalg.norm(model.points.max(axis=0) - model.points.min(axis=0)))
+
+
+def max_eigenvalue(model: Model, u: np.ndarray | None = None, tol: float = 1e-8) -> float:
+    """Largest eigenvalue omega_max^2 (1/s^2) of M^-1 K on the free components.
+
+    K is the stiffness at displacement u (default: rest), applied through the force kernel: exactly
+    for a linear model, by a central difference of the force for a non-linear one. The symmetric form
+    M^-1/2 K M^-1/2 is handed to ARPACK's Lanczos (scipy eigsh), which converges in a few dozen
+    products where plain power iteration needs hundreds and stops below the true value.
+    """
+    n = model.n_vertices
+    u0 = np.zeros((n, 3)) if u is None else np.asarray(u, dtype=float)
+    free = model.loading.free.ravel() != 0.0
+    s = 1.0 / np.sqrt(np.repeat(model.mass, 3))[free]
+    scale = 1e-6 * max(float(np.ptp(model.points, axis=0).max()), 1e-12)
+
+    def matvec(x):
+        z = np.zeros(3 * n)
+        z[free] = s * np.ravel(x)
+        if model.linear and u is None:
+            kz = -model.internal_force(z.reshape(n, 3)).ravel()
+        else:
+            dz = scale / max(float(np.abs(z).max()), 1e-300)
+            fp = model.internal_force(u0 + dz * z.reshape(n, 3))
+            fm = model.internal_force(u0 - dz * z.reshape(n, 3))
+            kz = -(fp - fm).ravel() / (2.0 * dz)
+        return s * kz[free]
+
+    m = int(free.sum())
+    op = spla.LinearOperator((m, m), matvec=matvec, dtype=float)
+    v0 = np.random.default_rng(0).standard_normal(m)
+    val = spla.eigsh(op, k=1, which="LA", tol=tol, v0=v0, return_eigenvectors=False)
+    return float(val[0])
+
+
+def element_critical_dt(model: Model) -> float:
+    """Element estimate min over tetrahedra of L_min / c_p, s (L_min: smallest altitude)."""
+    return float(min_altitudes(model.points, model.tets).min() / model.material.wave_speed)
+
+
+@dataclass
+class Integrator:
+    """Base of the explicit integrators: Rayleigh damping coefficients alpha (1/s), beta (s)."""
+
+    alpha: float = 0.0
+    beta: float = 0.0
+    name = "base"
+
+    def critical_dt(self, model: Model, omega2: float | None = None) -> float:
+        """dt_crit = (2 / omega_max)(sqrt(1 + xi^2) - xi), s. Pass omega2 if already known."""
+        w2 = max_eigenvalue(model) if omega2 is None else omega2
+        w = math.sqrt(w2)
+        xi = 0.5 * (self.alpha / w + self.beta * w)
+        return 2.0 / w * (math.sqrt(1.0 + xi * xi) - xi)
+
+    def _common(self, model: Model, state: State):
+        lo = model.loading
+        inv_mass = 1.0 / model.mass
+        f = np.empty_like(state.u)
+        w = np.empty_like(state.u)
+        return inv_mass, lo.free, lo.external_force, lo.tools_tuple(), f, w
+
+    def _diverged(self, model, state, step, dt, dt_crit):
+        if dt_crit is None:
+            dt_crit = self.critical_dt(model)
+        raise DivergenceError(model.name, step, dt, dt_crit, self.name)
+
+
+class SymplecticEuler(Integrator):
+    """Semi-implicit (symplectic) Euler: v_{n+1} = v_n + dt a(u_n, v_n), u_{n+1} = u_n + dt v_{n+1}."""
+
+    name = "symplectic-euler"
+
+    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None):
+        """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up."""
+        inv_mass, free, fext, tools, f, w = self._common(model, state)
+        bad = _run_symplectic_euler(
+            n, dt, state.t, model.force_kernel, model.data, model.points, inv_mass, free, fext,
+            tools, self.alpha, self.beta, blowup_bound(model), state.u, state.v, f, w,
+        )  # fmt: skip
+        if bad >= 0:
+            self._diverged(model, state, state.steps + bad, dt, dt_crit)
+        state.t += n * dt
+        state.steps += n
+        return state
+
+
+class CentralDifference(Integrator):
+    """Central difference in velocity-Verlet form (second order, explicit)."""
+
+    name = "central-difference"
+
+    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None):
+        """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up."""
+        inv_mass, free, fext, tools, f, w = self._common(model, state)
+        acc = state.acc
+        if acc is None or acc.shape != state.u.shape:
+            f0 = model.internal_force(state.u + self.beta * state.v)
+            acc = ((f0 + fext) * inv_mass[:, None] - self.alpha * state.v) * free
+            state.acc = acc
+        bad = _run_central_difference(
+            n, dt, state.t, model.force_kernel, model.data, model.points, inv_mass, free, fext,
+            tools, self.alpha, self.beta, blowup_bound(model), state.u, state.v, acc, f, w,
+        )  # fmt: skip
+        if bad >= 0:
+            self._diverged(model, state, state.steps + bad, dt, dt_crit)
+        state.t += n * dt
+        state.steps += n
+        return state
+
+
+INTEGRATORS = {cls.name: cls for cls in (SymplecticEuler, CentralDifference)}
+
+
+def make_integrator(name: str, alpha: float = 0.0, beta: float = 0.0) -> Integrator:
+    """An integrator from the registry by name."""
+    try:
+        cls = INTEGRATORS[name]
+    except KeyError:
+        raise ValueError(f"integrator = {name!r}: must be one of {', '.join(INTEGRATORS)}") from None
+    return cls(alpha=alpha, beta=beta)
+
+
+@dataclass
+class StaticResult:
+    """Outcome of ``solve_static``: state at equilibrium, steps taken, final relative residual."""
+
+    state: State
+    steps: int
+    residual: float
+    dt: float
+
+
+def solve_static(
+    model: Model,
+    dt: float | None = None,
+    rtol: float = 1e-10,
+    max_steps: int = 2_000_000,
+    chunk: int = 200,
+    safety: float = 0.9,
+) -> StaticResult:
+    """Static equilibrium under the full loads by damped explicit dynamics (dynamic relaxation).
+
+    Symplectic Euler at dt (default ``safety`` x dt_crit; a dt above dt_crit raises DivergenceError
+    as any explicit run does) with mass damping alpha = 2 omega_1, near critical for
+    the slowest mode. omega_1^2 is re-estimated every ``chunk`` steps by the Rayleigh quotient
+    u.K u / u.M u of the current free displacement (Underwood's adaptive dynamic relaxation): the
+    displacement under a static load is dominated by the lowest mode, so the quotient tends to it.
+    Tools are held at their final value. Converged when the free components' residual
+    |f_int + f_ext| is below rtol times the load scale (|f_ext| and the tools' reaction).
+    """
+    n = model.n_vertices
+    state = State.at_rest(n)
+    lo = model.loading
+    if len(lo.tool_vertex):
+        disp = model.tool_displacement(np.inf)
+        for p, i in enumerate(lo.tool_vertex):
+            state.u[i] = np.where(lo.tool_mask[p] != 0.0, disp[p], state.u[i])
+    free = lo.free
+    omega2 = max_eigenvalue(model)
+    dt_crit = 2.0 / math.sqrt(omega2)
+    dt = safety * dt_crit if dt is None else dt
+    integ = SymplecticEuler(alpha=0.0)
+    alpha = 2.0 * math.sqrt(omega2) * 1e-3
+    taken = 0
+    residual = np.inf
+    fmag = float(np.linalg.norm(lo.external_force * free))
+    while taken < max_steps:
+        integ.alpha = alpha
+        # the tools are already at their final value: hold them there (time far past any ramp)
+        state.t = 1e30
+        integ.step(model, state, dt, chunk, dt_crit=dt_crit)
+        taken += chunk
+        f = model.internal_force(state.u)
+        r = (f + lo.external_force) * free
+        scale = max(fmag, float(np.linalg.norm(model.reaction(state.u))), 1e-300)
+        residual = float(np.linalg.norm(r)) / scale
+        if residual < rtol:
+            break
+        uf = state.u * free
+        den = float(np.sum(model.mass[:, None] * uf * uf))
+        if den > 0.0:
+            rq = float(np.sum(-f * uf)) / den
+            if rq > 0.0:
+                alpha = 2.0 * math.sqrt(min(rq, omega2))
+    else:
+        raise NotConvergedError(
+            f"{model.name}: damped dynamics reached a relative residual of {residual:.2e} "
+            f"(asked {rtol:.1e}) in {taken} steps of {dt:.3g} s"
+        )
+    state.v[:] = 0.0
+    state.t = 0.0
+    state.steps = taken
+    return StaticResult(state=state, steps=taken, residual=residual, dt=dt)

@@ -1,0 +1,185 @@
+"""Material description and every conversion between elastic constants.
+
+This is the one module of ``realtime`` that ``reference`` and ``verification`` import: pure data and
+numpy, so that the ground truth and the real-time engine can never disagree on what a scene's
+``young``/``poisson`` mean.
+
+Conventions (Delingette & Ayache 2004, section 2; any continuum mechanics text):
+
+    lambda = E nu / ((1 + nu)(1 - 2 nu))        first Lame coefficient, Pa
+    mu     = E / (2 (1 + nu))                   shear modulus, Pa
+    E      = mu (3 lambda + 2 mu) / (lambda + mu)
+    nu     = lambda / (2 (lambda + mu))
+    K      = E / (3 (1 - 2 nu))                 bulk modulus, Pa
+    M      = lambda + 2 mu                      P-wave (oedometric) modulus, Pa
+    c_p    = sqrt(M / rho)                      dilatational wave speed, m/s
+
+Transversely isotropic materials (Picinbono, Delingette & Ayache 2003) add to the isotropic energy
+density the terms ``dlambda/2 (a.E a)^2 + dmu (a.E^2 a)`` for a unit fibre direction ``a``. The scene
+gives ``young_fiber``, the Young's modulus measured in uniaxial stress along the fibre. For small
+strains the stiffness along ``a`` is then exactly ``E + dlambda`` (the lateral Poisson coupling is
+unchanged because dlambda only touches the ``aaaa`` component), so this module defines
+
+    dlambda = young_fiber - young,   dmu = 0,
+
+which makes ``young_fiber`` mean what its name says. ``fiber_shear`` (dmu) can be given directly.
+
+The volume penalty (Picinbono 2003, "incompressibility constraint") is the energy-consistent term
+``volume_penalty/2 (J - 1)^2`` per unit reference volume, J = det F, coefficient in Pa.
+"""
+
+from __future__ import annotations
+
+import math
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+LAWS = ("linear", "stvk")
+
+
+class MaterialError(ValueError):
+    """An elastic constant outside its physical range; the message names it and its value."""
+
+
+def lame_lambda(young: float, poisson: float) -> float:
+    """First Lame coefficient lambda = E nu / ((1 + nu)(1 - 2 nu)), Pa."""
+    return young * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
+
+
+def shear_modulus(young: float, poisson: float) -> float:
+    """Shear modulus mu = E / (2 (1 + nu)), Pa."""
+    return young / (2.0 * (1.0 + poisson))
+
+
+def young_from_lame(lam: float, mu: float) -> float:
+    """Young's modulus E = mu (3 lambda + 2 mu) / (lambda + mu), Pa."""
+    return mu * (3.0 * lam + 2.0 * mu) / (lam + mu)
+
+
+def poisson_from_lame(lam: float, mu: float) -> float:
+    """Poisson's ratio nu = lambda / (2 (lambda + mu))."""
+    return lam / (2.0 * (lam + mu))
+
+
+def bulk_modulus(young: float, poisson: float) -> float:
+    """Bulk modulus K = E / (3 (1 - 2 nu)), Pa."""
+    return young / (3.0 * (1.0 - 2.0 * poisson))
+
+
+def p_wave_modulus(young: float, poisson: float) -> float:
+    """P-wave modulus lambda + 2 mu = E (1 - nu) / ((1 + nu)(1 - 2 nu)), Pa."""
+    return young * (1.0 - poisson) / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
+
+
+def fiber_lambda(young: float, young_fiber: float) -> float:
+    """Picinbono's extra fibre coefficient dlambda = young_fiber - young, Pa (see module docstring)."""
+    return young_fiber - young
+
+
+def check_elastic_constants(young: float, poisson: float, density: float | None = None) -> None:
+    """Raise MaterialError unless E > 0, -1 < nu < 0.5 and (if given) rho > 0."""
+    if not (math.isfinite(young) and young > 0.0):
+        raise MaterialError(f"young = {young!r}: Young's modulus must be a positive number of Pa")
+    if not (math.isfinite(poisson) and -1.0 < poisson < 0.5):
+        raise MaterialError(
+            f"poisson = {poisson!r}: Poisson's ratio must lie in (-1, 0.5); 0.5 is incompressible, "
+            "which a displacement formulation cannot represent (use 0.4999 or volume_penalty)"
+        )
+    if density is not None and not (math.isfinite(density) and density > 0.0):
+        raise MaterialError(f"density = {density!r}: must be a positive number of kg/m^3")
+
+
+@dataclass(frozen=True)
+class Material:
+    """An elastic material in SI units.
+
+    Attributes:
+        young: Young's modulus E, Pa.
+        poisson: Poisson's ratio nu, dimensionless, in (-1, 0.5).
+        density: mass density rho, kg/m^3.
+        law: continuum model of the ground truth, "linear" or "stvk".
+        fiber: unit fibre direction a (3,) for a transversely isotropic material, or None.
+        young_fiber: Young's modulus along the fibre, Pa (None: isotropic).
+        fiber_shear: Picinbono's dmu, Pa (0 unless given).
+        volume_penalty: coefficient of the energy volume_penalty/2 (J - 1)^2, Pa.
+    """
+
+    young: float
+    poisson: float
+    density: float
+    law: str = "linear"
+    fiber: tuple[float, float, float] | None = None
+    young_fiber: float | None = None
+    fiber_shear: float = 0.0
+    volume_penalty: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_elastic_constants(self.young, self.poisson, self.density)
+        if self.law not in LAWS:
+            raise MaterialError(f"law = {self.law!r}: must be one of {', '.join(LAWS)}")
+        if self.volume_penalty < 0.0 or not math.isfinite(self.volume_penalty):
+            raise MaterialError(f"volume_penalty = {self.volume_penalty!r}: must be >= 0 Pa")
+        if (self.fiber is None) != (self.young_fiber is None):
+            raise MaterialError("fiber and young_fiber go together: give both or neither")
+        if self.fiber is not None:
+            a = np.asarray(self.fiber, dtype=float)
+            norm = float(np.linalg.norm(a))
+            if a.shape != (3,) or not norm > 0.0:
+                raise MaterialError(f"fiber = {self.fiber!r}: must be a non-zero 3-vector")
+            object.__setattr__(self, "fiber", tuple(float(x) for x in a / norm))
+            if not (self.young_fiber > 0.0):
+                raise MaterialError(f"young_fiber = {self.young_fiber!r}: must be > 0 Pa")
+
+    @property
+    def lam(self) -> float:
+        """First Lame coefficient, Pa."""
+        return lame_lambda(self.young, self.poisson)
+
+    @property
+    def mu(self) -> float:
+        """Shear modulus, Pa."""
+        return shear_modulus(self.young, self.poisson)
+
+    @property
+    def dlam(self) -> float:
+        """Fibre coefficient dlambda, Pa (0 for an isotropic material)."""
+        return 0.0 if self.young_fiber is None else fiber_lambda(self.young, self.young_fiber)
+
+    @property
+    def dmu(self) -> float:
+        """Fibre shear coefficient dmu, Pa (0 for an isotropic material)."""
+        return 0.0 if self.fiber is None else self.fiber_shear
+
+    @property
+    def fiber_vector(self) -> np.ndarray:
+        """Unit fibre direction (3,) float64; zeros for an isotropic material."""
+        return np.zeros(3) if self.fiber is None else np.asarray(self.fiber, dtype=float)
+
+    @property
+    def wave_speed(self) -> float:
+        """Largest dilatational wave speed c_p = sqrt(max modulus / rho), m/s.
+
+        Includes the fibre stiffening and the volume penalty, which both raise the P-wave modulus.
+        """
+        modulus = p_wave_modulus(self.young, self.poisson) + max(self.dlam, 0.0)
+        modulus += 2.0 * max(self.dmu, 0.0) + self.volume_penalty
+        return math.sqrt(modulus / self.density)
+
+    def replace(self, **changes) -> Material:
+        """A copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    def as_dict(self) -> dict:
+        """JSON-ready description, for result metadata and hashing."""
+        return {
+            "young": self.young,
+            "poisson": self.poisson,
+            "density": self.density,
+            "law": self.law,
+            "fiber": list(self.fiber) if self.fiber is not None else None,
+            "young_fiber": self.young_fiber,
+            "fiber_shear": self.fiber_shear,
+            "volume_penalty": self.volume_penalty,
+        }

@@ -1,0 +1,214 @@
+"""Immutable model, mutable state, and the loading they share (after NVIDIA Warp's old warp.sim).
+
+A ``Model`` is built once (``realtime.build_model``) and never changes during a run: rest positions,
+tetrahedra, lumped masses, the material, the model's force kernel with its precomputed data, and the
+``Loading`` (constraints, external forces, tools). A ``State`` is what an integrator advances:
+displacements, velocities, time. Nothing in a Model refers to a State, so one model can drive many
+states (a sweep over time steps, a haptic thread beside a visual one).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numba as nb
+import numpy as np
+
+from .geometry import check_tets, lumped_volumes
+from .material import Material
+
+_JIT = dict(nogil=True, cache=True)
+
+TOOL_TRANSLATION = 0
+TOOL_ROTATION = 1
+
+
+@dataclass(frozen=True)
+class Loading:
+    """Constraints and loads on a mesh of N vertices with L tools touching P vertices in all.
+
+    Attributes:
+        free: (N, 3) float64, 1.0 where the component moves freely, 0.0 where it is fixed or prescribed.
+        external_force: (N, 3) float64, N; constant nodal forces (gravity, forces, tractions).
+        tool_vertex: (P,) int64 vertices driven by tools.
+        tool_mask: (P, 3) float64, 1.0 on the prescribed components of that vertex.
+        tool_id: (P,) int64, which tool drives the vertex.
+        tool_kind: (L,) int64, TOOL_TRANSLATION or TOOL_ROTATION.
+        tool_vector: (L, 3) float64, final translation, m (translations).
+        tool_axis: (L, 3) float64, unit rotation axis (rotations).
+        tool_center: (L, 3) float64, point on the axis, m (rotations).
+        tool_angle: (L,) float64, final angle, rad (rotations).
+        tool_ramp: (L,) float64, s; the tool moves linearly in time (the angle, for rotations) and holds
+            its final value from t = ramp on; 0 means applied at once.
+    """
+
+    free: np.ndarray
+    external_force: np.ndarray
+    tool_vertex: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    tool_mask: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    tool_id: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    tool_kind: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    tool_vector: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    tool_axis: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    tool_center: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    tool_angle: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tool_ramp: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @staticmethod
+    def free_body(n_vertices: int) -> Loading:
+        """No constraint and no load."""
+        return Loading(free=np.ones((n_vertices, 3)), external_force=np.zeros((n_vertices, 3)))
+
+    def tools_tuple(self):
+        """The tool arrays in the order the integrator kernels take them."""
+        return (
+            self.tool_vertex,
+            self.tool_mask,
+            self.tool_id,
+            self.tool_kind,
+            self.tool_vector,
+            self.tool_axis,
+            self.tool_center,
+            self.tool_angle,
+            self.tool_ramp,
+        )
+
+
+@dataclass
+class State:
+    """What an integrator advances.
+
+    Attributes:
+        u: (N, 3) float64 displacement from the rest positions, m.
+        v: (N, 3) float64 velocity, m/s.
+        t: time, s.
+        steps: number of steps taken.
+        acc: (N, 3) float64 acceleration, m/s^2, kept by integrators that need it between calls
+            (central difference); None until the first step. Set it to None after changing u or v.
+    """
+
+    u: np.ndarray
+    v: np.ndarray
+    t: float = 0.0
+    steps: int = 0
+    acc: np.ndarray | None = None
+
+    @staticmethod
+    def at_rest(n_vertices: int) -> State:
+        return State(u=np.zeros((n_vertices, 3)), v=np.zeros((n_vertices, 3)))
+
+    def copy(self) -> State:
+        acc = None if self.acc is None else self.acc.copy()
+        return State(self.u.copy(), self.v.copy(), self.t, self.steps, acc)
+
+
+@dataclass(frozen=True)
+class Model:
+    """A real-time model, ready to step.
+
+    Attributes:
+        name: registry name ("linear-tm", ...).
+        points: (N, 3) float64 rest positions, m.
+        tets: (M, 4) int64, positively oriented.
+        material: the Material.
+        mass: (N,) float64 lumped masses, kg (rho V / 4 from each tetrahedron).
+        loading: constraints and loads.
+        force_kernel: numba function ``force(data, u, f)`` writing the internal force (N, 3), N.
+        energy_kernel: numba function ``energy(data, u) -> float`` elastic energy, J.
+        data: the tuple of arrays the kernels take.
+        linear: True if the internal force is linear in u (the stiffness never changes).
+        extra: model-specific objects (for example the TensorMass, for cutting).
+    """
+
+    name: str
+    points: np.ndarray
+    tets: np.ndarray
+    material: Material
+    mass: np.ndarray
+    loading: Loading
+    force_kernel: Callable
+    energy_kernel: Callable
+    data: tuple
+    linear: bool
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.points)
+
+    def internal_force(self, u: np.ndarray) -> np.ndarray:
+        """Internal elastic force (N, 3) float64, N, at displacement u (N, 3) m."""
+        f = np.empty_like(u, dtype=float)
+        self.force_kernel(self.data, np.ascontiguousarray(u, dtype=float), f)
+        return f
+
+    def elastic_energy(self, u: np.ndarray) -> float:
+        """Elastic energy, J, at displacement u (N, 3) m."""
+        return float(self.energy_kernel(self.data, np.ascontiguousarray(u, dtype=float)))
+
+    def kinetic_energy(self, v: np.ndarray) -> float:
+        """Kinetic energy sum m |v|^2 / 2, J, for velocities v (N, 3) m/s."""
+        return float(0.5 * np.sum(self.mass[:, None] * v * v))
+
+    def tool_displacement(self, t: float) -> np.ndarray:
+        """Prescribed displacements (P, 3) m of the tool vertices at time t (s)."""
+        out = np.zeros((len(self.loading.tool_vertex), 3))
+        _tool_displacements(self.points, self.loading.tools_tuple(), t, out)
+        return out
+
+    def reaction(self, u: np.ndarray) -> np.ndarray:
+        """Total force (3,) N the tools exert on the body at static equilibrium.
+
+        On a prescribed component the body's equation reads 0 = f_int + f_ext + R, so the tools'
+        force is R = -(f_int + f_ext) summed over their components. (In a dynamic run this is the
+        quasi-static reaction; the tool's own inertia term m a is left out.)
+        """
+        lo = self.loading
+        if len(lo.tool_vertex) == 0:
+            return np.zeros(3)
+        f = self.internal_force(u) + lo.external_force
+        return -np.sum(f[lo.tool_vertex] * lo.tool_mask, axis=0)
+
+
+def lumped_masses(points: np.ndarray, tets: np.ndarray, density: float) -> np.ndarray:
+    """rho V / 4 of each tetrahedron given to each of its vertices, (N,) float64, kg."""
+    return density * lumped_volumes(points, tets)
+
+
+def prepare_mesh(points, tets) -> tuple[np.ndarray, np.ndarray]:
+    """Contiguous float64 points and int64 tets, validated (raises InvalidMeshError)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    tets = np.ascontiguousarray(tets, dtype=np.int64)
+    check_tets(points, tets)
+    return points, tets
+
+
+@nb.njit(**_JIT)
+def _tool_value(X, kind, vector, axis, center, angle, ramp, t, out):
+    """Displacement (3,) of rest point X (3,) under one tool at time t; written to out (3,)."""
+    s = 1.0 if ramp <= 0.0 else min(t / ramp, 1.0)
+    if kind == 0:
+        for c in range(3):
+            out[c] = s * vector[c]
+        return
+    th = s * angle
+    ct, st = np.cos(th), np.sin(th)
+    r0, r1, r2 = X[0] - center[0], X[1] - center[1], X[2] - center[2]
+    k0, k1, k2 = axis[0], axis[1], axis[2]
+    kd = k0 * r0 + k1 * r1 + k2 * r2
+    # Rodrigues: R r = r cos + (k x r) sin + k (k . r)(1 - cos)
+    x0 = r0 * ct + (k1 * r2 - k2 * r1) * st + k0 * kd * (1.0 - ct)
+    x1 = r1 * ct + (k2 * r0 - k0 * r2) * st + k1 * kd * (1.0 - ct)
+    x2 = r2 * ct + (k0 * r1 - k1 * r0) * st + k2 * kd * (1.0 - ct)
+    out[0] = x0 - r0
+    out[1] = x1 - r1
+    out[2] = x2 - r2
+
+
+@nb.njit(**_JIT)
+def _tool_displacements(points, tools, t, out):
+    vert, mask, tid, kind, vector, axis, center, angle, ramp = tools
+    for p in range(vert.shape[0]):
+        k = tid[p]
+        _tool_value(points[vert[p]], kind[k], vector[k], axis[k], center[k], angle[k], ramp[k], t, out[p])

@@ -1,0 +1,152 @@
+"""Linear tensor-mass model (Cotin, Delingette & Ayache 2000; Delingette & Ayache 2004, sec. 3).
+
+The P1 stiffness of a tetrahedron T couples its vertices a, b through the 3x3 block
+
+    K^T_ab = V_T  sum_qs C_pqrs  g_a,q  g_b,s            (p, r the block's row and column)
+
+with g_a the gradient of the barycentric function of vertex a and C the linear elasticity tensor
+(isotropic: K_ab = V (lam g_a g_b^T + mu g_b g_a^T + mu (g_a . g_b) I)). Summing over the tetrahedra
+around a vertex gives the *vertex tensor* T_ii and around an edge (i < j) the *edge tensor* T_ij; the
+internal force is
+
+    f_i = -T_ii u_i - sum_{j > i} T_ij u_j - sum_{j < i} T_ji^T u_i
+
+i.e. f = -K u with K the assembled P1 stiffness, stored once per edge (half of a symmetric block
+sparse matrix). The tensors are kept per tetrahedron too, so that removing tetrahedra (cutting)
+subtracts exactly their contribution from the touched vertices and edges.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+import scipy.sparse as sp
+
+from .geometry import shape_gradients, unique_edges
+from .laws import linear_elasticity_tensor
+from .material import Material
+
+_JIT = dict(nogil=True, cache=True)
+
+#: Local edges of a tetrahedron, in the order of TetraTensors.tet_edges' columns.
+LOCAL_EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
+
+
+def element_stiffness(points: np.ndarray, tets: np.ndarray, material: Material) -> np.ndarray:
+    """P1 linear stiffness blocks of every tetrahedron, (M, 4, 4, 3, 3) float64, N/m.
+
+    ke[e, a, b] is the 3x3 block coupling local vertex a (rows) to local vertex b (columns).
+    """
+    grads, vol = shape_gradients(points, tets)
+    C = linear_elasticity_tensor(
+        material.lam, material.mu, material.fiber_vector, material.dlam, material.dmu
+    )
+    return np.einsum("e,pqrs,eaq,ebs->eabpr", vol, C, grads, grads, optimize=True)
+
+
+def edge_index(edges: np.ndarray, n_vertices: int, pairs: np.ndarray) -> np.ndarray:
+    """Index into ``edges`` (E, 2 sorted) of each vertex pair (K, 2); -1 where no such edge."""
+    lo = np.minimum(pairs[:, 0], pairs[:, 1]).astype(np.int64)
+    hi = np.maximum(pairs[:, 0], pairs[:, 1]).astype(np.int64)
+    keys = edges[:, 0] * n_vertices + edges[:, 1]
+    want = lo * n_vertices + hi
+    pos = np.searchsorted(keys, want)
+    pos = np.minimum(pos, len(keys) - 1)
+    return np.where(keys[pos] == want, pos, -1)
+
+
+class TensorMass:
+    """Vertex and edge stiffness tensors of a tetrahedral mesh.
+
+    Attributes:
+        n_vertices: N.
+        edges: (E, 2) int64, edges[:, 0] < edges[:, 1].
+        vertex_tensors: (N, 3, 3) float64, N/m: T_ii.
+        edge_tensors: (E, 3, 3) float64, N/m: T_ij for edge (i, j), i < j.
+        tet_edges: (M, 6) int64, the edge index of each local edge (LOCAL_EDGES order).
+        ke: (M, 4, 4, 3, 3) float64, the element blocks, kept for local updates (cutting).
+    """
+
+    def __init__(self, points: np.ndarray, tets: np.ndarray, material: Material):
+        self.n_vertices = len(points)
+        self.tets = np.asarray(tets, dtype=np.int64)
+        self.edges = unique_edges(self.tets)
+        self.ke = element_stiffness(points, self.tets, material)
+        pairs = self.tets[:, LOCAL_EDGES]  # (M, 6, 2)
+        self.tet_edges = edge_index(self.edges, self.n_vertices, pairs.reshape(-1, 2)).reshape(-1, 6)
+        self.vertex_tensors = np.zeros((self.n_vertices, 3, 3))
+        self.edge_tensors = np.zeros((len(self.edges), 3, 3))
+        self._scatter(np.arange(len(self.tets)), +1.0)
+
+    def _scatter(self, which: np.ndarray, sign: float) -> None:
+        """Add (sign=+1) or remove (sign=-1) the blocks of tetrahedra ``which`` (K,) int."""
+        tets, ke = self.tets[which], self.ke[which]
+        for a in range(4):
+            np.add.at(self.vertex_tensors, tets[:, a], sign * ke[:, a, a])
+        for k, (a, b) in enumerate(LOCAL_EDGES):
+            # block (lo, hi): K_ab if tets[a] < tets[b], else K_ba = K_ab^T
+            swap = tets[:, a] > tets[:, b]
+            block = np.where(swap[:, None, None], ke[:, b, a], ke[:, a, b])
+            np.add.at(self.edge_tensors, self.tet_edges[which, k], sign * block)
+
+    def matrix(self) -> sp.csr_matrix:
+        """The assembled stiffness K (3N, 3N) as scipy CSR, N/m (dof 3 i + c)."""
+        n = self.n_vertices
+        i = np.concatenate([np.arange(n), self.edges[:, 0], self.edges[:, 1]])
+        j = np.concatenate([np.arange(n), self.edges[:, 1], self.edges[:, 0]])
+        blocks = np.concatenate(
+            [self.vertex_tensors, self.edge_tensors, self.edge_tensors.transpose(0, 2, 1)]
+        )
+        rows = (3 * i[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
+        cols = (3 * j[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
+        K = sp.coo_matrix((blocks.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n, 3 * n))
+        return K.tocsr()
+
+    def kernel_data(self):
+        """The tuple the force kernel ``linear_tm_force`` takes (contiguous, cache-friendly)."""
+        return (
+            np.ascontiguousarray(self.vertex_tensors),
+            np.ascontiguousarray(self.edges),
+            np.ascontiguousarray(self.edge_tensors),
+        )
+
+
+@nb.njit(**_JIT)
+def linear_tm_force(data, u, f):
+    """f = -K u from vertex and edge tensors.
+
+    data: (vertex_tensors (N,3,3) N/m, edges (E,2) int64, edge_tensors (E,3,3) N/m)
+    u: (N, 3) float64 displacement, m.   f: (N, 3) float64 output force, N (overwritten).
+    """
+    vt, edges, et = data
+    n = u.shape[0]
+    for i in range(n):
+        u0, u1, u2 = u[i, 0], u[i, 1], u[i, 2]
+        for r in range(3):
+            f[i, r] = -(vt[i, r, 0] * u0 + vt[i, r, 1] * u1 + vt[i, r, 2] * u2)
+    for e in range(edges.shape[0]):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        ui0, ui1, ui2 = u[i, 0], u[i, 1], u[i, 2]
+        uj0, uj1, uj2 = u[j, 0], u[j, 1], u[j, 2]
+        for r in range(3):
+            f[i, r] -= et[e, r, 0] * uj0 + et[e, r, 1] * uj1 + et[e, r, 2] * uj2
+            f[j, r] -= et[e, 0, r] * ui0 + et[e, 1, r] * ui1 + et[e, 2, r] * ui2
+
+
+@nb.njit(**_JIT)
+def linear_tm_energy(data, u):
+    """Elastic energy u^T K u / 2, J, for the same data and u as linear_tm_force."""
+    vt, edges, et = data
+    w = 0.0
+    for i in range(u.shape[0]):
+        for r in range(3):
+            for c in range(3):
+                w += 0.5 * u[i, r] * vt[i, r, c] * u[i, c]
+    for e in range(edges.shape[0]):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        for r in range(3):
+            for c in range(3):
+                w += u[i, r] * et[e, r, c] * u[j, c]
+    return w

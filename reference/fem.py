@@ -1,0 +1,325 @@
+"""Every dolfinx call of tissuebench, in one module (dolfinx 0.5.2, Debian's python3-dolfinx).
+
+A port to dolfinx 0.9/0.10 (where VectorFunctionSpace, u.vector and NewtonSolver changed) touches this
+file only. The rest of ``reference`` hands it a mesh, a material and a ``Problem`` and gets numpy
+arrays back.
+
+Solvers are chosen on purpose: LU by MUMPS (PETSc's own LU is four times slower on a 40k-dof P2
+Jacobian), named in ``solver_options`` and so in every result's metadata.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import ufl
+from dolfinx import fem, geometry
+from dolfinx import mesh as dmesh
+from dolfinx.fem.petsc import LinearProblem, NonlinearProblem
+from dolfinx.nls.petsc import NewtonSolver
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from meshes.tetmesh import TetMesh
+from realtime.material import Material
+
+from .materials import LAWS, volume_penalty_energy
+from .problem import Force, Problem, Traction
+
+LU_OPTIONS = {"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}
+
+
+class ReferenceSolveError(RuntimeError):
+    """The reference could not solve (Newton failed at a load fraction, a singular system...)."""
+
+
+def dolfinx_mesh(mesh: TetMesh, comm=MPI.COMM_WORLD, refine: int = 0):
+    """A distributed dolfinx mesh of a TetMesh (rank 0 holds the input), refined ``refine`` times
+    uniformly (each tetrahedron into eight)."""
+    domain_el = ufl.Mesh(ufl.VectorElement("Lagrange", "tetrahedron", 1))
+    if comm.rank == 0:
+        x, cells = mesh.points, mesh.tets
+    else:
+        x, cells = np.zeros((0, 3)), np.zeros((0, 4), dtype=np.int64)
+    domain = dmesh.create_mesh(comm, cells, x, domain_el)
+    for _ in range(refine):
+        domain.topology.create_entities(1)
+        domain = dmesh.refine(domain)
+    return domain
+
+
+def _marker(region, mesh: TetMesh):
+    """A dolfinx marker (x (3, K) -> bool (K,)) from a region, with the scene mesh for tags."""
+    return lambda x: region.contains(np.ascontiguousarray(x.T), mesh)
+
+
+@dataclass
+class Solution:
+    """What a reference solve returns (numpy arrays on every rank)."""
+
+    values: np.ndarray  # (K, 3) displacement at the requested points, m
+    reaction: np.ndarray  # (3,) total force of the tools on the body, N
+    info: dict  # dofs, iterations, residuals, timings, solver options
+
+
+class ElasticityProblem:
+    """A static elasticity problem discretised by dolfinx.
+
+    Args:
+        mesh: the scene's TetMesh (the coarse geometry; regions with tags refer to it).
+        material: the Material; ``material.law`` picks the energy (linear or stvk).
+        problem: constraints and loads.
+        degree: Lagrange degree, 1 or 2.
+        refine: uniform refinements of the mesh before discretising.
+        comm: MPI communicator.
+    """
+
+    def __init__(self, mesh: TetMesh, material: Material, problem: Problem, degree: int = 1,
+                 refine: int = 0, comm=MPI.COMM_WORLD):
+        self.mesh, self.material, self.problem = mesh, material, problem
+        self.degree, self.refine, self.comm = degree, refine, comm
+        t0 = time.perf_counter()
+        self.domain = dolfinx_mesh(mesh, comm, refine)
+        self.V = fem.VectorFunctionSpace(self.domain, ("Lagrange", degree))
+        self.u = fem.Function(self.V, name="displacement")
+        self.load_factor = fem.Constant(self.domain, PETSc.ScalarType(1.0))
+        self._tool_functions = []
+        self.bcs = self._boundary_conditions()
+        self.residual = self._residual_form()
+        self.timings = {"setup_s": time.perf_counter() - t0}
+
+    # ---- forms ----
+
+    def _constant(self, value):
+        return fem.Constant(self.domain, PETSc.ScalarType(value))
+
+    def energy_density(self, F):
+        m = self.material
+        a = ufl.as_vector(m.fiber_vector.tolist())
+        psi = LAWS[m.law](F, self._constant(m.lam), self._constant(m.mu), a, self._constant(m.dlam), self._constant(m.dmu))
+        if m.volume_penalty > 0.0:
+            psi += volume_penalty_energy(F, self._constant(m.volume_penalty))
+        return psi
+
+    def first_piola(self, u):
+        F = ufl.variable(ufl.Identity(3) + ufl.grad(u))
+        return ufl.diff(self.energy_density(F), F)
+
+    def _residual_form(self):
+        v = ufl.TestFunction(self.V)
+        rho = self._constant(self.material.density)
+        residual = ufl.inner(self.first_piola(self.u), ufl.grad(v)) * ufl.dx
+        g = self.problem.gravity()
+        if np.any(g != 0.0):
+            residual -= self.load_factor * rho * ufl.inner(self._constant(tuple(g)), v) * ufl.dx
+        surface_loads = [ld for ld in self.problem.loads if isinstance(ld, (Force, Traction))]
+        if surface_loads:
+            fdim = 2
+            self.domain.topology.create_connectivity(fdim, 3)
+            facets, values = [], []
+            for k, ld in enumerate(surface_loads, start=1):
+                f = dmesh.locate_entities_boundary(self.domain, fdim, _marker(ld.region, self.mesh))
+                facets.append(f)
+                values.append(np.full(len(f), k, dtype=np.int32))
+            facets = np.concatenate(facets)
+            order = np.argsort(facets)
+            tags = dmesh.meshtags(self.domain, fdim, facets[order], np.concatenate(values)[order])
+            ds = ufl.Measure("ds", domain=self.domain, subdomain_data=tags)
+            for k, ld in enumerate(surface_loads, start=1):
+                area = self.comm.allreduce(fem.assemble_scalar(fem.form(self._constant(1.0) * ds(k))), op=MPI.SUM)
+                if area <= 0.0:
+                    raise ReferenceSolveError(f"{type(ld).__name__.lower()} load {ld.region.describe()}: no boundary face in the region")
+                t = np.asarray(ld.value, dtype=float)
+                if isinstance(ld, Force):
+                    t = t / area  # a total force spread as a uniform traction
+                residual -= self.load_factor * ufl.inner(self._constant(tuple(t)), v) * ds(k)
+        return residual
+
+    # ---- boundary conditions ----
+
+    def _component_dofs(self, region, c):
+        Vc, _ = self.V.sub(c).collapse()
+        dofs = fem.locate_dofs_geometrical((self.V.sub(c), Vc), _marker(region, self.mesh))
+        return Vc, dofs
+
+    def _boundary_conditions(self):
+        bcs = []
+        for fx in self.problem.fixed:
+            for c, name in enumerate("xyz"):
+                if name in fx.components:
+                    Vc, dofs = self._component_dofs(fx.region, c)
+                    zero = fem.Function(Vc)
+                    bcs.append(fem.dirichletbc(zero, dofs, self.V.sub(c)))
+        self.tool_dofs = []
+        for tool in self.problem.tools:
+            for c, name in enumerate("xyz"):
+                if name in tool.components:
+                    Vc, dofs = self._component_dofs(tool.region, c)
+                    g = fem.Function(Vc)
+                    self._tool_functions.append((tool, c, g))
+                    bcs.append(fem.dirichletbc(g, dofs, self.V.sub(c)))
+                    self.tool_dofs.append((c, dofs[:, 0]))
+        self.set_tool_fraction(1.0)
+        return bcs
+
+    def set_tool_fraction(self, s: float) -> None:
+        """Move every tool to fraction s of its final displacement (angle, for rotations)."""
+        for tool, c, g in self._tool_functions:
+            g.interpolate(lambda x, tool=tool, c=c: tool.at_fraction(x.T, s)[:, c])
+
+    # ---- solves ----
+
+    def solve_linear(self, petsc_options=None) -> dict:
+        """One linear solve (law = linear): K u = f with the Dirichlet conditions."""
+        if self.material.law != "linear" or self.material.volume_penalty > 0.0:
+            raise ValueError("solve_linear needs law = linear and no volume penalty; use solve_newton")
+        opts = dict(LU_OPTIONS if petsc_options is None else petsc_options)
+        du = ufl.TrialFunction(self.V)
+        zero = fem.Function(self.V)
+        a = ufl.replace(ufl.derivative(self.residual, self.u, du), {self.u: zero})
+        L = -ufl.replace(self.residual, {self.u: zero})
+        t0 = time.perf_counter()
+        problem = LinearProblem(a, L, bcs=self.bcs, u=self.u, petsc_options=opts)
+        problem.solve()
+        reason = problem.solver.getConvergedReason()
+        if reason < 0:
+            raise ReferenceSolveError(f"linear solve failed: PETSc converged reason {reason}")
+        self.timings["solve_s"] = time.perf_counter() - t0
+        return {"solver": "linear", "petsc_options": opts, "iterations": 1}
+
+    def solve_newton(self, steps: int = 1, rtol: float = 1e-10, max_it: int = 25, min_increment: float = 1e-4,
+                     petsc_options=None) -> dict:
+        """Newton with load stepping and step halving on failure (the load fraction goes 0 -> 1).
+
+        Convergence: the norm of the Newton increment below rtol times the norm of the solution.
+        Raises ReferenceSolveError naming the load fraction at which the increment became smaller
+        than ``min_increment``.
+        """
+        opts = dict(LU_OPTIONS if petsc_options is None else petsc_options)
+        du = ufl.TrialFunction(self.V)
+        J = ufl.derivative(self.residual, self.u, du)
+        problem = NonlinearProblem(self.residual, self.u, self.bcs, J)
+        solver = NewtonSolver(self.comm, problem)
+        solver.convergence_criterion = "incremental"
+        solver.rtol = rtol
+        solver.atol = 1e-300
+        solver.max_it = max_it
+        solver.report = False
+        ksp = solver.krylov_solver
+        prefix = ksp.getOptionsPrefix() or ""
+        popts = PETSc.Options()
+        for k, val in opts.items():
+            popts[f"{prefix}{k}"] = val
+        ksp.setFromOptions()
+        t0 = time.perf_counter()
+        done, inc = 0.0, 1.0 / steps
+        history = []
+        while done < 1.0 - 1e-14:
+            target = min(1.0, done + inc)
+            saved = self.u.x.array.copy()
+            self.load_factor.value = target
+            self.set_tool_fraction(target)
+            try:
+                its, ok = solver.solve(self.u)
+            except RuntimeError:
+                its, ok = max_it, False
+            if ok and np.all(np.isfinite(self.u.x.array)):
+                history.append({"load": target, "iterations": int(its)})
+                done = target
+                inc = min(2.0 * inc, 1.0)
+            else:
+                self.u.x.array[:] = saved
+                inc *= 0.5
+                if inc < min_increment:
+                    raise ReferenceSolveError(
+                        f"Newton did not converge at load fraction {target:.4g} (from {done:.4g}) "
+                        f"with increments down to {inc:.2e}"
+                    )
+        self.timings["solve_s"] = time.perf_counter() - t0
+        return {"solver": "newton", "petsc_options": opts, "load_steps": history,
+                "iterations": sum(h["iterations"] for h in history), "rtol": rtol}
+
+    def solve(self, **kwargs) -> dict:
+        """solve_linear for the linear law without penalty, solve_newton otherwise."""
+        if self.material.law == "linear" and self.material.volume_penalty == 0.0:
+            return self.solve_linear(petsc_options=kwargs.get("petsc_options"))
+        return self.solve_newton(**kwargs)
+
+    # ---- post-processing (MPI-safe) ----
+
+    @property
+    def n_dofs(self) -> int:
+        return self.V.dofmap.index_map.size_global * self.V.dofmap.index_map_bs
+
+    def evaluate(self, points: np.ndarray, function=None) -> np.ndarray:
+        """Values (K, 3) of the displacement at points (K, 3) m, on every rank.
+
+        Each rank evaluates the points inside its cells; a sum over ranks with a count divides out the
+        points found on two ranks (the field is continuous, so their values agree).
+        """
+        u = self.u if function is None else function
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        tree = geometry.BoundingBoxTree(self.domain, 3)
+        cand = geometry.compute_collisions(tree, pts)
+        cells = geometry.compute_colliding_cells(self.domain, cand, pts)
+        found = np.array([len(cells.links(i)) > 0 for i in range(len(pts))], dtype=bool)
+        vals = np.zeros((len(pts), 3))
+        if found.any():
+            idx = np.flatnonzero(found)
+            first = np.array([cells.links(i)[0] for i in idx], dtype=np.int32)
+            vals[idx] = u.eval(pts[idx], first)
+        total = np.zeros_like(vals)
+        count = np.zeros(len(pts))
+        self.comm.Allreduce(vals, total, op=MPI.SUM)
+        self.comm.Allreduce(found.astype(float), count, op=MPI.SUM)
+        if np.any(count == 0):
+            bad = int(np.argmax(count == 0))
+            raise ReferenceSolveError(f"point {bad} {pts[bad]} lies outside the reference mesh")
+        return total / count[:, None]
+
+    def reaction(self) -> np.ndarray:
+        """Total force (3,) N the tools exert on the body: the residual summed over their dofs."""
+        if not self.tool_dofs:
+            return np.zeros(3)
+        r = fem.petsc.assemble_vector(fem.form(self.residual))
+        r.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        arr = r.array_r
+        n_owned = self.V.dofmap.index_map.size_local * self.V.dofmap.index_map_bs
+        out = np.zeros(3)
+        seen = set()
+        for c, dofs in self.tool_dofs:
+            own = dofs[dofs < n_owned]
+            new = [d for d in own if d not in seen]  # a vertex in two tools counts once
+            seen.update(new)
+            out[c] += float(np.sum(arr[np.asarray(new, dtype=np.int64)])) if new else 0.0
+        return self.comm.allreduce(out, op=MPI.SUM)
+
+    def stiffness_matrix(self):
+        """Serial only: the stiffness at u = 0 without boundary conditions as scipy CSR, and the dof
+        coordinates (n_dofs / 3, 3) in dolfinx's node order (dof 3 k + c is node k, component c)."""
+        import scipy.sparse as sp
+
+        if self.comm.size != 1:
+            raise RuntimeError("stiffness_matrix is serial")
+        du = ufl.TrialFunction(self.V)
+        zero = fem.Function(self.V)
+        a = ufl.replace(ufl.derivative(self.residual, self.u, du), {self.u: zero})
+        A = fem.petsc.assemble_matrix(fem.form(a))
+        A.assemble()
+        indptr, indices, data = A.getValuesCSR()
+        K = sp.csr_matrix((data, indices, indptr), shape=A.getSize())
+        return K, self.V.tabulate_dof_coordinates()
+
+    def residual_vector(self, u_nodes: np.ndarray | None = None):
+        """Serial only: residual (internal minus external force, N) at the dolfinx node order, (n, 3).
+        If ``u_nodes`` (n, 3) m is given it is loaded into u first (node order of dof coordinates)."""
+        if self.comm.size != 1:
+            raise RuntimeError("residual_vector is serial")
+        if u_nodes is not None:
+            self.u.x.array[:] = np.asarray(u_nodes, dtype=float).ravel()
+        r = fem.petsc.assemble_vector(fem.form(self.residual))
+        r.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        return r.array_r.reshape(-1, 3).copy()

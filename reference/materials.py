@@ -1,0 +1,35 @@
+"""Material laws of the reference as UFL energy densities; the stress is always derived from them.
+
+Each function takes the deformation gradient F (a UFL 3x3 expression) and named coefficients (UFL
+constants or floats, Pa) and returns the energy per unit reference volume, J/m^3. The formulas are
+those of ``realtime.laws`` (same sources), written once more in UFL because the reference must not
+borrow its physics from what it judges: the cross-solver tests compare the two.
+"""
+
+from __future__ import annotations
+
+import ufl
+
+
+def linear_energy(F, lam, mu, a, dlam, dmu):
+    """Small strain: eps = sym(F) - I; W = lam/2 tr(eps)^2 + mu eps:eps + dlam/2 (a.eps a)^2 + dmu |eps a|^2
+    (Delingette & Ayache 2004; fibre terms of Picinbono et al. 2003)."""
+    eps = ufl.sym(F) - ufl.Identity(3)
+    ea = eps * a
+    return lam / 2 * ufl.tr(eps) ** 2 + mu * ufl.inner(eps, eps) + dlam / 2 * ufl.inner(a, ea) ** 2 + dmu * ufl.inner(ea, ea)
+
+
+def stvk_energy(F, lam, mu, a, dlam, dmu):
+    """St Venant-Kirchhoff: E = (F^T F - I)/2; W = lam/2 tr(E)^2 + mu E:E + dlam/2 (a.E a)^2 + dmu |E a|^2
+    (Picinbono, Delingette & Ayache 2003, eq. 5 and 9)."""
+    E = 0.5 * (F.T * F - ufl.Identity(3))
+    ea = E * a
+    return lam / 2 * ufl.tr(E) ** 2 + mu * ufl.inner(E, E) + dlam / 2 * ufl.inner(a, ea) ** 2 + dmu * ufl.inner(ea, ea)
+
+
+def volume_penalty_energy(F, kappa):
+    """Incompressibility penalty W = kappa/2 (det F - 1)^2 (Picinbono et al. 2003, sec. 4)."""
+    return kappa / 2 * (ufl.det(F) - 1) ** 2
+
+
+LAWS = {"linear": linear_energy, "stvk": stvk_energy}

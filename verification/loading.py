@@ -1,0 +1,77 @@
+"""A scene's constraints and loads as the real-time engine's ``Loading`` (consistent with the P1 FEM).
+
+Gravity becomes m_i g with the lumped masses rho V / 4, exactly the P1 load vector of a constant body
+force; a traction t on boundary triangles inside the region becomes t A / 3 on each of their
+vertices, exactly the P1 load vector of a constant traction; a force F is the traction F / A over
+those triangles (A their total area). So on the same mesh the tensor-mass statics and the P1
+reference solve the same linear system.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from meshes import TetMesh
+from realtime.geometry import face_areas
+from realtime.model import TOOL_ROTATION, TOOL_TRANSLATION, Loading, lumped_masses
+from reference.problem import Displacement, Fixed, Force, Gravity, Problem, Traction, component_mask
+
+
+def region_faces(mesh: TetMesh, region) -> np.ndarray:
+    """Boundary triangles (F, 3) whose three vertices lie in the region."""
+    inside = np.zeros(mesh.n_vertices, dtype=bool)
+    inside[region.vertices(mesh)] = True
+    faces = mesh.boundary
+    return faces[np.all(inside[faces], axis=1)]
+
+
+def build_loading(mesh: TetMesh, density: float, problem: Problem) -> Loading:
+    n = mesh.n_vertices
+    free = np.ones((n, 3))
+    fext = np.zeros((n, 3))
+    for fx in problem.fixed:
+        assert isinstance(fx, Fixed)
+        free[fx.region.vertices(mesh)] *= 1.0 - component_mask(fx.components)
+    mass = lumped_masses(mesh.points, mesh.tets, density)
+    tool = {k: [] for k in ("vertex", "mask", "id")}
+    tools = {k: [] for k in ("kind", "vector", "axis", "center", "angle", "ramp")}
+    for ld in problem.loads:
+        if isinstance(ld, Gravity):
+            fext += mass[:, None] * np.asarray(ld.value)
+        elif isinstance(ld, (Force, Traction)):
+            faces = region_faces(mesh, ld.region)
+            if len(faces) == 0:
+                raise ValueError(f"{type(ld).__name__.lower()} load {ld.region.describe()}: no boundary face in the region")
+            area = face_areas(mesh.points, faces)
+            t = np.asarray(ld.value, dtype=float)
+            if isinstance(ld, Force):
+                t = t / area.sum()
+            np.add.at(fext, faces.ravel(), np.repeat(area / 3.0, 3)[:, None] * t)
+        elif isinstance(ld, Displacement):
+            idx = ld.region.vertices(mesh)
+            k = len(tools["kind"])
+            mask = component_mask(ld.components)
+            tool["vertex"].append(idx)
+            tool["mask"].append(np.tile(mask, (len(idx), 1)))
+            tool["id"].append(np.full(len(idx), k))
+            free[idx] *= 1.0 - mask
+            tools["kind"].append(TOOL_ROTATION if ld.is_rotation else TOOL_TRANSLATION)
+            tools["vector"].append(ld.translation or (0.0, 0.0, 0.0))
+            tools["axis"].append(ld.axis or (0.0, 0.0, 1.0))
+            tools["center"].append(ld.center or (0.0, 0.0, 0.0))
+            tools["angle"].append(np.radians(ld.angle))
+            tools["ramp"].append(ld.ramp)
+    if tools["kind"]:
+        return Loading(
+            free=free, external_force=fext,
+            tool_vertex=np.concatenate(tool["vertex"]).astype(np.int64),
+            tool_mask=np.concatenate(tool["mask"]).astype(np.float64),
+            tool_id=np.concatenate(tool["id"]).astype(np.int64),
+            tool_kind=np.asarray(tools["kind"], dtype=np.int64),
+            tool_vector=np.asarray(tools["vector"], dtype=np.float64),
+            tool_axis=np.asarray(tools["axis"], dtype=np.float64),
+            tool_center=np.asarray(tools["center"], dtype=np.float64),
+            tool_angle=np.asarray(tools["angle"], dtype=np.float64),
+            tool_ramp=np.asarray(tools["ramp"], dtype=np.float64),
+        )
+    return Loading(free=free, external_force=fext)

@@ -1,0 +1,80 @@
+"""Result files (DESIGN.md section 4): one .npz per solver run, written atomically."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass
+class Result:
+    """A solver run on a scene mesh of N vertices and M tetrahedra, at T output times.
+
+    Attributes:
+        points: (N, 3) float64 rest positions, m.
+        tets: (M, 4) int64.
+        times: (T,) float64 output times, s (a static result has T = 1).
+        displacement: (T, N, 3) float64, m.
+        reaction: (T, 3) float64 total force of the displacement loads on the body, N.
+        meta: JSON-ready dict (scene name and hash, solver, model, dt, integrator, versions, timings).
+    """
+
+    points: np.ndarray
+    tets: np.ndarray
+    times: np.ndarray
+    displacement: np.ndarray
+    reaction: np.ndarray
+    meta: dict
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write to ``path`` through a temporary file in the same directory and a rename."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent, prefix=".tmp-")
+        os.close(fd)
+        try:
+            np.savez_compressed(
+                tmp, points=self.points, tets=self.tets, times=self.times, displacement=self.displacement,
+                reaction=self.reaction, meta=np.array(json.dumps(self.meta, default=_jsonable)),
+            )
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        return path
+
+    @staticmethod
+    def load(path: str | os.PathLike) -> Result:
+        with np.load(path, allow_pickle=False) as z:
+            return Result(z["points"], z["tets"], z["times"], z["displacement"], z["reaction"],
+                          json.loads(str(z["meta"])))
+
+
+def _jsonable(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, Path):
+        return str(x)
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write text through a temporary file and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path

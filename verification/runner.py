@@ -1,0 +1,181 @@
+"""Runs: the reference of a scene (cached on disk), a real-time model on a scene, and the comparison.
+
+Reference results are cached under ``$TISSUEBENCH_CACHE`` (default ``~/.cache/tissuebench``), keyed by
+a hash of everything they depend on: the scene's content and mesh hash, degree, refinement, the
+estimate flag, the solver options and the reference code's version. A study interrupted half-way
+finds the solves it finished and goes on from there.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import realtime
+from realtime import DivergenceError, build_model, make_integrator, solve_static
+from realtime.integrators import max_eigenvalue
+
+from .loading import build_loading
+from .metrics import compute
+from .results import Result
+from .scene import Scene
+
+#: Bumped whenever the reference's numbers can change for the same inputs, so old cache entries die.
+REFERENCE_VERSION = "1"
+REFERENCE_DEFAULTS = {"degree": 2, "refine": 0, "estimate": True}
+
+
+def log(msg: str) -> None:
+    """Progress to stderr (stdout is kept for --json)."""
+    print(msg, file=sys.stderr, flush=True)
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("TISSUEBENCH_CACHE", Path.home() / ".cache" / "tissuebench"))
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                             cwd=Path(__file__).parent, timeout=5)
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def reference_key(scene: Scene, degree: int, refine: int, estimate: bool) -> str:
+    from reference.fem import LU_OPTIONS
+
+    text = json.dumps({"scene": scene.sha256(), "degree": degree, "refine": refine, "estimate": estimate,
+                       "solver": LU_OPTIONS, "version": REFERENCE_VERSION}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+def reference_result(scene: Scene, degree: int = 2, refine: int = 0, estimate: bool = True,
+                     use_cache: bool = True) -> Result:
+    """The scene's static reference, from the cache or solved now (and then cached)."""
+    from mpi4py import MPI
+
+    from reference.driver import solve_static as reference_static
+
+    if scene.time.mode != "static":
+        raise NotImplementedError(f"{scene.path}: time.mode = dynamic: the dynamic reference is not built yet (static only)")
+    key = reference_key(scene, degree, refine, estimate)
+    path = cache_dir() / "reference" / f"{scene.name}-{key}.npz"
+    if use_cache and path.exists():
+        return Result.load(path)
+    mesh = scene.mesh
+    log(f"reference: {scene.name} P{degree} refine {refine}{' + estimate' if estimate else ''} ...")
+    t0 = time.perf_counter()
+    sol = reference_static(mesh, scene.material, scene.problem, degree=degree, refine=refine, estimate=estimate)
+    meta = sol["meta"]
+    meta.update(scene=scene.name, scene_sha256=scene.sha256(), mesh_sha256=mesh.sha256(), cache_key=key,
+                wall_s=time.perf_counter() - t0, commit=git_commit(),
+                date=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+    res = Result(mesh.points, mesh.tets, np.zeros(1), sol["displacement"][None], sol["reaction"][None], meta)
+    if use_cache and MPI.COMM_WORLD.rank == 0:
+        res.save(path)
+    log(f"reference: done in {meta['wall_s']:.1f} s")
+    return res
+
+
+def model_for(scene: Scene, model: str, **options):
+    """The real-time model of a scene, with its loading."""
+    mesh = scene.mesh
+    loading = build_loading(mesh, scene.material.density, scene.problem)
+    return build_model(model, mesh.points, mesh.tets, scene.material, loading, **options)
+
+
+def time_steps(model, integrator, dt: float, state, n: int = 100, repeats: int = 9) -> dict:
+    """Median and spread of the wall time of one step, after a warm-up call, in microseconds.
+
+    ``state`` is advanced (use a copy). Each repeat times n steps in one compiled call.
+    """
+    integrator.step(model, state, dt, 1)  # warm-up: compilation, caches
+    per_step = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        integrator.step(model, state, dt, n)
+        per_step.append((time.perf_counter() - t0) / n * 1e6)
+    per_step = np.sort(per_step)
+    return {"step_us": float(np.median(per_step)), "step_us_min": float(per_step[0]),
+            "step_us_max": float(per_step[-1]), "timing_steps": n, "timing_repeats": repeats}
+
+
+def run_model(scene: Scene, model_name: str, dt: float | None = None, dt_fraction: float | None = None,
+              integrator: str = "symplectic-euler", rtol: float = 1e-10) -> Result:
+    """Run a real-time model on a static scene: damped dynamics at dt until settled, then timing.
+
+    dt defaults to ``dt_fraction`` (default 0.9) times the model's critical step. A diverging run
+    raises DivergenceError.
+    """
+    if scene.time.mode != "static":
+        raise NotImplementedError(f"{scene.path}: time.mode = dynamic: model runs on dynamic scenes are not built yet")
+    t0 = time.perf_counter()
+    model = model_for(scene, model_name)
+    build_s = time.perf_counter() - t0
+    omega2 = max_eigenvalue(model)
+    integ = make_integrator(integrator, scene.time.damping_mass, scene.time.damping_stiffness)
+    dt_crit = integ.critical_dt(model, omega2)
+    if dt is None:
+        dt = (0.9 if dt_fraction is None else dt_fraction) * dt_crit
+    t1 = time.perf_counter()
+    static = solve_static(model, dt=dt, rtol=rtol)
+    settle_s = time.perf_counter() - t1
+    timing = time_steps(model, integ, dt, static.state.copy())
+    u = static.state.u
+    meta = {
+        "solver": "realtime", "model": model_name, "integrator": integrator, "dt": dt, "dt_crit": dt_crit,
+        "dt_crit_element": realtime.element_critical_dt(model), "omega_max": math.sqrt(omega2),
+        "scene": scene.name, "scene_sha256": scene.sha256(), "mesh_sha256": scene.mesh.sha256(),
+        "static": {"method": "damped dynamics (adaptive dynamic relaxation)", "steps": static.steps,
+                   "residual": static.residual, "rtol": rtol, "wall_s": settle_s},
+        "build_s": build_s, **timing,
+        "realtime_factor": dt / (timing["step_us"] * 1e-6), "rate_hz": 1e6 / timing["step_us"],
+        "settle_ms": static.steps * timing["step_us"] * 1e-3,
+        "versions": versions(), "commit": git_commit(),
+    }
+    return Result(scene.mesh.points, scene.mesh.tets, np.zeros(1), u[None], model.reaction(u)[None], meta)
+
+
+def versions() -> dict:
+    import numba
+    import scipy
+
+    return {"python": platform.python_version(), "numpy": np.__version__, "scipy": scipy.__version__,
+            "numba": numba.__version__}
+
+
+def compare(scene: Scene, model_name: str, dt: float | None = None, dt_fraction: float | None = None,
+            integrator: str = "symplectic-euler", reference: Result | None = None, **ref_options) -> dict:
+    """Metrics of one model run against the scene's reference (DESIGN.md section 6).
+
+    A diverging run gives {"status": "diverged", ...} with the step, dt and dt_crit instead of errors.
+    """
+    ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
+    base = {"scene": scene.name, "model": model_name, "integrator": integrator}
+    try:
+        res = run_model(scene, model_name, dt=dt, dt_fraction=dt_fraction, integrator=integrator)
+    except DivergenceError as exc:
+        return {**base, "status": "diverged", "dt": exc.dt, "dt_crit": exc.dt_crit, "step": exc.step, "message": str(exc)}
+    mesh = scene.mesh
+    has_tools = bool(scene.problem.tools)
+    metrics = compute(mesh.points, mesh.tets, mesh.surface_vertices, res.displacement, ref.displacement,
+                      res.reaction if has_tools else None, ref.reaction if has_tools else None,
+                      ref.meta.get("ref_err_estimate"))
+    m = res.meta
+    return {**base, "status": "ok", "dt": m["dt"], "dt_crit": m["dt_crit"], "dt_crit_element": m["dt_crit_element"],
+            **metrics, "step_us": m["step_us"], "step_us_min": m["step_us_min"], "step_us_max": m["step_us_max"],
+            "realtime_factor": m["realtime_factor"], "rate_hz": m["rate_hz"], "settle_steps": m["static"]["steps"],
+            "settle_ms": m["settle_ms"], "reference": {"degree": ref.meta["degree"], "refine": ref.meta["refine"],
+                                                         "law": ref.meta["law"], "cache_key": ref.meta.get("cache_key")},
+            "n_vertices": mesh.n_vertices, "n_tets": mesh.n_tets}

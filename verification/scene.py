@@ -1,0 +1,348 @@
+"""Scene files (DESIGN.md section 3): TOML -> a validated ``Scene``.
+
+Every unknown key, missing key and bad value is a ``SceneError`` whose one-line message names the
+file, the key (dotted, with table indices: ``load[1].kind``) and the allowed values. Nothing in a
+scene is evaluated as code.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from meshes import InvalidMeshError, TetMesh, get_mesh, read_mesh
+from meshes.regions import AllRegion, BoxRegion, Region, SphereRegion, TagRegion
+from reference.problem import COMPONENTS, Displacement, Fixed, Force, Gravity, Problem, Traction
+from realtime.material import LAWS, Material, MaterialError
+
+SCENES_DIR = Path(__file__).parent / "scenes"
+
+MESH_PARAMS = {
+    "box": {"size": "vec3", "h": "length"},
+    "cylinder": {"radius": "length", "length": "length", "h": "length"},
+    "tube": {"inner_radius": "length", "outer_radius": "length", "length": "length", "h": "length"},
+    "liver": {"scale": "positive", "h": "length"},
+    "file": {"file": "str"},
+}
+LOAD_KINDS = ("gravity", "force", "traction", "displacement")
+MODES = ("static", "dynamic")
+
+
+class SceneError(ValueError):
+    """A scene file that cannot be used; ``str()`` is the one-line message."""
+
+
+@dataclass(frozen=True)
+class TimeSpec:
+    mode: str = "static"
+    end: float = 1.0
+    output_every: float = 0.01
+    damping_mass: float = 0.0  # 1/s
+    damping_stiffness: float = 0.0  # s
+
+
+@dataclass
+class Scene:
+    """A loaded scene. ``mesh`` is built on first use (``scene.mesh``)."""
+
+    name: str
+    description: str
+    path: Path
+    mesh_spec: dict
+    material: Material
+    problem: Problem
+    time: TimeSpec
+    raw: dict = field(repr=False, default_factory=dict)
+    _mesh: TetMesh | None = field(default=None, repr=False)
+
+    @property
+    def mesh(self) -> TetMesh:
+        if self._mesh is None:
+            self._mesh = build_mesh(self.mesh_spec, self.path)
+            check_regions(self, self._mesh)
+        return self._mesh
+
+    def sha256(self) -> str:
+        """Hash of the scene's content (canonical JSON of the parsed TOML) and of its mesh."""
+        text = json.dumps(self.raw, sort_keys=True, default=str)
+        return hashlib.sha256((text + self.mesh.sha256()).encode()).hexdigest()
+
+    def with_material(self, **changes) -> Scene:
+        """A copy with material fields changed (for studies over nu, E)."""
+        raw = json.loads(json.dumps(self.raw))
+        raw.setdefault("material", {}).update(changes)
+        return Scene(self.name, self.description, self.path, self.mesh_spec, self.material.replace(**changes),
+                     self.problem, self.time, raw, self._mesh)
+
+
+def builtin_scenes() -> dict[str, Path]:
+    """Built-in scene names -> files."""
+    return {p.stem: p for p in sorted(SCENES_DIR.glob("*.toml"))}
+
+
+def resolve(name_or_path: str) -> Path:
+    """A built-in scene's file by stem, or a path to a .toml file."""
+    p = Path(name_or_path)
+    if p.suffix == ".toml":
+        if not p.exists():
+            raise SceneError(f"{p}: no such scene file")
+        return p
+    scenes = builtin_scenes()
+    if name_or_path not in scenes:
+        raise SceneError(f"{name_or_path}: not a built-in scene (known: {', '.join(scenes)}) nor a .toml path")
+    return scenes[name_or_path]
+
+
+class _Reader:
+    """Typed access to a TOML table that records the keys it read, so leftovers are errors."""
+
+    def __init__(self, path: Path, table: dict, where: str):
+        self.path, self.table, self.where = path, table, where
+        if not isinstance(table, dict):
+            self.fail("", f"must be a table, got {type(table).__name__}")
+        self.used: set[str] = set()
+
+    def key(self, k: str) -> str:
+        return f"{self.where}.{k}" if self.where else k
+
+    def fail(self, k: str, msg: str):
+        raise SceneError(f"{self.path}: {self.key(k) if k else self.where}: {msg}")
+
+    def has(self, k):
+        return k in self.table
+
+    def get(self, k, default=...):
+        self.used.add(k)
+        if k not in self.table:
+            if default is ...:
+                self.fail(k, "missing key")
+            return default
+        return self.table[k]
+
+    def number(self, k, default=..., positive=False, nonneg=False):
+        v = self.get(k, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            self.fail(k, f"must be a number, got {v!r}")
+        if positive and not v > 0:
+            self.fail(k, f"must be > 0, got {v!r}")
+        if nonneg and v < 0:
+            self.fail(k, f"must be >= 0, got {v!r}")
+        return float(v)
+
+    def vec3(self, k, default=...):
+        v = self.get(k, default)
+        if not (isinstance(v, list) and len(v) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)):
+            self.fail(k, f"must be a list of 3 numbers, got {v!r}")
+        return tuple(float(x) for x in v)
+
+    def string(self, k, allowed=None, default=...):
+        v = self.get(k, default)
+        if not isinstance(v, str):
+            self.fail(k, f"must be a string, got {v!r}")
+        if allowed is not None and v not in allowed:
+            self.fail(k, f"{v!r} is not one of {', '.join(allowed)}")
+        return v
+
+    def finish(self, allowed: tuple[str, ...] | None = None):
+        extra = sorted(set(self.table) - self.used)
+        if extra:
+            allow = ", ".join(sorted(allowed if allowed is not None else self.used))
+            self.fail(extra[0], f"unknown key (allowed: {allow})")
+
+
+REGION_KEYS = ("box", "sphere", "tag", "all")
+
+
+def _region(r: _Reader) -> Region:
+    given = [k for k in REGION_KEYS if r.has(k)]
+    if len(given) != 1:
+        r.fail("", f"needs exactly one region key of {', '.join(REGION_KEYS)}, got {given or 'none'}")
+    kind = given[0]
+    if kind == "box":
+        v = r.get("box")
+        if not (isinstance(v, list) and len(v) == 2 and all(isinstance(c, list) and len(c) == 3 for c in v)):
+            r.fail("box", f"must be [[xmin, ymin, zmin], [xmax, ymax, zmax]], got {v!r}")
+        lo, hi = np.asarray(v[0], float), np.asarray(v[1], float)
+        if np.any(lo > hi):
+            r.fail("box", f"min corner {lo.tolist()} exceeds max corner {hi.tolist()}")
+        return BoxRegion(tuple(lo), tuple(hi))
+    if kind == "sphere":
+        sub = _Reader(r.path, r.get("sphere"), r.key("sphere"))
+        region = SphereRegion(sub.vec3("center"), sub.number("radius", positive=True))
+        sub.finish(("center", "radius"))
+        return region
+    if kind == "tag":
+        return TagRegion(r.string("tag"))
+    if r.get("all") is not True:
+        r.fail("all", "must be true")
+    return AllRegion()
+
+
+def _components(r: _Reader) -> tuple[str, ...]:
+    v = r.get("components", list(COMPONENTS))
+    if not (isinstance(v, list) and v and all(c in COMPONENTS for c in v) and len(set(v)) == len(v)):
+        r.fail("components", f"must be a non-empty list of distinct x, y, z, got {v!r}")
+    return tuple(c for c in COMPONENTS if c in v)
+
+
+def _load(r: _Reader):
+    kind = r.string("kind", LOAD_KINDS)
+    if kind == "gravity":
+        load = Gravity(r.vec3("value"))
+        r.finish(("kind", "value"))
+        return load
+    region = _region(r)
+    if kind in ("force", "traction"):
+        load = (Force if kind == "force" else Traction)(region, r.vec3("value"))
+        r.finish(("kind", "value") + REGION_KEYS)
+        return load
+    comps = _components(r)
+    ramp = r.number("ramp", 0.0, nonneg=True)
+    if r.has("value") == r.has("rotation"):
+        r.fail("", "a displacement needs exactly one of value (a translation) or rotation")
+    if r.has("value"):
+        load = Displacement(region, comps, translation=r.vec3("value"), ramp=ramp)
+    else:
+        sub = _Reader(r.path, r.get("rotation"), r.key("rotation"))
+        axis = np.asarray(sub.vec3("axis"))
+        if not np.linalg.norm(axis) > 0:
+            sub.fail("axis", "must be a non-zero vector")
+        load = Displacement(region, comps, axis=tuple(axis / np.linalg.norm(axis)), center=sub.vec3("center"),
+                            angle=sub.number("angle"), ramp=ramp)
+        sub.finish(("axis", "center", "angle"))
+    r.finish(("kind", "value", "rotation", "ramp", "components") + REGION_KEYS)
+    return load
+
+
+def _tables(r: _Reader, key: str) -> list[_Reader]:
+    v = r.get(key, [])
+    if not isinstance(v, list):
+        r.fail(key, f"must be an array of tables ([[{key}]]), got {type(v).__name__}")
+    return [_Reader(r.path, t, f"{key}[{i}]") for i, t in enumerate(v)]
+
+
+def parse(path: Path, data: dict) -> Scene:
+    """Validate parsed TOML ``data`` read from ``path``."""
+    top = _Reader(path, data, "")
+    name = top.string("name", default=path.stem)
+    description = top.string("description", default="")
+
+    mr = _Reader(path, top.get("mesh"), "mesh")
+    gen = mr.string("generator", tuple(MESH_PARAMS))
+    spec = {"generator": gen}
+    for k, kind in MESH_PARAMS[gen].items():
+        if kind == "vec3":
+            spec[k] = list(mr.vec3(k))
+            if min(spec[k]) <= 0:
+                mr.fail(k, f"every side must be > 0, got {spec[k]}")
+        elif kind == "str":
+            spec[k] = mr.string(k)
+        else:
+            spec[k] = mr.number(k, positive=True)
+    mr.finish(("generator",) + tuple(MESH_PARAMS[gen]))
+
+    mat = _Reader(path, top.get("material"), "material")
+    fields = dict(
+        law=mat.string("law", LAWS),
+        young=mat.number("young"),
+        poisson=mat.number("poisson"),
+        density=mat.number("density"),
+        volume_penalty=mat.number("volume_penalty", 0.0),
+    )
+    if mat.has("fiber") or mat.has("young_fiber"):
+        fields["fiber"] = mat.vec3("fiber")
+        fields["young_fiber"] = mat.number("young_fiber")
+        fields["fiber_shear"] = mat.number("fiber_shear", 0.0)
+    mat.finish(("law", "young", "poisson", "density", "volume_penalty", "fiber", "young_fiber", "fiber_shear"))
+    try:
+        material = Material(**fields)
+    except MaterialError as exc:
+        key = str(exc).split(" ", 1)[0]
+        raise SceneError(f"{path}: material.{key} {str(exc).split(' ', 1)[1]}") from None
+
+    fixed = []
+    for fr in _tables(top, "fixed"):
+        fixed.append(Fixed(_region(fr), _components(fr)))
+        fr.finish(("components",) + REGION_KEYS)
+    loads = []
+    for lr in _tables(top, "load"):
+        loads.append(_load(lr))
+
+    tr = _Reader(path, top.get("time", {}), "time")
+    mode = tr.string("mode", MODES, default="static")
+    damping = _Reader(path, tr.get("damping", {}), "time.damping")
+    tspec = TimeSpec(
+        mode=mode,
+        end=tr.number("end", 1.0, positive=True),
+        output_every=tr.number("output_every", 0.01, positive=True),
+        damping_mass=damping.number("mass", 0.0, nonneg=True),
+        damping_stiffness=damping.number("stiffness", 0.0, nonneg=True),
+    )
+    damping.finish(("mass", "stiffness"))
+    tr.finish(("mode", "end", "output_every", "damping"))
+    top.finish(("name", "description", "mesh", "material", "fixed", "load", "time"))
+    if not fixed and not any(isinstance(ld, Displacement) for ld in loads) and tspec.mode == "static":
+        raise SceneError(f"{path}: fixed: a static scene needs a [[fixed]] region or a displacement load "
+                         "(otherwise rigid motions are free and there is no equilibrium)")
+    return Scene(name, description, path, spec, material, Problem(tuple(fixed), tuple(loads)), tspec, raw=data)
+
+
+def load_scene(name_or_path: str | Path) -> Scene:
+    """Read and validate a scene by built-in name or path; raises SceneError."""
+    path = resolve(str(name_or_path))
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"{path}: not valid TOML ({exc})") from None
+    return parse(path, data)
+
+
+def build_mesh(spec: dict, scene_path: Path) -> TetMesh:
+    gen = spec["generator"]
+    if gen == "file":
+        f = Path(spec["file"])
+        if not f.is_absolute():
+            f = scene_path.parent / f
+        try:
+            return read_mesh(f)
+        except (InvalidMeshError, FileNotFoundError) as exc:
+            raise SceneError(f"{scene_path}: mesh.file: {exc}") from None
+    params = {k: v for k, v in spec.items() if k != "generator"}
+    try:
+        return get_mesh(gen, params)
+    except (InvalidMeshError, ValueError) as exc:
+        raise SceneError(f"{scene_path}: mesh: {exc}") from None
+
+
+def check_regions(scene: Scene, mesh: TetMesh) -> None:
+    """Every region must hold a vertex; a vertex may not be both fixed and driven by a tool."""
+    fixed_any = np.zeros(mesh.n_vertices, dtype=bool)
+    for i, fx in enumerate(scene.problem.fixed):
+        idx = _vertices(scene, mesh, fx.region, f"fixed[{i}]")
+        fixed_any[idx] = True
+    for i, ld in enumerate(scene.problem.loads):
+        if isinstance(ld, Gravity):
+            continue
+        idx = _vertices(scene, mesh, ld.region, f"load[{i}]")
+        if isinstance(ld, Displacement) and fixed_any[idx].any():
+            v = int(idx[np.argmax(fixed_any[idx])])
+            raise SceneError(f"{scene.path}: load[{i}]: the displacement region shares vertex {v} "
+                             f"{mesh.points[v].tolist()} with a fixed region; make them disjoint")
+
+
+def _vertices(scene, mesh, region, where):
+    try:
+        idx = region.vertices(mesh)
+    except KeyError as exc:
+        raise SceneError(f"{scene.path}: {where}.tag: {exc.args[0]}") from None
+    if len(idx) == 0:
+        lo, hi = mesh.bounding_box()
+        raise SceneError(f"{scene.path}: {where}.{region.describe().split(' ')[0]}: the region "
+                         f"{region.describe()} holds no vertex (the mesh spans {lo.tolist()} to {hi.tolist()})")
+    return idx
