@@ -112,9 +112,7 @@ def cylinder(radius: float = 0.01, length: float = 0.1, h: float = 0.004) -> Tet
         return _extract(gmsh, f"cylinder(radius={radius}, length={length}, h={h})", names)
 
 
-def tube(
-    inner_radius: float = 0.006, outer_radius: float = 0.01, length: float = 0.1, h: float = 0.003
-) -> TetMesh:
+def tube(inner_radius: float = 0.006, outer_radius: float = 0.01, length: float = 0.1, h: float = 0.003) -> TetMesh:
     """A hollow cylinder (a vessel, an intestine) along z. Faces bottom, top, outer, inner."""
     if not 0.0 < inner_radius < outer_radius:
         raise ValueError(f"tube: need 0 < inner_radius < outer_radius, got {inner_radius}, {outer_radius}")

@@ -55,7 +55,9 @@ def read_mesh(path: str | os.PathLike) -> TetMesh:
                     cell_tags[name] = np.concatenate([cell_tags.get(name, []), idx]).astype(np.int64)
                 elif cells.type == "triangle":
                     v = compact[np.unique(sel)]
-                    vertex_tags[name] = np.unique(np.concatenate([vertex_tags.get(name, []), v[v >= 0]])).astype(np.int64)
+                    vertex_tags[name] = np.unique(np.concatenate([vertex_tags.get(name, []), v[v >= 0]])).astype(
+                        np.int64
+                    )
             if cells.type == "tetra":
                 offset += len(cells.data)
     return TetMesh.from_arrays(points, compact[tets], source=str(path), vertex_tags=vertex_tags, cell_tags=cell_tags)

@@ -106,4 +106,6 @@ def regenerate() -> dict:
 
 if __name__ == "__main__":
     for entry in regenerate().values():
-        print(f"{entry['name']:>14}  {entry['n_vertices']:>7} vertices {entry['n_tets']:>8} tets  {entry['sha256'][:16]}")
+        print(
+            f"{entry['name']:>14}  {entry['n_vertices']:>7} vertices {entry['n_tets']:>8} tets  {entry['sha256'][:16]}"
+        )

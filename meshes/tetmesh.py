@@ -162,7 +162,7 @@ def structured_box(size, divisions) -> TetMesh:
     """
     size = np.asarray(size, dtype=float)
     nx, ny, nz = (int(d) for d in np.broadcast_to(divisions, (3,)))
-    axes = [np.linspace(0.0, s, n + 1) for s, n in zip(size, (nx, ny, nz))]
+    axes = [np.linspace(0.0, s, n + 1) for s, n in zip(size, (nx, ny, nz), strict=True)]
     points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
 
     def idx(i, j, k):

@@ -151,7 +151,5 @@ def min_altitudes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     vol = np.abs(signed_volumes(points, tets))
     faces = np.asarray(tets)[:, TET_FACES]  # (M, 4, 3)
     x = points[faces]
-    areas = 0.5 * np.linalg.norm(
-        np.cross(x[:, :, 1] - x[:, :, 0], x[:, :, 2] - x[:, :, 0]), axis=2
-    )
+    areas = 0.5 * np.linalg.norm(np.cross(x[:, :, 1] - x[:, :, 0], x[:, :, 2] - x[:, :, 0]), axis=2)
     return 3.0 * vol / areas.max(axis=1)

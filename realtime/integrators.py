@@ -71,9 +71,7 @@ def _damped_arg(u, v, beta, w):
 
 
 @nb.njit(**_JIT)
-def _run_symplectic_euler(
-    n, dt, t0, force, data, points, inv_mass, free, fext, tools, alpha, beta, bound, u, v, f, w
-):
+def _run_symplectic_euler(n, dt, t0, force, data, points, inv_mass, free, fext, tools, alpha, beta, bound, u, v, f, w):
     """n steps of v += dt a(u, v); u += dt v. Returns -1, or the index of the step that blew up."""
     tmp = np.empty(3)
     for s in range(n):
@@ -280,7 +278,7 @@ def solve_static(
     Symplectic Euler at dt (default ``safety`` x dt_crit; a dt above dt_crit raises DivergenceError
     as any explicit run does) with mass damping alpha = 2 omega_1, near critical for
     the slowest mode. omega_1^2 is re-estimated every ``chunk`` steps by the Rayleigh quotient
-    u.K u / u.M u of the current free displacement (Underwood's adaptive dynamic relaxation): the
+    u_f.K_ff u_f / u_f.M u_f of the current free displacement (Underwood's adaptive dynamic relaxation): the
     displacement under a static load is dominated by the lowest mode, so the quotient tends to it.
     Tools are held at their final value. Converged when the free components' residual
     |f_int + f_ext| is below rtol times the load scale (|f_ext| and the tools' reaction).
@@ -316,7 +314,9 @@ def solve_static(
         uf = state.u * free
         den = float(np.sum(model.mass[:, None] * uf * uf))
         if den > 0.0:
-            rq = float(np.sum(-f * uf)) / den
+            # u_f.K_ff u_f / u_f.M u_f: the force of the free part alone (the tools' part of u would
+            # add K_fp u_p, which is no stiffness of the free system)
+            rq = float(np.sum(-model.internal_force(uf) * uf)) / den
             if rq > 0.0:
                 alpha = 2.0 * math.sqrt(min(rq, omega2))
     else:

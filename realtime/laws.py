@@ -106,10 +106,14 @@ def linear_elasticity_tensor(lam: float, mu: float, a: np.ndarray, dlam: float, 
     C = lam * np.einsum("pq,rs->pqrs", d, d)
     C += mu * (np.einsum("pr,qs->pqrs", d, d) + np.einsum("ps,qr->pqrs", d, d))
     C += dlam * np.einsum("pq,rs->pqrs", aa, aa)
-    C += 0.5 * dmu * (
-        np.einsum("pr,qs->pqrs", d, aa)
-        + np.einsum("qr,ps->pqrs", d, aa)
-        + np.einsum("ps,qr->pqrs", d, aa)
-        + np.einsum("qs,pr->pqrs", d, aa)
+    C += (
+        0.5
+        * dmu
+        * (
+            np.einsum("pr,qs->pqrs", d, aa)
+            + np.einsum("qr,ps->pqrs", d, aa)
+            + np.einsum("ps,qr->pqrs", d, aa)
+            + np.einsum("qs,pr->pqrs", d, aa)
+        )
     )
     return C

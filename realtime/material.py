@@ -30,8 +30,8 @@ The volume penalty (Picinbono 2003, "incompressibility constraint") is the energ
 
 from __future__ import annotations
 
-import math
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np

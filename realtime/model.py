@@ -9,8 +9,8 @@ states (a sweep over time steps, a haptic thread beside a visual one).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numba as nb
 import numpy as np

@@ -6,7 +6,7 @@ Every builder takes plain arrays (points (N, 3) float64 m; tets (M, 4) int, posi
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -42,8 +42,7 @@ MODELS: dict[str, Callable[..., Model]] = {
 }
 
 
-def build_model(name: str, points, tets, material: Material, loading: Loading | None = None,
-                **options) -> Model:
+def build_model(name: str, points, tets, material: Material, loading: Loading | None = None, **options) -> Model:
     """Build the model registered under ``name``."""
     try:
         builder = MODELS[name]

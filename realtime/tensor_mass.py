@@ -38,9 +38,7 @@ def element_stiffness(points: np.ndarray, tets: np.ndarray, material: Material) 
     ke[e, a, b] is the 3x3 block coupling local vertex a (rows) to local vertex b (columns).
     """
     grads, vol = shape_gradients(points, tets)
-    C = linear_elasticity_tensor(
-        material.lam, material.mu, material.fiber_vector, material.dlam, material.dmu
-    )
+    C = linear_elasticity_tensor(material.lam, material.mu, material.fiber_vector, material.dlam, material.dmu)
     return np.einsum("e,pqrs,eaq,ebs->eabpr", vol, C, grads, grads, optimize=True)
 
 
@@ -94,9 +92,7 @@ class TensorMass:
         n = self.n_vertices
         i = np.concatenate([np.arange(n), self.edges[:, 0], self.edges[:, 1]])
         j = np.concatenate([np.arange(n), self.edges[:, 1], self.edges[:, 0]])
-        blocks = np.concatenate(
-            [self.vertex_tensors, self.edge_tensors, self.edge_tensors.transpose(0, 2, 1)]
-        )
+        blocks = np.concatenate([self.vertex_tensors, self.edge_tensors, self.edge_tensors.transpose(0, 2, 1)])
         rows = (3 * i[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
         cols = (3 * j[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
         K = sp.coo_matrix((blocks.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n, 3 * n))

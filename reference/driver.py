@@ -21,8 +21,16 @@ from realtime.material import Material
 from .problem import Problem
 
 
-def solve_static(mesh: TetMesh, material: Material, problem: Problem, degree: int = 2, refine: int = 0,
-                 estimate: bool = True, comm=MPI.COMM_WORLD, newton_steps: int = 1) -> dict:
+def solve_static(
+    mesh: TetMesh,
+    material: Material,
+    problem: Problem,
+    degree: int = 2,
+    refine: int = 0,
+    estimate: bool = True,
+    comm=MPI.COMM_WORLD,
+    newton_steps: int = 1,
+) -> dict:
     """Solve, evaluate at ``mesh.points``, and describe the run.
 
     Returns a dict: displacement (N, 3) m, reaction (3,) N, meta (dict, JSON-ready).
@@ -39,8 +47,13 @@ def solve_static(mesh: TetMesh, material: Material, problem: Problem, degree: in
         info = ep.solve(steps=newton_steps) if material.law != "linear" or material.volume_penalty else ep.solve()
         values.append(ep.evaluate(mesh.points))
         reactions.append(ep.reaction())
-        info.update(level=level, n_dofs=ep.n_dofs, n_cells=ep.domain.topology.index_map(3).size_global,
-                    wall_s=time.perf_counter() - t0, **ep.timings)
+        info.update(
+            level=level,
+            n_dofs=ep.n_dofs,
+            n_cells=ep.domain.topology.index_map(3).size_global,
+            wall_s=time.perf_counter() - t0,
+            **ep.timings,
+        )
         infos.append(info)
     meta = {
         "solver": "reference",
@@ -56,6 +69,8 @@ def solve_static(mesh: TetMesh, material: Material, problem: Problem, degree: in
         den = np.linalg.norm(values[1])
         meta["ref_err_estimate"] = float(np.linalg.norm(values[0] - values[1]) / den) if den > 0 else 0.0
         rden = np.linalg.norm(reactions[1])
-        meta["ref_reaction_err_estimate"] = float(np.linalg.norm(reactions[0] - reactions[1]) / rden) if rden > 0 else 0.0
+        meta["ref_reaction_err_estimate"] = (
+            float(np.linalg.norm(reactions[0] - reactions[1]) / rden) if rden > 0 else 0.0
+        )
         meta["estimate"] = f"|u_R - u_R+1| / |u_R+1| at the scene vertices, R = {refine}"
     return {"displacement": values[0], "reaction": reactions[0], "meta": meta}

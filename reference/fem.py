@@ -10,7 +10,6 @@ Jacobian), named in ``solver_options`` and so in every result's metadata.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 
@@ -77,8 +76,9 @@ class ElasticityProblem:
         comm: MPI communicator.
     """
 
-    def __init__(self, mesh: TetMesh, material: Material, problem: Problem, degree: int = 1,
-                 refine: int = 0, comm=MPI.COMM_WORLD):
+    def __init__(
+        self, mesh: TetMesh, material: Material, problem: Problem, degree: int = 1, refine: int = 0, comm=MPI.COMM_WORLD
+    ):
         self.mesh, self.material, self.problem = mesh, material, problem
         self.degree, self.refine, self.comm = degree, refine, comm
         t0 = time.perf_counter()
@@ -99,7 +99,9 @@ class ElasticityProblem:
     def energy_density(self, F):
         m = self.material
         a = ufl.as_vector(m.fiber_vector.tolist())
-        psi = LAWS[m.law](F, self._constant(m.lam), self._constant(m.mu), a, self._constant(m.dlam), self._constant(m.dmu))
+        psi = LAWS[m.law](
+            F, self._constant(m.lam), self._constant(m.mu), a, self._constant(m.dlam), self._constant(m.dmu)
+        )
         if m.volume_penalty > 0.0:
             psi += volume_penalty_energy(F, self._constant(m.volume_penalty))
         return psi
@@ -131,7 +133,9 @@ class ElasticityProblem:
             for k, ld in enumerate(surface_loads, start=1):
                 area = self.comm.allreduce(fem.assemble_scalar(fem.form(self._constant(1.0) * ds(k))), op=MPI.SUM)
                 if area <= 0.0:
-                    raise ReferenceSolveError(f"{type(ld).__name__.lower()} load {ld.region.describe()}: no boundary face in the region")
+                    raise ReferenceSolveError(
+                        f"{type(ld).__name__.lower()} load {ld.region.describe()}: no boundary face in the region"
+                    )
                 t = np.asarray(ld.value, dtype=float)
                 if isinstance(ld, Force):
                     t = t / area  # a total force spread as a uniform traction
@@ -161,7 +165,7 @@ class ElasticityProblem:
                     g = fem.Function(Vc)
                     self._tool_functions.append((tool, c, g))
                     bcs.append(fem.dirichletbc(g, dofs, self.V.sub(c)))
-                    self.tool_dofs.append((c, dofs[:, 0]))
+                    self.tool_dofs.append((c, np.asarray(dofs[0])))
         self.set_tool_fraction(1.0)
         return bcs
 
@@ -190,8 +194,9 @@ class ElasticityProblem:
         self.timings["solve_s"] = time.perf_counter() - t0
         return {"solver": "linear", "petsc_options": opts, "iterations": 1}
 
-    def solve_newton(self, steps: int = 1, rtol: float = 1e-10, max_it: int = 25, min_increment: float = 1e-4,
-                     petsc_options=None) -> dict:
+    def solve_newton(
+        self, steps: int = 1, rtol: float = 1e-10, max_it: int = 25, min_increment: float = 1e-4, petsc_options=None
+    ) -> dict:
         """Newton with load stepping and step halving on failure (the load fraction goes 0 -> 1).
 
         Convergence: the norm of the Newton increment below rtol times the norm of the solution.
@@ -239,8 +244,13 @@ class ElasticityProblem:
                         f"with increments down to {inc:.2e}"
                     )
         self.timings["solve_s"] = time.perf_counter() - t0
-        return {"solver": "newton", "petsc_options": opts, "load_steps": history,
-                "iterations": sum(h["iterations"] for h in history), "rtol": rtol}
+        return {
+            "solver": "newton",
+            "petsc_options": opts,
+            "load_steps": history,
+            "iterations": sum(h["iterations"] for h in history),
+            "rtol": rtol,
+        }
 
     def solve(self, **kwargs) -> dict:
         """solve_linear for the linear law without penalty, solve_newton otherwise."""

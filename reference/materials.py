@@ -16,7 +16,12 @@ def linear_energy(F, lam, mu, a, dlam, dmu):
     (Delingette & Ayache 2004; fibre terms of Picinbono et al. 2003)."""
     eps = ufl.sym(F) - ufl.Identity(3)
     ea = eps * a
-    return lam / 2 * ufl.tr(eps) ** 2 + mu * ufl.inner(eps, eps) + dlam / 2 * ufl.inner(a, ea) ** 2 + dmu * ufl.inner(ea, ea)
+    return (
+        lam / 2 * ufl.tr(eps) ** 2
+        + mu * ufl.inner(eps, eps)
+        + dlam / 2 * ufl.inner(a, ea) ** 2
+        + dmu * ufl.inner(ea, ea)
+    )
 
 
 def stvk_energy(F, lam, mu, a, dlam, dmu):

@@ -41,7 +41,9 @@ def build_loading(mesh: TetMesh, density: float, problem: Problem) -> Loading:
         elif isinstance(ld, (Force, Traction)):
             faces = region_faces(mesh, ld.region)
             if len(faces) == 0:
-                raise ValueError(f"{type(ld).__name__.lower()} load {ld.region.describe()}: no boundary face in the region")
+                raise ValueError(
+                    f"{type(ld).__name__.lower()} load {ld.region.describe()}: no boundary face in the region"
+                )
             area = face_areas(mesh.points, faces)
             t = np.asarray(ld.value, dtype=float)
             if isinstance(ld, Force):
@@ -63,7 +65,8 @@ def build_loading(mesh: TetMesh, density: float, problem: Problem) -> Loading:
             tools["ramp"].append(ld.ramp)
     if tools["kind"]:
         return Loading(
-            free=free, external_force=fext,
+            free=free,
+            external_force=fext,
             tool_vertex=np.concatenate(tool["vertex"]).astype(np.int64),
             tool_mask=np.concatenate(tool["mask"]).astype(np.float64),
             tool_id=np.concatenate(tool["id"]).astype(np.int64),

@@ -20,8 +20,12 @@ def rel_l2(u: np.ndarray, ref: np.ndarray) -> float:
 def volume_err(points: np.ndarray, tets: np.ndarray, u: np.ndarray, ref: np.ndarray) -> float:
     """max over t of |V(t) - V*(t)| / V0, volumes of the scene mesh moved by u and by u* (T, N, 3)."""
     v0 = signed_volumes(points, tets).sum()
-    errs = [abs(signed_volumes(points + a, tets).sum() - signed_volumes(points + b, tets).sum()) / v0
-            for a, b in zip(np.atleast_3d(u).reshape(-1, *points.shape), np.atleast_3d(ref).reshape(-1, *points.shape))]
+    errs = [
+        abs(signed_volumes(points + a, tets).sum() - signed_volumes(points + b, tets).sum()) / v0
+        for a, b in zip(
+            np.atleast_3d(u).reshape(-1, *points.shape), np.atleast_3d(ref).reshape(-1, *points.shape), strict=True
+        )
+    ]
     return float(max(errs))
 
 
@@ -45,7 +49,9 @@ def compute(points, tets, surface, u, ref, reaction=None, ref_reaction=None, ref
         "ref_err_estimate": ref_err_estimate,
     }
     if reaction is not None and ref_reaction is not None and np.linalg.norm(ref_reaction) > 0:
-        out["reaction_rel_err"] = float(np.linalg.norm(np.asarray(reaction) - ref_reaction) / np.linalg.norm(ref_reaction))
+        out["reaction_rel_err"] = float(
+            np.linalg.norm(np.asarray(reaction) - ref_reaction) / np.linalg.norm(ref_reaction)
+        )
     out["at_reference_accuracy"] = bool(
         ref_err_estimate is not None and out["rel_l2"] < REFERENCE_ACCURACY_FACTOR * ref_err_estimate
     )

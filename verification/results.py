@@ -39,8 +39,13 @@ class Result:
         os.close(fd)
         try:
             np.savez_compressed(
-                tmp, points=self.points, tets=self.tets, times=self.times, displacement=self.displacement,
-                reaction=self.reaction, meta=np.array(json.dumps(self.meta, default=_jsonable)),
+                tmp,
+                points=self.points,
+                tets=self.tets,
+                times=self.times,
+                displacement=self.displacement,
+                reaction=self.reaction,
+                meta=np.array(json.dumps(self.meta, default=_jsonable)),
             )
             os.replace(tmp, path)
         finally:
@@ -51,8 +56,9 @@ class Result:
     @staticmethod
     def load(path: str | os.PathLike) -> Result:
         with np.load(path, allow_pickle=False) as z:
-            return Result(z["points"], z["tets"], z["times"], z["displacement"], z["reaction"],
-                          json.loads(str(z["meta"])))
+            return Result(
+                z["points"], z["tets"], z["times"], z["displacement"], z["reaction"], json.loads(str(z["meta"]))
+            )
 
 
 def _jsonable(x):

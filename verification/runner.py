@@ -45,8 +45,13 @@ def cache_dir() -> Path:
 
 def git_commit() -> str:
     try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                             cwd=Path(__file__).parent, timeout=5)
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=Path(__file__).parent,
+            timeout=5,
+        )
         return out.stdout.strip() or "unknown"
     except (OSError, subprocess.SubprocessError):
         return "unknown"
@@ -55,20 +60,32 @@ def git_commit() -> str:
 def reference_key(scene: Scene, degree: int, refine: int, estimate: bool) -> str:
     from reference.fem import LU_OPTIONS
 
-    text = json.dumps({"scene": scene.sha256(), "degree": degree, "refine": refine, "estimate": estimate,
-                       "solver": LU_OPTIONS, "version": REFERENCE_VERSION}, sort_keys=True)
+    text = json.dumps(
+        {
+            "scene": scene.sha256(),
+            "degree": degree,
+            "refine": refine,
+            "estimate": estimate,
+            "solver": LU_OPTIONS,
+            "version": REFERENCE_VERSION,
+        },
+        sort_keys=True,
+    )
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
-def reference_result(scene: Scene, degree: int = 2, refine: int = 0, estimate: bool = True,
-                     use_cache: bool = True) -> Result:
+def reference_result(
+    scene: Scene, degree: int = 2, refine: int = 0, estimate: bool = True, use_cache: bool = True
+) -> Result:
     """The scene's static reference, from the cache or solved now (and then cached)."""
     from mpi4py import MPI
 
     from reference.driver import solve_static as reference_static
 
     if scene.time.mode != "static":
-        raise NotImplementedError(f"{scene.path}: time.mode = dynamic: the dynamic reference is not built yet (static only)")
+        raise NotImplementedError(
+            f"{scene.path}: time.mode = dynamic: the dynamic reference is not built yet (static only)"
+        )
     key = reference_key(scene, degree, refine, estimate)
     path = cache_dir() / "reference" / f"{scene.name}-{key}.npz"
     if use_cache and path.exists():
@@ -78,9 +95,15 @@ def reference_result(scene: Scene, degree: int = 2, refine: int = 0, estimate: b
     t0 = time.perf_counter()
     sol = reference_static(mesh, scene.material, scene.problem, degree=degree, refine=refine, estimate=estimate)
     meta = sol["meta"]
-    meta.update(scene=scene.name, scene_sha256=scene.sha256(), mesh_sha256=mesh.sha256(), cache_key=key,
-                wall_s=time.perf_counter() - t0, commit=git_commit(),
-                date=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+    meta.update(
+        scene=scene.name,
+        scene_sha256=scene.sha256(),
+        mesh_sha256=mesh.sha256(),
+        cache_key=key,
+        wall_s=time.perf_counter() - t0,
+        commit=git_commit(),
+        date=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    )
     res = Result(mesh.points, mesh.tets, np.zeros(1), sol["displacement"][None], sol["reaction"][None], meta)
     if use_cache and MPI.COMM_WORLD.rank == 0:
         res.save(path)
@@ -107,12 +130,23 @@ def time_steps(model, integrator, dt: float, state, n: int = 100, repeats: int =
         integrator.step(model, state, dt, n)
         per_step.append((time.perf_counter() - t0) / n * 1e6)
     per_step = np.sort(per_step)
-    return {"step_us": float(np.median(per_step)), "step_us_min": float(per_step[0]),
-            "step_us_max": float(per_step[-1]), "timing_steps": n, "timing_repeats": repeats}
+    return {
+        "step_us": float(np.median(per_step)),
+        "step_us_min": float(per_step[0]),
+        "step_us_max": float(per_step[-1]),
+        "timing_steps": n,
+        "timing_repeats": repeats,
+    }
 
 
-def run_model(scene: Scene, model_name: str, dt: float | None = None, dt_fraction: float | None = None,
-              integrator: str = "symplectic-euler", rtol: float = 1e-10) -> Result:
+def run_model(
+    scene: Scene,
+    model_name: str,
+    dt: float | None = None,
+    dt_fraction: float | None = None,
+    integrator: str = "symplectic-euler",
+    rtol: float = 1e-10,
+) -> Result:
     """Run a real-time model on a static scene: damped dynamics at dt until settled, then timing.
 
     dt defaults to ``dt_fraction`` (default 0.9) times the model's critical step. A diverging run
@@ -134,15 +168,30 @@ def run_model(scene: Scene, model_name: str, dt: float | None = None, dt_fractio
     timing = time_steps(model, integ, dt, static.state.copy())
     u = static.state.u
     meta = {
-        "solver": "realtime", "model": model_name, "integrator": integrator, "dt": dt, "dt_crit": dt_crit,
-        "dt_crit_element": realtime.element_critical_dt(model), "omega_max": math.sqrt(omega2),
-        "scene": scene.name, "scene_sha256": scene.sha256(), "mesh_sha256": scene.mesh.sha256(),
-        "static": {"method": "damped dynamics (adaptive dynamic relaxation)", "steps": static.steps,
-                   "residual": static.residual, "rtol": rtol, "wall_s": settle_s},
-        "build_s": build_s, **timing,
-        "realtime_factor": dt / (timing["step_us"] * 1e-6), "rate_hz": 1e6 / timing["step_us"],
+        "solver": "realtime",
+        "model": model_name,
+        "integrator": integrator,
+        "dt": dt,
+        "dt_crit": dt_crit,
+        "dt_crit_element": realtime.element_critical_dt(model),
+        "omega_max": math.sqrt(omega2),
+        "scene": scene.name,
+        "scene_sha256": scene.sha256(),
+        "mesh_sha256": scene.mesh.sha256(),
+        "static": {
+            "method": "damped dynamics (adaptive dynamic relaxation)",
+            "steps": static.steps,
+            "residual": static.residual,
+            "rtol": rtol,
+            "wall_s": settle_s,
+        },
+        "build_s": build_s,
+        **timing,
+        "realtime_factor": dt / (timing["step_us"] * 1e-6),
+        "rate_hz": 1e6 / timing["step_us"],
         "settle_ms": static.steps * timing["step_us"] * 1e-3,
-        "versions": versions(), "commit": git_commit(),
+        "versions": versions(),
+        "commit": git_commit(),
     }
     return Result(scene.mesh.points, scene.mesh.tets, np.zeros(1), u[None], model.reaction(u)[None], meta)
 
@@ -151,12 +200,23 @@ def versions() -> dict:
     import numba
     import scipy
 
-    return {"python": platform.python_version(), "numpy": np.__version__, "scipy": scipy.__version__,
-            "numba": numba.__version__}
+    return {
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "numba": numba.__version__,
+    }
 
 
-def compare(scene: Scene, model_name: str, dt: float | None = None, dt_fraction: float | None = None,
-            integrator: str = "symplectic-euler", reference: Result | None = None, **ref_options) -> dict:
+def compare(
+    scene: Scene,
+    model_name: str,
+    dt: float | None = None,
+    dt_fraction: float | None = None,
+    integrator: str = "symplectic-euler",
+    reference: Result | None = None,
+    **ref_options,
+) -> dict:
     """Metrics of one model run against the scene's reference (DESIGN.md section 6).
 
     A diverging run gives {"status": "diverged", ...} with the step, dt and dt_crit instead of errors.
@@ -166,16 +226,47 @@ def compare(scene: Scene, model_name: str, dt: float | None = None, dt_fraction:
     try:
         res = run_model(scene, model_name, dt=dt, dt_fraction=dt_fraction, integrator=integrator)
     except DivergenceError as exc:
-        return {**base, "status": "diverged", "dt": exc.dt, "dt_crit": exc.dt_crit, "step": exc.step, "message": str(exc)}
+        return {
+            **base,
+            "status": "diverged",
+            "dt": exc.dt,
+            "dt_crit": exc.dt_crit,
+            "step": exc.step,
+            "message": str(exc),
+        }
     mesh = scene.mesh
     has_tools = bool(scene.problem.tools)
-    metrics = compute(mesh.points, mesh.tets, mesh.surface_vertices, res.displacement, ref.displacement,
-                      res.reaction if has_tools else None, ref.reaction if has_tools else None,
-                      ref.meta.get("ref_err_estimate"))
+    metrics = compute(
+        mesh.points,
+        mesh.tets,
+        mesh.surface_vertices,
+        res.displacement,
+        ref.displacement,
+        res.reaction if has_tools else None,
+        ref.reaction if has_tools else None,
+        ref.meta.get("ref_err_estimate"),
+    )
     m = res.meta
-    return {**base, "status": "ok", "dt": m["dt"], "dt_crit": m["dt_crit"], "dt_crit_element": m["dt_crit_element"],
-            **metrics, "step_us": m["step_us"], "step_us_min": m["step_us_min"], "step_us_max": m["step_us_max"],
-            "realtime_factor": m["realtime_factor"], "rate_hz": m["rate_hz"], "settle_steps": m["static"]["steps"],
-            "settle_ms": m["settle_ms"], "reference": {"degree": ref.meta["degree"], "refine": ref.meta["refine"],
-                                                         "law": ref.meta["law"], "cache_key": ref.meta.get("cache_key")},
-            "n_vertices": mesh.n_vertices, "n_tets": mesh.n_tets}
+    return {
+        **base,
+        "status": "ok",
+        "dt": m["dt"],
+        "dt_crit": m["dt_crit"],
+        "dt_crit_element": m["dt_crit_element"],
+        **metrics,
+        "step_us": m["step_us"],
+        "step_us_min": m["step_us_min"],
+        "step_us_max": m["step_us_max"],
+        "realtime_factor": m["realtime_factor"],
+        "rate_hz": m["rate_hz"],
+        "settle_steps": m["static"]["steps"],
+        "settle_ms": m["settle_ms"],
+        "reference": {
+            "degree": ref.meta["degree"],
+            "refine": ref.meta["refine"],
+            "law": ref.meta["law"],
+            "cache_key": ref.meta.get("cache_key"),
+        },
+        "n_vertices": mesh.n_vertices,
+        "n_tets": mesh.n_tets,
+    }

@@ -18,8 +18,8 @@ import numpy as np
 
 from meshes import InvalidMeshError, TetMesh, get_mesh, read_mesh
 from meshes.regions import AllRegion, BoxRegion, Region, SphereRegion, TagRegion
-from reference.problem import COMPONENTS, Displacement, Fixed, Force, Gravity, Problem, Traction
 from realtime.material import LAWS, Material, MaterialError
+from reference.problem import COMPONENTS, Displacement, Fixed, Force, Gravity, Problem, Traction
 
 SCENES_DIR = Path(__file__).parent / "scenes"
 
@@ -77,8 +77,17 @@ class Scene:
         """A copy with material fields changed (for studies over nu, E)."""
         raw = json.loads(json.dumps(self.raw))
         raw.setdefault("material", {}).update(changes)
-        return Scene(self.name, self.description, self.path, self.mesh_spec, self.material.replace(**changes),
-                     self.problem, self.time, raw, self._mesh)
+        return Scene(
+            self.name,
+            self.description,
+            self.path,
+            self.mesh_spec,
+            self.material.replace(**changes),
+            self.problem,
+            self.time,
+            raw,
+            self._mesh,
+        )
 
 
 def builtin_scenes() -> dict[str, Path]:
@@ -137,7 +146,11 @@ class _Reader:
 
     def vec3(self, k, default=...):
         v = self.get(k, default)
-        if not (isinstance(v, list) and len(v) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)):
+        if not (
+            isinstance(v, list)
+            and len(v) == 3
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+        ):
             self.fail(k, f"must be a list of 3 numbers, got {v!r}")
         return tuple(float(x) for x in v)
 
@@ -213,8 +226,14 @@ def _load(r: _Reader):
         axis = np.asarray(sub.vec3("axis"))
         if not np.linalg.norm(axis) > 0:
             sub.fail("axis", "must be a non-zero vector")
-        load = Displacement(region, comps, axis=tuple(axis / np.linalg.norm(axis)), center=sub.vec3("center"),
-                            angle=sub.number("angle"), ramp=ramp)
+        load = Displacement(
+            region,
+            comps,
+            axis=tuple(axis / np.linalg.norm(axis)),
+            center=sub.vec3("center"),
+            angle=sub.number("angle"),
+            ramp=ramp,
+        )
         sub.finish(("axis", "center", "angle"))
     r.finish(("kind", "value", "rotation", "ramp", "components") + REGION_KEYS)
     return load
@@ -288,8 +307,10 @@ def parse(path: Path, data: dict) -> Scene:
     tr.finish(("mode", "end", "output_every", "damping"))
     top.finish(("name", "description", "mesh", "material", "fixed", "load", "time"))
     if not fixed and not any(isinstance(ld, Displacement) for ld in loads) and tspec.mode == "static":
-        raise SceneError(f"{path}: fixed: a static scene needs a [[fixed]] region or a displacement load "
-                         "(otherwise rigid motions are free and there is no equilibrium)")
+        raise SceneError(
+            f"{path}: fixed: a static scene needs a [[fixed]] region or a displacement load "
+            "(otherwise rigid motions are free and there is no equilibrium)"
+        )
     return Scene(name, description, path, spec, material, Problem(tuple(fixed), tuple(loads)), tspec, raw=data)
 
 
@@ -332,8 +353,10 @@ def check_regions(scene: Scene, mesh: TetMesh) -> None:
         idx = _vertices(scene, mesh, ld.region, f"load[{i}]")
         if isinstance(ld, Displacement) and fixed_any[idx].any():
             v = int(idx[np.argmax(fixed_any[idx])])
-            raise SceneError(f"{scene.path}: load[{i}]: the displacement region shares vertex {v} "
-                             f"{mesh.points[v].tolist()} with a fixed region; make them disjoint")
+            raise SceneError(
+                f"{scene.path}: load[{i}]: the displacement region shares vertex {v} "
+                f"{mesh.points[v].tolist()} with a fixed region; make them disjoint"
+            )
 
 
 def _vertices(scene, mesh, region, where):
@@ -343,6 +366,8 @@ def _vertices(scene, mesh, region, where):
         raise SceneError(f"{scene.path}: {where}.tag: {exc.args[0]}") from None
     if len(idx) == 0:
         lo, hi = mesh.bounding_box()
-        raise SceneError(f"{scene.path}: {where}.{region.describe().split(' ')[0]}: the region "
-                         f"{region.describe()} holds no vertex (the mesh spans {lo.tolist()} to {hi.tolist()})")
+        raise SceneError(
+            f"{scene.path}: {where}.{region.describe().split(' ')[0]}: the region "
+            f"{region.describe()} holds no vertex (the mesh spans {lo.tolist()} to {hi.tolist()})"
+        )
     return idx

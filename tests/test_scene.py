@@ -1,0 +1,89 @@
+"""Scene files: the built-ins load; every bad value fails with one line naming file and key, status 2."""
+
+import textwrap
+
+import pytest
+
+from verification.cli import main
+from verification.scene import SceneError, builtin_scenes, load_scene
+
+GOOD = textwrap.dedent("""
+    name = "t"
+    [mesh]
+    generator = "box"
+    size = [0.1, 0.02, 0.02]
+    h = 0.005
+    [material]
+    law = "linear"
+    young = 5.0e5
+    poisson = 0.45
+    density = 1000.0
+    [[fixed]]
+    box = [[-1e-9, -1.0, -1.0], [1e-9, 1.0, 1.0]]
+    [[load]]
+    kind = "gravity"
+    value = [0.0, 0.0, -9.81]
+""")
+
+
+def write(tmp_path, text):
+    p = tmp_path / "scene.toml"
+    p.write_text(text)
+    return p
+
+
+def test_builtin_scenes_load():
+    names = set(builtin_scenes())
+    assert {"cantilever", "cantilever-pull"} <= names
+    for name in names:
+        scene = load_scene(name)
+        assert scene.mesh.n_tets > 0
+
+
+def test_good_scene(tmp_path):
+    s = load_scene(write(tmp_path, GOOD))
+    assert s.material.lam > 0 and len(s.problem.fixed) == 1
+
+
+BAD = [
+    ("poisson = 0.45", "poisson = 0.5", "material.poisson"),
+    ('kind = "gravity"', 'kind = "magnetic"', "load[0].kind"),
+    ("box = [[-1e-9, -1.0, -1.0], [1e-9, 1.0, 1.0]]", "box = [[5.0, 5.0, 5.0], [6.0, 6.0, 6.0]]", "fixed[0].box"),
+    ("density = 1000.0", "density = 1000.0\ncolour = 3", "material.colour"),
+    ("young = 5.0e5\n", "", "material.young"),
+    ('generator = "box"', 'generator = "sphere"', "mesh.generator"),
+    ("h = 0.005", 'h = "fine"', "mesh.h"),
+    ("value = [0.0, 0.0, -9.81]", "value = [0.0, -9.81]", "load[0].value"),
+]
+
+
+@pytest.mark.parametrize("old, new, key", BAD, ids=[b[2] for b in BAD])
+def test_bad_scene_is_one_line_naming_file_and_key(tmp_path, capsys, old, new, key):
+    assert old in GOOD
+    path = write(tmp_path, GOOD.replace(old, new))
+    with pytest.raises(SceneError, match=key.replace("[", r"\[").replace("]", r"\]")):
+        load_scene(path).mesh  # noqa: B018  (regions are checked against the mesh)
+    assert main(["compare", str(path), "--model", "linear-tm"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and str(path) in err and key in err
+
+
+def test_error_lists_allowed_values(tmp_path):
+    with pytest.raises(SceneError, match="gravity, force, traction, displacement"):
+        load_scene(write(tmp_path, GOOD.replace('kind = "gravity"', 'kind = "magnetic"')))
+
+
+def test_fixed_and_tool_overlap_is_an_error(tmp_path):
+    text = GOOD + textwrap.dedent("""
+        [[load]]
+        kind = "displacement"
+        box = [[-1.0, -1.0, -1.0], [0.01, 1.0, 1.0]]
+        value = [0.0, 0.0, 0.001]
+    """)
+    with pytest.raises(SceneError, match=r"load\[1\].*shares vertex"):
+        load_scene(write(tmp_path, text)).mesh  # noqa: B018
+
+
+def test_unknown_scene_name():
+    with pytest.raises(SceneError, match="not a built-in scene"):
+        load_scene("no-such-scene")

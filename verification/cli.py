@@ -1,0 +1,222 @@
+"""The ``tissuebench`` command (DESIGN.md section 5).
+
+Exit status: 0 on success, 1 when a run fails (divergence, a solver failure), 2 for bad input (a scene
+file, a mesh, an option), with a one-line message on stderr. With --json, stdout carries one JSON
+object and nothing else.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+
+from meshes import InvalidMeshError
+from realtime import INTEGRATORS, MODELS, DivergenceError, MaterialError
+
+from .scene import SceneError, builtin_scenes, load_scene
+
+
+def _print_json(obj) -> None:
+    print(json.dumps(obj, indent=1, default=_default))
+
+
+def _default(x):
+    import numpy as np
+
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return str(x)
+
+
+def cmd_scenes(args) -> int:
+    rows = []
+    for name, path in builtin_scenes().items():
+        s = load_scene(path)
+        rows.append(
+            {
+                "name": name,
+                "mode": s.time.mode,
+                "law": s.material.law,
+                "mesh": s.mesh_spec["generator"],
+                "description": s.description,
+                "path": str(path),
+            }
+        )
+    if args.json:
+        _print_json({"scenes": rows})
+    else:
+        for r in rows:
+            print(f"{r['name']:<18} {r['mode']:<8} {r['law']:<7} {r['mesh']:<9} {r['description']}")
+    return 0
+
+
+def cmd_reference(args) -> int:
+    from .runner import reference_result
+
+    scene = load_scene(args.scene)
+    res = reference_result(
+        scene, degree=args.degree, refine=args.refine, estimate=not args.no_estimate, use_cache=not args.no_cache
+    )
+    from mpi4py import MPI
+
+    if args.out and MPI.COMM_WORLD.rank == 0:
+        res.save(args.out)
+    summary = {
+        "scene": scene.name,
+        "out": args.out,
+        "max_displacement": float(abs(res.displacement).max()),
+        "reaction": res.reaction[-1].tolist(),
+        "meta": res.meta,
+    }
+    if MPI.COMM_WORLD.rank == 0:
+        if args.json:
+            _print_json(summary)
+        else:
+            est = res.meta.get("ref_err_estimate")
+            print(
+                f"{scene.name}: P{args.degree} refine {args.refine}, max |u| = {summary['max_displacement']:.4g} m"
+                + (f", ref_err_estimate = {est:.3g}" if est is not None else "")
+                + (f", written to {args.out}" if args.out else "")
+            )
+    return 0
+
+
+def cmd_run(args) -> int:
+    from .runner import run_model
+
+    scene = load_scene(args.scene)
+    res = run_model(scene, args.model, dt=args.dt, integrator=args.integrator)
+    if args.out:
+        res.save(args.out)
+    m = res.meta
+    summary = {
+        "scene": scene.name,
+        "model": args.model,
+        "out": args.out,
+        "dt": m["dt"],
+        "dt_crit": m["dt_crit"],
+        "step_us": m["step_us"],
+        "settle_steps": m["static"]["steps"],
+        "max_displacement": float(abs(res.displacement).max()),
+        "reaction": res.reaction[-1].tolist(),
+    }
+    if args.json:
+        _print_json({**summary, "meta": m})
+    else:
+        print(
+            f"{scene.name} / {args.model}: dt = {m['dt']:.3g} s (critical {m['dt_crit']:.3g} s), "
+            f"{m['step_us']:.1f} us/step, settled in {m['static']['steps']} steps, "
+            f"max |u| = {summary['max_displacement']:.4g} m" + (f", written to {args.out}" if args.out else "")
+        )
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from .runner import compare
+
+    scene = load_scene(args.scene)
+    out = compare(scene, args.model, dt=args.dt, integrator=args.integrator, degree=args.degree, refine=args.refine)
+    if args.json:
+        _print_json(out)
+    elif out["status"] != "ok":
+        print(out["message"])
+    else:
+        acc = " (at reference accuracy)" if out["at_reference_accuracy"] else ""
+        print(f"{scene.name} / {args.model} at dt = {out['dt']:.3g} s:")
+        for k in (
+            "rel_l2",
+            "surface_rel_l2",
+            "max_err",
+            "reaction_rel_err",
+            "volume_err",
+            "ref_err_estimate",
+            "step_us",
+            "realtime_factor",
+            "rate_hz",
+        ):
+            v = out[k]
+            print(f"  {k:<18} {'-' if v is None else f'{v:.4g}'}{acc if k == 'rel_l2' else ''}")
+    return 0 if out["status"] == "ok" else 1
+
+
+def cmd_report(args) -> int:
+    from .report import write_report
+
+    path = write_report(args.scenes or None, out=args.out, fractions=args.fractions)
+    print(f"report written to {path}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="tissuebench", description="What real-time soft-tissue models give up for their speed."
+    )
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("scenes", help="list built-in scenes")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_scenes)
+
+    s = sub.add_parser("reference", help="solve a scene's ground truth with dolfinx")
+    s.add_argument("scene")
+    s.add_argument("--degree", type=int, choices=(1, 2), default=2)
+    s.add_argument("--refine", type=int, default=0)
+    s.add_argument("--out", help="write the result file (.npz)")
+    s.add_argument("--no-estimate", action="store_true", help="skip the refined solve behind ref_err_estimate")
+    s.add_argument("--no-cache", action="store_true")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_reference)
+
+    for name, func, helptext in (
+        ("run", cmd_run, "run a real-time model on a scene"),
+        ("compare", cmd_compare, "metrics of a model against the reference"),
+    ):
+        s = sub.add_parser(name, help=helptext)
+        s.add_argument("scene")
+        s.add_argument("--model", required=True, choices=sorted(MODELS))
+        s.add_argument("--dt", type=float, help="time step, s (default 0.9 x the critical one)")
+        s.add_argument("--integrator", default="symplectic-euler", choices=sorted(INTEGRATORS))
+        s.add_argument("--json", action="store_true")
+        if name == "run":
+            s.add_argument("--out", help="write the result file (.npz)")
+        else:
+            s.add_argument("--degree", type=int, choices=(1, 2), default=2, help="reference degree")
+            s.add_argument("--refine", type=int, default=0, help="reference refinement level")
+        s.set_defaults(func=func)
+
+    s = sub.add_parser("report", help="HTML report with plots and data")
+    s.add_argument("scenes", nargs="*", help="scenes (default: cantilever cantilever-pull)")
+    s.add_argument("--out", help="report directory (default reports/NAME)")
+    s.add_argument(
+        "--fractions",
+        type=float,
+        nargs="+",
+        default=[0.25, 0.5, 0.9, 1.1],
+        help="time steps as fractions of each model's critical step",
+    )
+    s.set_defaults(func=cmd_report)
+    return p
+
+
+def main(argv=None) -> int:
+    logging.getLogger().setLevel(logging.WARNING)  # FFCx's JIT logs its compiler calls at INFO
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (SceneError, InvalidMeshError, MaterialError, FileNotFoundError) as exc:
+        print(f"tissuebench: {exc}", file=sys.stderr)
+        return 2
+    except DivergenceError as exc:
+        print(f"tissuebench: {exc}", file=sys.stderr)
+        return 1
+    except NotImplementedError as exc:
+        print(f"tissuebench: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
