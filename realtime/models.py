@@ -10,8 +10,21 @@ from collections.abc import Callable
 
 import numpy as np
 
+from .geometry import signed_volumes, unique_edges
 from .material import Material
 from .model import Loading, Model, lumped_masses, prepare_mesh
+from .nonlinear import (
+    corotational_energy,
+    corotational_force,
+    hybrid_energy,
+    hybrid_force,
+    law_params,
+    spring_energy,
+    spring_force,
+    stvk_energy,
+    stvk_force,
+    tet_data,
+)
 from .tensor_mass import TensorMass, linear_tm_energy, linear_tm_force
 
 
@@ -37,9 +50,181 @@ def build_linear_tm(points, tets, material: Material, loading: Loading | None = 
     )
 
 
+def cut(model: Model, which) -> Model:
+    """Remove tetrahedra ``which`` from a linear tensor-mass model (Cotin et al. 2000).
+
+    The vertex and edge tensors of the removed tetrahedra's vertices and edges are updated in place
+    (cost proportional to the cut, not to the mesh), and the lumped masses too; a vertex left with no
+    tetrahedron is held fixed. Returns the new Model; the old one shares the updated tensors and must
+    not be used again.
+    """
+    tm = model.extra.get("tensors")
+    if model.name != "linear-tm" or tm is None:
+        raise ValueError(f"cut: {model.name} does not support cutting (linear-tm does)")
+    which = np.unique(np.asarray(which, dtype=np.int64))
+    tm.remove(which)
+    removed = model.tets[which]
+    mass = model.mass.copy()
+    vol = np.abs(signed_volumes(model.points, removed))
+    np.subtract.at(mass, removed.ravel(), np.repeat(model.material.density * vol / 4.0, 4))
+    alive_tets = model.tets[tm.alive]
+    orphan = np.ones(model.n_vertices, dtype=bool)
+    orphan[alive_tets.ravel()] = False
+    free = model.loading.free.copy()
+    free[orphan] = 0.0
+    mass[orphan] = 1.0  # never used: orphans do not move; keeps 1/m finite
+    loading = Loading(**{**model.loading.__dict__, "free": free})
+    return Model(**{**model.__dict__, "tets": alive_tets, "mass": mass, "loading": loading})
+
+
+def _scratch(k: int):
+    return tuple(np.zeros((3, 3)) for _ in range(k))
+
+
+def _model(name, points, tets, material, loading, force, energy, data, linear, **extra) -> Model:
+    return Model(
+        name=name,
+        points=points,
+        tets=tets,
+        material=material,
+        mass=lumped_masses(points, tets, material.density),
+        loading=loading if loading is not None else Loading.free_body(len(points)),
+        force_kernel=force,
+        energy_kernel=energy,
+        data=data,
+        linear=linear,
+        extra=extra,
+    )
+
+
+def build_stvk_tm(points, tets, material: Material, loading: Loading | None = None) -> Model:
+    """Non-linear StVK tensor-mass (Picinbono et al. 2003), isotropic or transversely isotropic, with
+    the volume penalty when ``material.volume_penalty`` > 0. Rotation invariant."""
+    points, tets = prepare_mesh(points, tets)
+    data = (*tet_data(points, tets), law_params(material), *_scratch(3))
+    return _model("stvk-tm", points, tets, material, loading, stvk_force, stvk_energy, data, False)
+
+
+def build_corotational_tm(points, tets, material: Material, loading: Loading | None = None) -> Model:
+    """Corotational linear elasticity, polar rotation per tetrahedron (SOFA's "polar" method).
+
+    Isotropic only: for an anisotropic law the rotated-frame force is not the gradient of an energy.
+    """
+    if material.fiber is not None:
+        raise ValueError(
+            "corotational-tm: isotropic materials only (the rotated-frame force of an anisotropic "
+            "law is not the gradient of an energy); use stvk-tm for fibres"
+        )
+    points, tets = prepare_mesh(points, tets)
+    data = (*tet_data(points, tets), law_params(material), *_scratch(4))
+    return _model(
+        "corotational-tm", points, tets, material, loading, corotational_force, corotational_energy, data, False
+    )
+
+
+def build_hybrid_tm(
+    points, tets, material: Material, loading: Loading | None = None, threshold: float | None = None
+) -> Model:
+    """Linear tensor-mass, StVK on the tetrahedra with a vertex displaced more than ``threshold`` (m).
+
+    Default threshold: 10% of the mean edge length, the small-displacement limit of linear elasticity
+    quoted by Delingette & Ayache (2004).
+    """
+    points, tets = prepare_mesh(points, tets)
+    tm = TensorMass(points, tets, material)
+    if threshold is None:
+        e = unique_edges(tets)
+        threshold = 0.1 * float(np.linalg.norm(points[e[:, 0]] - points[e[:, 1]], axis=1).mean())
+    if not threshold >= 0.0:
+        raise ValueError(f"hybrid-tm: threshold = {threshold!r} must be >= 0 m")
+    data = (
+        tm.kernel_data(),
+        *tet_data(points, tets),
+        law_params(material),
+        np.ascontiguousarray(tm.ke),
+        np.array([float(threshold)]),
+        np.zeros(len(tets), dtype=np.bool_),
+        *_scratch(3),
+    )
+    return _model(
+        "hybrid-tm",
+        points,
+        tets,
+        material,
+        loading,
+        hybrid_force,
+        hybrid_energy,
+        data,
+        False,
+        tensors=tm,
+        threshold=float(threshold),
+    )
+
+
+def spring_stiffness(points, tets, edges, material: Material) -> np.ndarray:
+    """Van Gelder's calibration (1998): k_ij = E sum_{T around ij} V_T / L_ij^2, N/m (E,).
+
+    A network of central springs has the Cauchy relation lambda = mu built in (nu = 1/4 for a regular
+    lattice): it cannot represent another Poisson's ratio, which is why nu does not appear. The test
+    suite measures the resulting Young's modulus and Poisson's ratio of a spring block in uniaxial
+    tension and states them.
+    """
+    from .tensor_mass import LOCAL_EDGES, edge_index
+
+    vol = np.abs(signed_volumes(points, tets))
+    idx = edge_index(edges, len(points), tets[:, LOCAL_EDGES].reshape(-1, 2)).reshape(-1, 6)
+    acc = np.zeros(len(edges))
+    np.add.at(acc, idx.ravel(), np.repeat(vol, 6))
+    length2 = np.sum((points[edges[:, 1]] - points[edges[:, 0]]) ** 2, axis=1)
+    return material.young * acc / length2
+
+
+def build_mass_spring(points, tets, material: Material, loading: Loading | None = None) -> Model:
+    """Mass-spring network on the mesh edges (Delingette 1998; Liu 2002), lumped FEM masses.
+
+    Damping: the integrators' Rayleigh stiffness term evaluates the spring forces at u + beta v, which
+    is a dashpot c = beta k along each spring.
+    """
+    points, tets = prepare_mesh(points, tets)
+    edges = unique_edges(tets)
+    k = spring_stiffness(points, tets, edges, material)
+    rest = np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)
+    data = (points, edges, k, rest)
+    return _model("mass-spring", points, tets, material, loading, spring_force, spring_energy, data, False, stiffness=k)
+
+
+def _with_quasistatic(model: Model, cls) -> Model:
+    extra = dict(model.extra)
+    extra["quasistatic"] = cls(model)
+    return Model(**{**model.__dict__, "name": cls.model_name, "extra": extra})
+
+
+def build_precomputed(points, tets, material: Material, loading: Loading | None = None) -> Model:
+    """Quasi-static precomputed linear model (Cotin et al. 1999); see realtime.quasistatic."""
+    from .quasistatic import Precomputed
+
+    return _with_quasistatic(build_linear_tm(points, tets, material, loading), Precomputed)
+
+
+def build_condensed(points, tets, material: Material, loading: Loading | None = None) -> Model:
+    """Static linear model condensed onto the surface (Bro-Nielsen 1996); see realtime.quasistatic."""
+    from .quasistatic import Condensed
+
+    return _with_quasistatic(build_linear_tm(points, tets, material, loading), Condensed)
+
+
 MODELS: dict[str, Callable[..., Model]] = {
     "linear-tm": build_linear_tm,
+    "corotational-tm": build_corotational_tm,
+    "stvk-tm": build_stvk_tm,
+    "hybrid-tm": build_hybrid_tm,
+    "mass-spring": build_mass_spring,
+    "precomputed": build_precomputed,
+    "condensed": build_condensed,
 }
+
+#: Models that jump to equilibrium instead of integrating in time (their integrator is QuasiStatic).
+QUASI_STATIC = ("precomputed", "condensed")
 
 
 def build_model(name: str, points, tets, material: Material, loading: Loading | None = None, **options) -> Model:

@@ -27,6 +27,7 @@ from .laws import linear_elasticity_tensor
 from .material import Material
 
 _JIT = dict(nogil=True, cache=True)
+_HOT = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz", "arcp"})  # see nonlinear.py
 
 #: Local edges of a tetrahedron, in the order of TetraTensors.tet_edges' columns.
 LOCAL_EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
@@ -87,6 +88,24 @@ class TensorMass:
             block = np.where(swap[:, None, None], ke[:, b, a], ke[:, a, b])
             np.add.at(self.edge_tensors, self.tet_edges[which, k], sign * block)
 
+    def remove(self, which) -> None:
+        """Cut: remove tetrahedra ``which`` (K,) int, updating only the tensors of their vertices and
+        edges (Cotin et al. 2000). An edge left with no tetrahedron keeps a zero tensor."""
+        which = np.unique(np.asarray(which, dtype=np.int64))
+        alive = self.alive
+        if np.any(~alive[which]):
+            bad = int(which[~alive[which]][0])
+            raise ValueError(f"tetrahedron {bad} was already removed")
+        self._scatter(which, -1.0)
+        alive[which] = False
+
+    @property
+    def alive(self) -> np.ndarray:
+        """(M,) bool: which tetrahedra are still in the mesh."""
+        if not hasattr(self, "_alive"):
+            self._alive = np.ones(len(self.tets), dtype=bool)
+        return self._alive
+
     def matrix(self) -> sp.csr_matrix:
         """The assembled stiffness K (3N, 3N) as scipy CSR, N/m (dof 3 i + c)."""
         n = self.n_vertices
@@ -107,7 +126,7 @@ class TensorMass:
         )
 
 
-@nb.njit(**_JIT)
+@nb.njit(**_HOT)
 def linear_tm_force(data, u, f):
     """f = -K u from vertex and edge tensors.
 

@@ -1,0 +1,239 @@
+"""Quasi-static linear models: precomputed elementary responses (Cotin 1999) and condensation
+(Bro-Nielsen 1996). Both answer "where is everything at equilibrium with the tools here?" in one
+update, with no time stepping; their ``step`` is that update at the state's time.
+
+Notation: K the P1 linear stiffness (3N x 3N), c the constrained dofs (fixed and tool components),
+f the free dofs, u0 = K_ff^-1 f_ext the response to the constant loads.
+
+Precomputed (Cotin, Delingette & Ayache 1999): for every free dof s of a surface vertex the
+elementary response T[:, s] = K_ff^-1 e_s (all free dofs, to a unit force at s) is computed once. A
+tool imposing displacements d on a set D of surface dofs needs forces F_D with T_DD F_D = d - u0_D;
+then u = u0 + T[:, D] F_D, and F_D is the force the tool applies, the haptic feedback. This equals
+the static solution with D added to the Dirichlet set (the Schur complement identity), to round-off.
+
+Condensed (Bro-Nielsen 1996): keep the retained vertices r (surface and constrained), eliminate the
+interior i: K* = K_rr - K_ri K_ii^-1 K_ir, f* = f_r - K_ri K_ii^-1 f_i. Solving K* on the free retained
+dofs gives exactly the full static solution at the surface vertices; the interior is recovered on
+demand by u_i = K_ii^-1 (f_i - K_ir u_r), outside the timed update.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .geometry import boundary_faces
+from .model import Model, State
+
+_JIT = dict(nogil=True, cache=True)
+
+
+def _surface_vertices(tets: np.ndarray) -> np.ndarray:
+    return np.unique(boundary_faces(tets))
+
+
+def _stiffness(model: Model) -> sp.csr_matrix:
+    return model.extra["tensors"].matrix()
+
+
+def _tool_targets(model: Model, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """Prescribed dofs (D,) int64 and their displacements (D,) m at time t."""
+    lo = model.loading
+    disp = model.tool_displacement(t)
+    mask = lo.tool_mask != 0.0
+    dofs = (3 * lo.tool_vertex[:, None] + np.arange(3)[None, :])[mask]
+    vals = disp[mask]
+    dofs, first = np.unique(dofs, return_index=True)
+    return dofs, vals[first]
+
+
+class Precomputed:
+    """Elementary responses of the free surface dofs of a linear model (Cotin et al. 1999).
+
+    Attributes:
+        free_dofs: (F,) int64 free dofs (not fixed by the scene's fixed regions).
+        surface_dofs: (S,) int64 free dofs of surface vertices, the columns of T.
+        T: (F, S) float64, m/N: responses of all free dofs to unit forces at the surface dofs.
+        u0: (3N,) float64, m: response to the constant loads.
+        column: (3N,) int64, column of T of each dof (-1 if none).
+        row: (3N,) int64, row of T of each dof (-1 if not free).
+    """
+
+    model_name = "precomputed"
+
+    def __init__(self, model: Model):
+        lo = model.loading
+        n = model.n_vertices
+        fixed = np.zeros((n, 3), dtype=bool)
+        fixed[:] = lo.free == 0.0
+        tool = np.zeros((n, 3), dtype=bool)
+        if len(lo.tool_vertex):
+            tool[lo.tool_vertex] = lo.tool_mask != 0.0
+        held = (fixed & ~tool).ravel()  # held by fixed regions; tool dofs stay free here
+        self.free_dofs = np.flatnonzero(~held)
+        surf = _surface_vertices(model.tets)
+        sdofs = (3 * surf[:, None] + np.arange(3)).ravel()
+        self.surface_dofs = sdofs[~held[sdofs]]
+        tool_dofs = np.flatnonzero(tool.ravel())
+        missing = np.setdiff1d(tool_dofs, self.surface_dofs)
+        if len(missing):
+            v = int(missing[0] // 3)
+            raise ValueError(
+                f"precomputed: tool vertex {v} {model.points[v].tolist()} is not on the surface; "
+                "elementary responses exist for surface vertices only"
+            )
+        K = _stiffness(model)[self.free_dofs][:, self.free_dofs].tocsc()
+        lu = spla.splu(K)
+        self.row = np.full(3 * n, -1, dtype=np.int64)
+        self.row[self.free_dofs] = np.arange(len(self.free_dofs))
+        self.column = np.full(3 * n, -1, dtype=np.int64)
+        self.column[self.surface_dofs] = np.arange(len(self.surface_dofs))
+        rhs = np.zeros((len(self.free_dofs), len(self.surface_dofs)))
+        rhs[self.row[self.surface_dofs], np.arange(len(self.surface_dofs))] = 1.0
+        self.T = np.ascontiguousarray(lu.solve(rhs))
+        self.u0 = np.zeros(3 * n)
+        self.u0[self.free_dofs] = lu.solve(lo.external_force.ravel()[self.free_dofs])
+        self.n = n
+
+    def solve(self, dofs: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Displacement (N, 3) m with ``dofs`` (D,) held at ``values`` (D,) m; and the tool forces (D,) N."""
+        u = self.u0.copy()
+        if len(dofs) == 0:
+            return u.reshape(-1, 3), np.zeros(0)
+        cols = self.column[dofs]
+        TDD = self.T[self.row[dofs]][:, cols]
+        F = np.linalg.solve(TDD, values - self.u0[dofs])
+        u[self.free_dofs] += self.T[:, cols] @ F
+        return u.reshape(-1, 3), F
+
+    def tool_force(self, vertex: int, displacement: np.ndarray) -> np.ndarray:
+        """Force (3,) N needed to hold one surface vertex at ``displacement`` (3,) m: the haptic update."""
+        dofs = 3 * vertex + np.arange(3)
+        return _one_vertex_force(
+            self.T, self.row[dofs], self.column[dofs], self.u0[dofs], np.asarray(displacement, float)
+        )
+
+
+@nb.njit(**_JIT)
+def _one_vertex_force(T, rows, cols, u0, d):
+    """Solve the 3x3 system T_kk F = d - u0_k by Cramer's rule (no allocation beyond the result)."""
+    a = np.empty((3, 3))
+    for r in range(3):
+        for c in range(3):
+            a[r, c] = T[rows[r], cols[c]]
+    b0, b1, b2 = d[0] - u0[0], d[1] - u0[1], d[2] - u0[2]
+    c00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
+    c01 = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
+    c02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
+    det = a[0, 0] * c00 + a[0, 1] * c01 + a[0, 2] * c02
+    out = np.empty(3)
+    out[0] = (
+        b0 * c00 + b1 * (a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2]) + b2 * (a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1])
+    ) / det
+    out[1] = (
+        b0 * c01 + b1 * (a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]) + b2 * (a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2])
+    ) / det
+    out[2] = (
+        b0 * c02 + b1 * (a[0, 1] * a[2, 0] - a[0, 0] * a[2, 1]) + b2 * (a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0])
+    ) / det
+    return out
+
+
+class Condensed:
+    """Static linear problem condensed onto the surface (and constrained) vertices (Bro-Nielsen 1996).
+
+    Attributes:
+        retained: (R,) int64 retained dofs (surface and constrained vertices), interior: (I,) int64.
+        K_star: (R, R) float64, N/m, the Schur complement; f_star: (R,) float64, N.
+    """
+
+    model_name = "condensed"
+
+    def __init__(self, model: Model):
+        lo = model.loading
+        n = model.n_vertices
+        keep = np.zeros(n, dtype=bool)
+        keep[_surface_vertices(model.tets)] = True
+        keep[np.any(lo.free == 0.0, axis=1)] = True
+        if len(lo.tool_vertex):
+            keep[lo.tool_vertex] = True
+        rdofs = (3 * np.flatnonzero(keep)[:, None] + np.arange(3)).ravel()
+        idofs = (3 * np.flatnonzero(~keep)[:, None] + np.arange(3)).ravel()
+        K = _stiffness(model)
+        f = lo.external_force.ravel()
+        Kii = K[idofs][:, idofs].tocsc()
+        Kir = K[idofs][:, rdofs].toarray()
+        self.lu_ii = spla.splu(Kii)
+        X = self.lu_ii.solve(np.column_stack([Kir, f[idofs]]))
+        self.K_star = K[rdofs][:, rdofs].toarray() - K[rdofs][:, idofs] @ X[:, :-1]
+        self.f_star = f[rdofs] - K[rdofs][:, idofs] @ X[:, -1]
+        self.retained, self.interior = rdofs, idofs
+        self._Kir, self._fi = K[idofs][:, rdofs].tocsr(), f[idofs]
+        held = (lo.free.ravel() == 0.0)[rdofs]
+        self.free_r = np.flatnonzero(~held)
+        self.held_r = np.flatnonzero(held)
+        self.chol = sla.cho_factor(self.K_star[np.ix_(self.free_r, self.free_r)])
+        self.K_fc = self.K_star[np.ix_(self.free_r, self.held_r)]
+        self.n = n
+
+    def solve_surface(self, held_values: np.ndarray) -> np.ndarray:
+        """Retained displacements (R,) m with the held retained dofs at ``held_values`` (H,) m."""
+        u = np.zeros(len(self.retained))
+        u[self.held_r] = held_values
+        u[self.free_r] = sla.cho_solve(self.chol, self.f_star[self.free_r] - self.K_fc @ held_values)
+        return u
+
+    def full(self, u_r: np.ndarray) -> np.ndarray:
+        """All displacements (N, 3) m: the interior recovered from the retained ones."""
+        u = np.zeros(3 * self.n)
+        u[self.retained] = u_r
+        u[self.interior] = self.lu_ii.solve(self._fi - self._Kir @ u_r)
+        return u.reshape(-1, 3)
+
+
+class QuasiStatic:
+    """Integrator of the quasi-static models: each step jumps to the equilibrium with the tools at t."""
+
+    name = "quasi-static"
+
+    def __init__(self, alpha: float = 0.0, beta: float = 0.0):
+        self.alpha, self.beta = alpha, beta  # no dynamics: accepted for a common interface, unused
+
+    def critical_dt(self, model: Model, omega2: float | None = None) -> float:
+        return np.inf  # unconditionally stable: there is no time integration
+
+    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None) -> State:
+        solver = model.extra["quasistatic"]
+        t = state.t + n * dt
+        dofs, vals = _tool_targets(model, t)
+        if isinstance(solver, Precomputed):
+            u, _ = solver.solve(dofs, vals)
+        else:
+            held = np.zeros(model.n_vertices * 3)
+            held[dofs] = vals
+            u_r = solver.solve_surface(held[solver.retained[solver.held_r]])
+            u = np.zeros(model.n_vertices * 3)
+            u[solver.retained] = u_r
+            u = u.reshape(-1, 3)
+        state.u[:] = u
+        state.v[:] = 0.0
+        state.t = t
+        state.steps += n
+        return state
+
+    def equilibrium(self, model: Model, t: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+        """Displacement (N, 3) m at equilibrium (all vertices) and the tools' total force (3,) N."""
+        solver = model.extra["quasistatic"]
+        dofs, vals = _tool_targets(model, t)
+        if isinstance(solver, Precomputed):
+            u, F = solver.solve(dofs, vals)
+            R = np.zeros(3)
+            np.add.at(R, dofs % 3, F)
+            return u, R
+        held = np.zeros(model.n_vertices * 3)
+        held[dofs] = vals
+        u = solver.full(solver.solve_surface(held[solver.retained[solver.held_r]]))
+        return u, model.reaction(u)
