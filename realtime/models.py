@@ -53,6 +53,9 @@ def build_linear_tm(points, tets, material: Material, loading: Loading | None = 
 def cut(model: Model, which) -> Model:
     """Remove tetrahedra ``which`` from a linear tensor-mass model (Cotin et al. 2000).
 
+    ``which`` indexes the tetrahedra of the mesh the model was built on, so indices stay valid from one
+    cut to the next.
+
     The vertex and edge tensors of the removed tetrahedra's vertices and edges are updated in place
     (cost proportional to the cut, not to the mesh), and the lumped masses too; a vertex left with no
     tetrahedron is held fixed. Returns the new Model; the old one shares the updated tensors and must
@@ -63,11 +66,11 @@ def cut(model: Model, which) -> Model:
         raise ValueError(f"cut: {model.name} does not support cutting (linear-tm does)")
     which = np.unique(np.asarray(which, dtype=np.int64))
     tm.remove(which)
-    removed = model.tets[which]
+    removed = tm.tets[which]
     mass = model.mass.copy()
     vol = np.abs(signed_volumes(model.points, removed))
     np.subtract.at(mass, removed.ravel(), np.repeat(model.material.density * vol / 4.0, 4))
-    alive_tets = model.tets[tm.alive]
+    alive_tets = tm.tets[tm.alive]
     orphan = np.ones(model.n_vertices, dtype=bool)
     orphan[alive_tets.ravel()] = False
     free = model.loading.free.copy()

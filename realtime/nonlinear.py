@@ -22,6 +22,7 @@ import numpy as np
 
 from .geometry import shape_gradients
 from .material import Material
+from .tensor_mass import linear_tm_force
 
 _JIT = dict(nogil=True, cache=True)
 #: The force kernels of the step loop: contraction to fused multiply-adds and reassociation change
@@ -380,8 +381,7 @@ def hybrid_force(data, u, f):
            threshold (1,) m, flags (M,) bool scratch, H, S, P scratch (3,3))
     """
     lin, tets, g, vol, prm, ke, threshold, flags, H, S, P = data
-    vt, edges, et = lin
-    _linear_tm(vt, edges, et, u, f)
+    linear_tm_force(lin, u, f)
     thr2 = threshold[0] * threshold[0]
     for e in range(tets.shape[0]):
         nonlinear = False
@@ -404,19 +404,6 @@ def hybrid_force(data, u, f):
                     f[ia, r] += (
                         ke[e, a, b, r, 0] * u[ib, 0] + ke[e, a, b, r, 1] * u[ib, 1] + ke[e, a, b, r, 2] * u[ib, 2]
                     )
-
-
-@nb.njit(inline="always", **_JIT)
-def _linear_tm(vt, edges, et, u, f):
-    for i in range(u.shape[0]):
-        for r in range(3):
-            f[i, r] = -(vt[i, r, 0] * u[i, 0] + vt[i, r, 1] * u[i, 1] + vt[i, r, 2] * u[i, 2])
-    for e in range(edges.shape[0]):
-        i = edges[e, 0]
-        j = edges[e, 1]
-        for r in range(3):
-            f[i, r] -= et[e, r, 0] * u[j, 0] + et[e, r, 1] * u[j, 1] + et[e, r, 2] * u[j, 2]
-            f[j, r] -= et[e, 0, r] * u[i, 0] + et[e, 1, r] * u[i, 1] + et[e, 2, r] * u[i, 2]
 
 
 @nb.njit(**_JIT)
