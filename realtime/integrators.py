@@ -71,23 +71,30 @@ def _damped_arg(u, v, beta, w):
 
 
 @nb.njit(**_JIT)
-def _run_symplectic_euler(n, dt, t0, force, data, points, inv_mass, free, fext, tools, alpha, beta, bound, u, v, f, w):
-    """n steps of v += dt a(u, v); u += dt v. Returns -1, or the index of the step that blew up."""
+def _run_symplectic_euler(n, dt, t0, force, data, points, im3, free, fext, tools, alpha, beta, bound, u, v, f, w):
+    """n steps of v += dt a(u, v); u += dt v. Returns -1, or the index of the step that blew up.
+
+    im3 (3N,) is 1/m per component times the free mask: constrained components keep v = 0 and do not
+    move (tools overwrite theirs afterwards). The update is one branch-free loop over 3N components,
+    which LLVM vectorises.
+    """
     tmp = np.empty(3)
+    u1, v1, f1, x1 = u.reshape(-1), v.reshape(-1), f.reshape(-1), fext.reshape(-1)
+    fr = free.reshape(-1)
+    keep = 1.0 - dt * alpha
     for s in range(n):
-        _damped_arg(u, v, beta, w)
-        force(data, w, f)
+        if beta != 0.0:
+            _damped_arg(u, v, beta, w)
+            force(data, w, f)
+        else:
+            force(data, u, f)
         ok = True
-        for i in range(u.shape[0]):
-            im = inv_mass[i]
-            for c in range(3):
-                if free[i, c] != 0.0:
-                    vi = v[i, c] + dt * ((f[i, c] + fext[i, c]) * im - alpha * v[i, c])
-                    ui = u[i, c] + dt * vi
-                    v[i, c] = vi
-                    u[i, c] = ui
-                    if not abs(ui) < bound:
-                        ok = False
+        for k in range(u1.shape[0]):
+            vk = (keep * v1[k] + dt * (f1[k] + x1[k]) * im3[k]) * fr[k]
+            uk = u1[k] + dt * vk
+            v1[k] = vk
+            u1[k] = uk
+            ok &= abs(uk) < bound
         _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
         if not ok:
             return s
@@ -111,8 +118,11 @@ def _run_central_difference(
                     v[i, c] += h * a[i, c]
                     u[i, c] += dt * v[i, c]
         _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
-        _damped_arg(u, v, beta, w)
-        force(data, w, f)
+        if beta != 0.0:
+            _damped_arg(u, v, beta, w)
+            force(data, w, f)
+        else:
+            force(data, u, f)
         ok = True
         for i in range(u.shape[0]):
             im = inv_mass[i]
@@ -208,8 +218,9 @@ class SymplecticEuler(Integrator):
     def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None):
         """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up."""
         inv_mass, free, fext, tools, f, w = self._common(model, state)
+        im3 = np.repeat(inv_mass, 3) * free.ravel()
         bad = _run_symplectic_euler(
-            n, dt, state.t, model.force_kernel, model.data, model.points, inv_mass, free, fext,
+            n, dt, state.t, model.force_kernel, model.data, model.points, im3, free, fext,
             tools, self.alpha, self.beta, blowup_bound(model), state.u, state.v, f, w,
         )  # fmt: skip
         if bad >= 0:

@@ -22,7 +22,7 @@ import numpy as np
 
 from .geometry import shape_gradients
 from .material import Material
-from .tensor_mass import linear_tm_force
+from .tensor_mass import linear_tm_energy, linear_tm_force
 
 _JIT = dict(nogil=True, cache=True)
 #: The force kernels of the step loop: contraction to fused multiply-adds and reassociation change
@@ -69,168 +69,117 @@ def _scatter(tets, g, e, vol, P, f):
         f[i0, r] += f1 + f2 + f3
 
 
-@nb.njit(inline="always", **_JIT)
-def _stvk_stress(H, prm, S, P):
-    """P = F S (StVK with fibre and volume-penalty terms) from H = F - I; S is scratch (3, 3)."""
-    lam, mu, a0, a1, a2, dlam, dmu, kappa = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6], prm[7]
-    # E = (H + H^T + H^T H) / 2, stored in S
-    for r in range(3):
-        for c in range(r, 3):
-            v = 0.5 * (H[r, c] + H[c, r] + H[0, r] * H[0, c] + H[1, r] * H[1, c] + H[2, r] * H[2, c])
-            S[r, c] = v
-            S[c, r] = v
-    tr = S[0, 0] + S[1, 1] + S[2, 2]
-    if dlam != 0.0 or dmu != 0.0:
-        ea0 = S[0, 0] * a0 + S[0, 1] * a1 + S[0, 2] * a2
-        ea1 = S[1, 0] * a0 + S[1, 1] * a1 + S[1, 2] * a2
-        ea2 = S[2, 0] * a0 + S[2, 1] * a1 + S[2, 2] * a2
-        aea = a0 * ea0 + a1 * ea1 + a2 * ea2
-        a = (a0, a1, a2)
-        ea = (ea0, ea1, ea2)
-        for r in range(3):
-            for c in range(3):
-                extra = dlam * aea * a[r] * a[c] + dmu * (a[r] * ea[c] + ea[r] * a[c])
-                S[r, c] = 2.0 * mu * S[r, c] + (lam * tr if r == c else 0.0) + extra
-    else:
-        for r in range(3):
-            for c in range(3):
-                S[r, c] = 2.0 * mu * S[r, c]
-            S[r, r] += lam * tr
-    for r in range(3):
-        for c in range(3):
-            P[r, c] = S[r, c] + H[r, 0] * S[0, c] + H[r, 1] * S[1, c] + H[r, 2] * S[2, c]
+@nb.njit(inline="always", **_HOT)
+def _stvk_element(tets, g, vol, e, u, lam, mu2, a0, a1, a2, dlam, dmu, kappa, fibre, f, sign):
+    """Add sign x (the StVK force of tetrahedron e) to f, all in scalars (registers, no scratch)."""
+    i0, i1, i2, i3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+    g10, g11, g12 = g[e, 0, 0], g[e, 0, 1], g[e, 0, 2]
+    g20, g21, g22 = g[e, 1, 0], g[e, 1, 1], g[e, 1, 2]
+    g30, g31, g32 = g[e, 2, 0], g[e, 2, 1], g[e, 2, 2]
+    ux0, uy0, uz0 = u[i0, 0], u[i0, 1], u[i0, 2]
+    ax, ay, az = u[i1, 0] - ux0, u[i1, 1] - uy0, u[i1, 2] - uz0
+    bx, by, bz = u[i2, 0] - ux0, u[i2, 1] - uy0, u[i2, 2] - uz0
+    cx, cy, cz = u[i3, 0] - ux0, u[i3, 1] - uy0, u[i3, 2] - uz0
+    h00 = ax * g10 + bx * g20 + cx * g30
+    h01 = ax * g11 + bx * g21 + cx * g31
+    h02 = ax * g12 + bx * g22 + cx * g32
+    h10 = ay * g10 + by * g20 + cy * g30
+    h11 = ay * g11 + by * g21 + cy * g31
+    h12 = ay * g12 + by * g22 + cy * g32
+    h20 = az * g10 + bz * g20 + cz * g30
+    h21 = az * g11 + bz * g21 + cz * g31
+    h22 = az * g12 + bz * g22 + cz * g32
+    # Green-Lagrange E = (H + H^T + H^T H) / 2
+    e00 = h00 + 0.5 * (h00 * h00 + h10 * h10 + h20 * h20)
+    e11 = h11 + 0.5 * (h01 * h01 + h11 * h11 + h21 * h21)
+    e22 = h22 + 0.5 * (h02 * h02 + h12 * h12 + h22 * h22)
+    e01 = 0.5 * (h01 + h10 + h00 * h01 + h10 * h11 + h20 * h21)
+    e02 = 0.5 * (h02 + h20 + h00 * h02 + h10 * h12 + h20 * h22)
+    e12 = 0.5 * (h12 + h21 + h01 * h02 + h11 * h12 + h21 * h22)
+    ltr = lam * (e00 + e11 + e22)
+    s00 = mu2 * e00 + ltr
+    s11 = mu2 * e11 + ltr
+    s22 = mu2 * e22 + ltr
+    s01 = mu2 * e01
+    s02 = mu2 * e02
+    s12 = mu2 * e12
+    if fibre:
+        q0 = e00 * a0 + e01 * a1 + e02 * a2
+        q1 = e01 * a0 + e11 * a1 + e12 * a2
+        q2 = e02 * a0 + e12 * a1 + e22 * a2
+        c = dlam * (a0 * q0 + a1 * q1 + a2 * q2)
+        s00 += c * a0 * a0 + 2.0 * dmu * a0 * q0
+        s11 += c * a1 * a1 + 2.0 * dmu * a1 * q1
+        s22 += c * a2 * a2 + 2.0 * dmu * a2 * q2
+        s01 += c * a0 * a1 + dmu * (a0 * q1 + q0 * a1)
+        s02 += c * a0 * a2 + dmu * (a0 * q2 + q0 * a2)
+        s12 += c * a1 * a2 + dmu * (a1 * q2 + q1 * a2)
+    # P = (I + H) S
+    p00 = s00 + h00 * s00 + h01 * s01 + h02 * s02
+    p01 = s01 + h00 * s01 + h01 * s11 + h02 * s12
+    p02 = s02 + h00 * s02 + h01 * s12 + h02 * s22
+    p10 = s01 + h10 * s00 + h11 * s01 + h12 * s02
+    p11 = s11 + h10 * s01 + h11 * s11 + h12 * s12
+    p12 = s12 + h10 * s02 + h11 * s12 + h12 * s22
+    p20 = s02 + h20 * s00 + h21 * s01 + h22 * s02
+    p21 = s12 + h20 * s01 + h21 * s11 + h22 * s12
+    p22 = s22 + h20 * s02 + h21 * s12 + h22 * s22
     if kappa != 0.0:
-        _add_volume_penalty(H, kappa, P)
-
-
-@nb.njit(inline="always", **_JIT)
-def _add_volume_penalty(H, kappa, P):
-    """P += kappa (J - 1) cof(F), F = I + H."""
-    f00, f01, f02 = 1.0 + H[0, 0], H[0, 1], H[0, 2]
-    f10, f11, f12 = H[1, 0], 1.0 + H[1, 1], H[1, 2]
-    f20, f21, f22 = H[2, 0], H[2, 1], 1.0 + H[2, 2]
-    c00 = f11 * f22 - f12 * f21
-    c01 = f12 * f20 - f10 * f22
-    c02 = f10 * f21 - f11 * f20
-    J = f00 * c00 + f01 * c01 + f02 * c02
-    s = kappa * (J - 1.0)
-    P[0, 0] += s * c00
-    P[0, 1] += s * c01
-    P[0, 2] += s * c02
-    P[1, 0] += s * (f02 * f21 - f01 * f22)
-    P[1, 1] += s * (f00 * f22 - f02 * f20)
-    P[1, 2] += s * (f01 * f20 - f00 * f21)
-    P[2, 0] += s * (f01 * f12 - f02 * f11)
-    P[2, 1] += s * (f02 * f10 - f00 * f12)
-    P[2, 2] += s * (f00 * f11 - f01 * f10)
+        f00, f01, f02 = 1.0 + h00, h01, h02
+        f10, f11, f12 = h10, 1.0 + h11, h12
+        f20, f21, f22 = h20, h21, 1.0 + h22
+        c00 = f11 * f22 - f12 * f21
+        c01 = f12 * f20 - f10 * f22
+        c02 = f10 * f21 - f11 * f20
+        k = kappa * (f00 * c00 + f01 * c01 + f02 * c02 - 1.0)
+        p00 += k * c00
+        p01 += k * c01
+        p02 += k * c02
+        p10 += k * (f02 * f21 - f01 * f22)
+        p11 += k * (f00 * f22 - f02 * f20)
+        p12 += k * (f01 * f20 - f00 * f21)
+        p20 += k * (f01 * f12 - f02 * f11)
+        p21 += k * (f02 * f10 - f00 * f12)
+        p22 += k * (f00 * f11 - f01 * f10)
+    v = sign * vol[e]
+    fx1 = v * (p00 * g10 + p01 * g11 + p02 * g12)
+    fy1 = v * (p10 * g10 + p11 * g11 + p12 * g12)
+    fz1 = v * (p20 * g10 + p21 * g11 + p22 * g12)
+    fx2 = v * (p00 * g20 + p01 * g21 + p02 * g22)
+    fy2 = v * (p10 * g20 + p11 * g21 + p12 * g22)
+    fz2 = v * (p20 * g20 + p21 * g21 + p22 * g22)
+    fx3 = v * (p00 * g30 + p01 * g31 + p02 * g32)
+    fy3 = v * (p10 * g30 + p11 * g31 + p12 * g32)
+    fz3 = v * (p20 * g30 + p21 * g31 + p22 * g32)
+    f[i1, 0] -= fx1
+    f[i1, 1] -= fy1
+    f[i1, 2] -= fz1
+    f[i2, 0] -= fx2
+    f[i2, 1] -= fy2
+    f[i2, 2] -= fz2
+    f[i3, 0] -= fx3
+    f[i3, 1] -= fy3
+    f[i3, 2] -= fz3
+    f[i0, 0] += fx1 + fx2 + fx3
+    f[i0, 1] += fy1 + fy2 + fy3
+    f[i0, 2] += fz1 + fz2 + fz3
 
 
 @nb.njit(**_HOT)
 def stvk_force(data, u, f):
     """StVK tensor-mass force (Picinbono et al. 2003), with fibre terms and the volume penalty.
 
-    Written out in scalars: the 3x3 algebra stays in registers (scratch arrays could alias u and f,
-    which forces the compiler to store and reload them).
+    Written out in scalars (_stvk_element): the 3x3 algebra stays in registers (scratch arrays could
+    alias u and f, which forces the compiler to store and reload them).
     data: (tets (M,4) int64, grads (M,3,3) 1/m, vol (M,) m^3, prm (8,) law_params, 3 scratch (3,3))
     u: (N, 3) displacement, m.   f: (N, 3) force, N (overwritten).
     """
     tets, g, vol, prm = data[0], data[1], data[2], data[3]
     lam, mu, a0, a1, a2, dlam, dmu, kappa = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6], prm[7]
     fibre = dlam != 0.0 or dmu != 0.0
-    mu2 = 2.0 * mu
     f[:] = 0.0
     for e in range(tets.shape[0]):
-        i0, i1, i2, i3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
-        g10, g11, g12 = g[e, 0, 0], g[e, 0, 1], g[e, 0, 2]
-        g20, g21, g22 = g[e, 1, 0], g[e, 1, 1], g[e, 1, 2]
-        g30, g31, g32 = g[e, 2, 0], g[e, 2, 1], g[e, 2, 2]
-        ux0, uy0, uz0 = u[i0, 0], u[i0, 1], u[i0, 2]
-        ax, ay, az = u[i1, 0] - ux0, u[i1, 1] - uy0, u[i1, 2] - uz0
-        bx, by, bz = u[i2, 0] - ux0, u[i2, 1] - uy0, u[i2, 2] - uz0
-        cx, cy, cz = u[i3, 0] - ux0, u[i3, 1] - uy0, u[i3, 2] - uz0
-        h00 = ax * g10 + bx * g20 + cx * g30
-        h01 = ax * g11 + bx * g21 + cx * g31
-        h02 = ax * g12 + bx * g22 + cx * g32
-        h10 = ay * g10 + by * g20 + cy * g30
-        h11 = ay * g11 + by * g21 + cy * g31
-        h12 = ay * g12 + by * g22 + cy * g32
-        h20 = az * g10 + bz * g20 + cz * g30
-        h21 = az * g11 + bz * g21 + cz * g31
-        h22 = az * g12 + bz * g22 + cz * g32
-        # Green-Lagrange E = (H + H^T + H^T H) / 2
-        e00 = h00 + 0.5 * (h00 * h00 + h10 * h10 + h20 * h20)
-        e11 = h11 + 0.5 * (h01 * h01 + h11 * h11 + h21 * h21)
-        e22 = h22 + 0.5 * (h02 * h02 + h12 * h12 + h22 * h22)
-        e01 = 0.5 * (h01 + h10 + h00 * h01 + h10 * h11 + h20 * h21)
-        e02 = 0.5 * (h02 + h20 + h00 * h02 + h10 * h12 + h20 * h22)
-        e12 = 0.5 * (h12 + h21 + h01 * h02 + h11 * h12 + h21 * h22)
-        ltr = lam * (e00 + e11 + e22)
-        s00 = mu2 * e00 + ltr
-        s11 = mu2 * e11 + ltr
-        s22 = mu2 * e22 + ltr
-        s01 = mu2 * e01
-        s02 = mu2 * e02
-        s12 = mu2 * e12
-        if fibre:
-            q0 = e00 * a0 + e01 * a1 + e02 * a2
-            q1 = e01 * a0 + e11 * a1 + e12 * a2
-            q2 = e02 * a0 + e12 * a1 + e22 * a2
-            c = dlam * (a0 * q0 + a1 * q1 + a2 * q2)
-            s00 += c * a0 * a0 + 2.0 * dmu * a0 * q0
-            s11 += c * a1 * a1 + 2.0 * dmu * a1 * q1
-            s22 += c * a2 * a2 + 2.0 * dmu * a2 * q2
-            s01 += c * a0 * a1 + dmu * (a0 * q1 + q0 * a1)
-            s02 += c * a0 * a2 + dmu * (a0 * q2 + q0 * a2)
-            s12 += c * a1 * a2 + dmu * (a1 * q2 + q1 * a2)
-        # P = (I + H) S
-        p00 = s00 + h00 * s00 + h01 * s01 + h02 * s02
-        p01 = s01 + h00 * s01 + h01 * s11 + h02 * s12
-        p02 = s02 + h00 * s02 + h01 * s12 + h02 * s22
-        p10 = s01 + h10 * s00 + h11 * s01 + h12 * s02
-        p11 = s11 + h10 * s01 + h11 * s11 + h12 * s12
-        p12 = s12 + h10 * s02 + h11 * s12 + h12 * s22
-        p20 = s02 + h20 * s00 + h21 * s01 + h22 * s02
-        p21 = s12 + h20 * s01 + h21 * s11 + h22 * s12
-        p22 = s22 + h20 * s02 + h21 * s12 + h22 * s22
-        if kappa != 0.0:
-            f00, f01, f02 = 1.0 + h00, h01, h02
-            f10, f11, f12 = h10, 1.0 + h11, h12
-            f20, f21, f22 = h20, h21, 1.0 + h22
-            c00 = f11 * f22 - f12 * f21
-            c01 = f12 * f20 - f10 * f22
-            c02 = f10 * f21 - f11 * f20
-            k = kappa * (f00 * c00 + f01 * c01 + f02 * c02 - 1.0)
-            p00 += k * c00
-            p01 += k * c01
-            p02 += k * c02
-            p10 += k * (f02 * f21 - f01 * f22)
-            p11 += k * (f00 * f22 - f02 * f20)
-            p12 += k * (f01 * f20 - f00 * f21)
-            p20 += k * (f01 * f12 - f02 * f11)
-            p21 += k * (f02 * f10 - f00 * f12)
-            p22 += k * (f00 * f11 - f01 * f10)
-        v = vol[e]
-        fx1 = v * (p00 * g10 + p01 * g11 + p02 * g12)
-        fy1 = v * (p10 * g10 + p11 * g11 + p12 * g12)
-        fz1 = v * (p20 * g10 + p21 * g11 + p22 * g12)
-        fx2 = v * (p00 * g20 + p01 * g21 + p02 * g22)
-        fy2 = v * (p10 * g20 + p11 * g21 + p12 * g22)
-        fz2 = v * (p20 * g20 + p21 * g21 + p22 * g22)
-        fx3 = v * (p00 * g30 + p01 * g31 + p02 * g32)
-        fy3 = v * (p10 * g30 + p11 * g31 + p12 * g32)
-        fz3 = v * (p20 * g30 + p21 * g31 + p22 * g32)
-        f[i1, 0] -= fx1
-        f[i1, 1] -= fy1
-        f[i1, 2] -= fz1
-        f[i2, 0] -= fx2
-        f[i2, 1] -= fy2
-        f[i2, 2] -= fz2
-        f[i3, 0] -= fx3
-        f[i3, 1] -= fy3
-        f[i3, 2] -= fz3
-        f[i0, 0] += fx1 + fx2 + fx3
-        f[i0, 1] += fy1 + fy2 + fy3
-        f[i0, 2] += fz1 + fz2 + fz3
+        _stvk_element(tets, g, vol, e, u, lam, 2.0 * mu, a0, a1, a2, dlam, dmu, kappa, fibre, f, 1.0)
 
 
 @nb.njit(**_JIT)
@@ -262,59 +211,85 @@ def stvk_energy(data, u):
 # corotational
 
 
-@nb.njit(inline="always", **_JIT)
-def _polar_rotation(H, R, T):
-    """Rotation R (3, 3) of the polar decomposition F = R U, F = I + H.
+@nb.njit(inline="always", **_HOT)
+def _polar(f00, f01, f02, f10, f11, f12, f20, f21, f22):
+    """Rotation (9-tuple, row-major) of the polar decomposition F = R U.
 
-    Scaled Newton iteration R <- (g R + R^-T / g) / 2 (Higham 1986), quadratically convergent for
-    det F > 0; an inverted element (det F <= 0) falls back to the SVD with the sign of the smallest
-    singular direction flipped so that R stays a rotation (Irving et al. 2004). T is scratch (3, 3).
+    Scaled Newton iteration R <- (g R + R^-T / g) / 2, g = (|R^-1|_F / |R|_F)^(1/2) (Higham 1986):
+    quadratic convergence for det F > 0, in registers; the scaling is dropped near convergence and
+    the loop stops when a step changes R by less than 1e-9 (the next error is its square). An inverted or flat element (det F <= 1e-12)
+    takes the SVD instead, with the sign of the smallest singular direction flipped so that R stays
+    a rotation (Irving, Teran & Fedkiw 2004).
     """
-    for r in range(3):
-        for c in range(3):
-            R[r, c] = H[r, c] + (1.0 if r == c else 0.0)
-    det = (
-        R[0, 0] * (R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1])
-        - R[0, 1] * (R[1, 0] * R[2, 2] - R[1, 2] * R[2, 0])
-        + R[0, 2] * (R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0])
-    )
-    if det <= 1e-12:
-        U, s, Vt = np.linalg.svd(R)
+    d = f00 * (f11 * f22 - f12 * f21) - f01 * (f10 * f22 - f12 * f20) + f02 * (f10 * f21 - f11 * f20)
+    if d <= 1e-12:
+        F = np.empty((3, 3))
+        F[0, 0], F[0, 1], F[0, 2] = f00, f01, f02
+        F[1, 0], F[1, 1], F[1, 2] = f10, f11, f12
+        F[2, 0], F[2, 1], F[2, 2] = f20, f21, f22
+        U, _, Vt = np.linalg.svd(F)
         if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
             U[:, 2] = -U[:, 2]
         Q = U @ Vt
-        for r in range(3):
-            for c in range(3):
-                R[r, c] = Q[r, c]
-        return
+        return Q[0, 0], Q[0, 1], Q[0, 2], Q[1, 0], Q[1, 1], Q[1, 2], Q[2, 0], Q[2, 1], Q[2, 2]
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = f00, f01, f02, f10, f11, f12, f20, f21, f22
+    change = 1.0
     for _ in range(30):
-        # T = R^-T = cof(R) / det(R)
-        c00 = R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]
-        c01 = R[1, 2] * R[2, 0] - R[1, 0] * R[2, 2]
-        c02 = R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0]
-        d = R[0, 0] * c00 + R[0, 1] * c01 + R[0, 2] * c02
-        T[0, 0], T[0, 1], T[0, 2] = c00 / d, c01 / d, c02 / d
-        T[1, 0] = (R[0, 2] * R[2, 1] - R[0, 1] * R[2, 2]) / d
-        T[1, 1] = (R[0, 0] * R[2, 2] - R[0, 2] * R[2, 0]) / d
-        T[1, 2] = (R[0, 1] * R[2, 0] - R[0, 0] * R[2, 1]) / d
-        T[2, 0] = (R[0, 1] * R[1, 2] - R[0, 2] * R[1, 1]) / d
-        T[2, 1] = (R[0, 2] * R[1, 0] - R[0, 0] * R[1, 2]) / d
-        T[2, 2] = (R[0, 0] * R[1, 1] - R[0, 1] * R[1, 0]) / d
-        nr = 0.0
-        nt = 0.0
-        for r in range(3):
-            for c in range(3):
-                nr += R[r, c] * R[r, c]
-                nt += T[r, c] * T[r, c]
-        gam = np.sqrt(np.sqrt(nt / nr))
-        change = 0.0
-        for r in range(3):
-            for c in range(3):
-                v = 0.5 * (gam * R[r, c] + T[r, c] / gam)
-                change += (v - R[r, c]) * (v - R[r, c])
-                R[r, c] = v
-        if change < 1e-28:  # |dR|_F < 1e-14: converged to round-off (R is orthogonal, |R|_F = sqrt 3)
+        c00 = r11 * r22 - r12 * r21
+        c01 = r12 * r20 - r10 * r22
+        c02 = r10 * r21 - r11 * r20
+        c10 = r02 * r21 - r01 * r22
+        c11 = r00 * r22 - r02 * r20
+        c12 = r01 * r20 - r00 * r21
+        c20 = r01 * r12 - r02 * r11
+        c21 = r02 * r10 - r00 * r12
+        c22 = r00 * r11 - r01 * r10
+        det = r00 * c00 + r01 * c01 + r02 * c02
+        gam = 1.0
+        if change > 1e-4:  # far from orthogonal: Higham's scaling; near it, gamma -> 1 and costs two roots
+            nr = (
+                r00 * r00
+                + r01 * r01
+                + r02 * r02
+                + r10 * r10
+                + r11 * r11
+                + r12 * r12
+                + r20 * r20
+                + r21 * r21
+                + r22 * r22
+            )
+            nc = (
+                c00 * c00
+                + c01 * c01
+                + c02 * c02
+                + c10 * c10
+                + c11 * c11
+                + c12 * c12
+                + c20 * c20
+                + c21 * c21
+                + c22 * c22
+            )
+            gam = np.sqrt(np.sqrt(nc / (det * det * nr)))
+        a = 0.5 * gam
+        b = 0.5 / (gam * det)  # R^-T = cof(R) / det(R)
+        n00, n01, n02 = a * r00 + b * c00, a * r01 + b * c01, a * r02 + b * c02
+        n10, n11, n12 = a * r10 + b * c10, a * r11 + b * c11, a * r12 + b * c12
+        n20, n21, n22 = a * r20 + b * c20, a * r21 + b * c21, a * r22 + b * c22
+        change = (
+            (n00 - r00) ** 2
+            + (n01 - r01) ** 2
+            + (n02 - r02) ** 2
+            + (n10 - r10) ** 2
+            + (n11 - r11) ** 2
+            + (n12 - r12) ** 2
+            + (n20 - r20) ** 2
+            + (n21 - r21) ** 2
+            + (n22 - r22) ** 2
+        )
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
+        if change < 1e-18:  # |dR|_F < 1e-9: quadratic convergence puts this iterate at round-off
             break
+    return r00, r01, r02, r10, r11, r12, r20, r21, r22
 
 
 @nb.njit(**_HOT)
@@ -323,42 +298,52 @@ def corotational_force(data, u, f):
 
     This is the exact gradient of W(F) = lam/2 tr(S - I)^2 + mu |S - I|^2, S = R^T F the polar stretch
     (the "corotated" energy; SOFA's TetrahedronFEMForceField, method "polar").
-    data: (tets (M,4) int64, grads (M,3,3), vol (M,), prm (8,) law_params, H, R, T, P scratch (3,3))
+    data: (tets (M,4) int64, grads (M,3,3), vol (M,), prm (8,) law_params, 4 scratch (3,3))
     """
-    tets, g, vol, prm, H, R, T, P = data
+    tets, g, vol, prm, H = data[0], data[1], data[2], data[3], data[4]
     lam, mu = prm[0], prm[1]
     f[:] = 0.0
     for e in range(tets.shape[0]):
         _grad_u(tets, g, e, u, H)
-        _polar_rotation(H, R, T)
-        # T = R^T F - I, symmetric up to round-off: use its symmetric part
-        for r in range(3):
-            for c in range(3):
-                T[r, c] = (
-                    (R[0, r] * H[0, c] + R[1, r] * H[1, c] + R[2, r] * H[2, c]) + R[c, r] - (1.0 if r == c else 0.0)
-                )
-        tr = T[0, 0] + T[1, 1] + T[2, 2]
-        for r in range(3):
-            for c in range(r, 3):
-                s = mu * (T[r, c] + T[c, r]) + (lam * tr if r == c else 0.0)
-                H[r, c] = s
-                H[c, r] = s
-        for r in range(3):
-            for c in range(3):
-                P[r, c] = R[r, 0] * H[0, c] + R[r, 1] * H[1, c] + R[r, 2] * H[2, c]
+        f00, f01, f02 = 1.0 + H[0, 0], H[0, 1], H[0, 2]
+        f10, f11, f12 = H[1, 0], 1.0 + H[1, 1], H[1, 2]
+        f20, f21, f22 = H[2, 0], H[2, 1], 1.0 + H[2, 2]
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _polar(f00, f01, f02, f10, f11, f12, f20, f21, f22)
+        # strain in the rotated frame: sym(R^T F) - I
+        s00 = r00 * f00 + r10 * f10 + r20 * f20 - 1.0
+        s11 = r01 * f01 + r11 * f11 + r21 * f21 - 1.0
+        s22 = r02 * f02 + r12 * f12 + r22 * f22 - 1.0
+        s01 = 0.5 * (r00 * f01 + r10 * f11 + r20 * f21 + r01 * f00 + r11 * f10 + r21 * f20)
+        s02 = 0.5 * (r00 * f02 + r10 * f12 + r20 * f22 + r02 * f00 + r12 * f10 + r22 * f20)
+        s12 = 0.5 * (r01 * f02 + r11 * f12 + r21 * f22 + r02 * f01 + r12 * f11 + r22 * f21)
+        ltr = lam * (s00 + s11 + s22)
+        t00, t11, t22 = 2.0 * mu * s00 + ltr, 2.0 * mu * s11 + ltr, 2.0 * mu * s22 + ltr
+        t01, t02, t12 = 2.0 * mu * s01, 2.0 * mu * s02, 2.0 * mu * s12
+        # P = R sigma
+        P = H
+        P[0, 0] = r00 * t00 + r01 * t01 + r02 * t02
+        P[0, 1] = r00 * t01 + r01 * t11 + r02 * t12
+        P[0, 2] = r00 * t02 + r01 * t12 + r02 * t22
+        P[1, 0] = r10 * t00 + r11 * t01 + r12 * t02
+        P[1, 1] = r10 * t01 + r11 * t11 + r12 * t12
+        P[1, 2] = r10 * t02 + r11 * t12 + r12 * t22
+        P[2, 0] = r20 * t00 + r21 * t01 + r22 * t02
+        P[2, 1] = r20 * t01 + r21 * t11 + r22 * t12
+        P[2, 2] = r20 * t02 + r21 * t12 + r22 * t22
         _scatter(tets, g, e, vol[e], P, f)
 
 
 @nb.njit(**_JIT)
 def corotational_energy(data, u):
     """sum_e V_e (lam/2 tr(S - I)^2 + mu |S - I|^2), S = R^T F."""
-    tets, g, vol, prm, H, R, T, P = data
+    tets, g, vol, prm, H = data[0], data[1], data[2], data[3], data[4]
     lam, mu = prm[0], prm[1]
     w = 0.0
     for e in range(tets.shape[0]):
         _grad_u(tets, g, e, u, H)
-        _polar_rotation(H, R, T)
         F = np.eye(3) + H
+        r = _polar(F[0, 0], F[0, 1], F[0, 2], F[1, 0], F[1, 1], F[1, 2], F[2, 0], F[2, 1], F[2, 2])
+        R = np.array(r).reshape(3, 3)
         S = R.T @ F - np.eye(3)
         S = 0.5 * (S + S.T)
         tr = S[0, 0] + S[1, 1] + S[2, 2]
@@ -370,7 +355,7 @@ def corotational_energy(data, u):
 # hybrid: linear tensor-mass everywhere, corrected to StVK on the tetrahedra that moved
 
 
-@nb.njit(**_JIT)
+@nb.njit(**_HOT)
 def hybrid_force(data, u, f):
     """f = f_linear-tm(u) + sum over flagged tetrahedra of (f_stvk,e(u) - f_linear,e(u)).
 
@@ -381,6 +366,8 @@ def hybrid_force(data, u, f):
            threshold (1,) m, flags (M,) bool scratch, H, S, P scratch (3,3))
     """
     lin, tets, g, vol, prm, ke, threshold, flags, H, S, P = data
+    lam, mu, a0, a1, a2, dlam, dmu, kappa = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6], prm[7]
+    fibre = dlam != 0.0 or dmu != 0.0
     linear_tm_force(lin, u, f)
     thr2 = threshold[0] * threshold[0]
     for e in range(tets.shape[0]):
@@ -392,9 +379,7 @@ def hybrid_force(data, u, f):
         flags[e] = nonlinear
         if not nonlinear:
             continue
-        _grad_u(tets, g, e, u, H)
-        _stvk_stress(H, prm, S, P)
-        _scatter(tets, g, e, vol[e], P, f)
+        _stvk_element(tets, g, vol, e, u, lam, 2.0 * mu, a0, a1, a2, dlam, dmu, kappa, fibre, f, 1.0)
         # remove the element's linear contribution: f_a += K_ab u_b
         for a in range(4):
             ia = tets[e, a]
@@ -410,12 +395,7 @@ def hybrid_force(data, u, f):
 def hybrid_energy(data, u):
     """Energy of the same split, with the flags of the current u."""
     lin, tets, g, vol, prm, ke, threshold, flags, H, S, P = data
-    vt, edges, et = lin
-    w = 0.0
-    for i in range(u.shape[0]):
-        w += 0.5 * (u[i] @ (vt[i] @ u[i]))
-    for e in range(edges.shape[0]):
-        w += u[edges[e, 0]] @ (et[e] @ u[edges[e, 1]])
+    w = linear_tm_energy(lin, u)
     lam, mu, dlam, dmu, kappa = prm[0], prm[1], prm[5], prm[6], prm[7]
     a = prm[2:5]
     thr2 = threshold[0] * threshold[0]

@@ -14,7 +14,9 @@ the static solution with D added to the Dirichlet set (the Schur complement iden
 Condensed (Bro-Nielsen 1996): keep the retained vertices r (surface and constrained), eliminate the
 interior i: K* = K_rr - K_ri K_ii^-1 K_ir, f* = f_r - K_ri K_ii^-1 f_i. Solving K* on the free retained
 dofs gives exactly the full static solution at the surface vertices; the interior is recovered on
-demand by u_i = K_ii^-1 (f_i - K_ir u_r), outside the timed update.
+demand by u_i = K_ii^-1 (f_i - K_ir u_r), outside the timed update. As in Bro-Nielsen's "fast
+finite elements", the condensed system is solved once at build time for the loads and for unit
+displacements of the tool dofs, so that an update is one (free retained x tool dofs) product.
 """
 
 from __future__ import annotations
@@ -178,6 +180,26 @@ class Condensed:
         self.chol = sla.cho_factor(self.K_star[np.ix_(self.free_r, self.free_r)])
         self.K_fc = self.K_star[np.ix_(self.free_r, self.held_r)]
         self.n = n
+        # Bro-Nielsen's precomputation: the free retained response to the loads (z0) and to unit
+        # displacements of the tool dofs (G), so that an update is z0 + G d, a (F x 3P) product
+        tool_dofs, _ = _tool_targets(model, np.inf)
+        pos = {int(d): k for k, d in enumerate(self.retained)}
+        self.tool_cols = np.array([np.flatnonzero(self.held_r == pos[int(d)])[0] for d in tool_dofs], dtype=np.int64)
+        self.tool_dofs = tool_dofs
+        self.z0 = sla.cho_solve(self.chol, self.f_star[self.free_r])
+        self.G = (
+            -sla.cho_solve(self.chol, self.K_fc[:, self.tool_cols])
+            if len(tool_dofs)
+            else np.zeros((len(self.free_r), 0))
+        )
+
+    def update(self, tool_values: np.ndarray) -> np.ndarray:
+        """Retained displacements (R,) m with the tool dofs at ``tool_values`` (in ``tool_dofs`` order) and
+        the fixed dofs at zero: z0 + G d."""
+        u = np.zeros(len(self.retained))
+        u[self.held_r[self.tool_cols]] = tool_values
+        u[self.free_r] = self.z0 + self.G @ tool_values
+        return u
 
     def solve_surface(self, held_values: np.ndarray) -> np.ndarray:
         """Retained displacements (R,) m with the held retained dofs at ``held_values`` (H,) m."""
@@ -212,11 +234,8 @@ class QuasiStatic:
         if isinstance(solver, Precomputed):
             u, _ = solver.solve(dofs, vals)
         else:
-            held = np.zeros(model.n_vertices * 3)
-            held[dofs] = vals
-            u_r = solver.solve_surface(held[solver.retained[solver.held_r]])
             u = np.zeros(model.n_vertices * 3)
-            u[solver.retained] = u_r
+            u[solver.retained] = solver.update(vals)
             u = u.reshape(-1, 3)
         state.u[:] = u
         state.v[:] = 0.0

@@ -118,50 +118,68 @@ class TensorMass:
         return K.tocsr()
 
     def kernel_data(self):
-        """The tuple the force kernel ``linear_tm_force`` takes (contiguous, cache-friendly)."""
+        """The tuple the force kernel ``linear_tm_force`` takes, laid out for one forward pass:
+        vertex tensors (N,3,3), cols (E,) int64 (the larger end j of each edge), edge tensors (E,3,3),
+        and row_start (N+1,) int64: the edges (i, j > i) of vertex i are row_start[i]:row_start[i+1]
+        (``edges`` is sorted by i). Contiguous arrays; no stride-2 index reads in the hot loop."""
+        row_start = np.searchsorted(self.edges[:, 0], np.arange(self.n_vertices + 1)).astype(np.int64)
         return (
             np.ascontiguousarray(self.vertex_tensors),
-            np.ascontiguousarray(self.edges),
+            np.ascontiguousarray(self.edges[:, 1]),
             np.ascontiguousarray(self.edge_tensors),
+            row_start,
         )
 
 
 @nb.njit(**_HOT)
 def linear_tm_force(data, u, f):
-    """f = -K u from vertex and edge tensors.
+    """f = -K u from vertex and edge tensors, in one pass over the vertices.
 
-    data: (vertex_tensors (N,3,3) N/m, edges (E,2) int64, edge_tensors (E,3,3) N/m)
+    Vertex i gathers -T_ii u_i - sum_j T_ij u_j over its edges (i, j > i) in registers and scatters
+    -T_ij^T u_i to each j; f_i is written once. Each edge tensor is loaded once into registers.
+    data: (vertex_tensors (N,3,3) N/m, cols (E,) int64, edge_tensors (E,3,3) N/m, row_start (N+1,) int64)
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 output force, N (overwritten).
     """
-    vt, edges, et = data
+    vt, cols, et, row_start = data
     n = u.shape[0]
     for i in range(n):
-        u0, u1, u2 = u[i, 0], u[i, 1], u[i, 2]
-        for r in range(3):
-            f[i, r] = -(vt[i, r, 0] * u0 + vt[i, r, 1] * u1 + vt[i, r, 2] * u2)
-    for e in range(edges.shape[0]):
-        i = edges[e, 0]
-        j = edges[e, 1]
+        f[i, 0] = 0.0
+        f[i, 1] = 0.0
+        f[i, 2] = 0.0
+    for i in range(n):
         ui0, ui1, ui2 = u[i, 0], u[i, 1], u[i, 2]
-        uj0, uj1, uj2 = u[j, 0], u[j, 1], u[j, 2]
-        for r in range(3):
-            f[i, r] -= et[e, r, 0] * uj0 + et[e, r, 1] * uj1 + et[e, r, 2] * uj2
-            f[j, r] -= et[e, 0, r] * ui0 + et[e, 1, r] * ui1 + et[e, 2, r] * ui2
+        a0 = f[i, 0] - (vt[i, 0, 0] * ui0 + vt[i, 0, 1] * ui1 + vt[i, 0, 2] * ui2)
+        a1 = f[i, 1] - (vt[i, 1, 0] * ui0 + vt[i, 1, 1] * ui1 + vt[i, 1, 2] * ui2)
+        a2 = f[i, 2] - (vt[i, 2, 0] * ui0 + vt[i, 2, 1] * ui1 + vt[i, 2, 2] * ui2)
+        for e in range(row_start[i], row_start[i + 1]):
+            j = cols[e]
+            t00, t01, t02 = et[e, 0, 0], et[e, 0, 1], et[e, 0, 2]
+            t10, t11, t12 = et[e, 1, 0], et[e, 1, 1], et[e, 1, 2]
+            t20, t21, t22 = et[e, 2, 0], et[e, 2, 1], et[e, 2, 2]
+            uj0, uj1, uj2 = u[j, 0], u[j, 1], u[j, 2]
+            a0 -= t00 * uj0 + t01 * uj1 + t02 * uj2
+            a1 -= t10 * uj0 + t11 * uj1 + t12 * uj2
+            a2 -= t20 * uj0 + t21 * uj1 + t22 * uj2
+            f[j, 0] -= t00 * ui0 + t10 * ui1 + t20 * ui2
+            f[j, 1] -= t01 * ui0 + t11 * ui1 + t21 * ui2
+            f[j, 2] -= t02 * ui0 + t12 * ui1 + t22 * ui2
+        f[i, 0] = a0
+        f[i, 1] = a1
+        f[i, 2] = a2
 
 
 @nb.njit(**_JIT)
 def linear_tm_energy(data, u):
     """Elastic energy u^T K u / 2, J, for the same data and u as linear_tm_force."""
-    vt, edges, et = data
+    vt, cols, et, row_start = data
     w = 0.0
     for i in range(u.shape[0]):
         for r in range(3):
             for c in range(3):
                 w += 0.5 * u[i, r] * vt[i, r, c] * u[i, c]
-    for e in range(edges.shape[0]):
-        i = edges[e, 0]
-        j = edges[e, 1]
-        for r in range(3):
-            for c in range(3):
-                w += u[i, r] * et[e, r, c] * u[j, c]
+        for e in range(row_start[i], row_start[i + 1]):
+            j = cols[e]
+            for r in range(3):
+                for c in range(3):
+                    w += u[i, r] * et[e, r, c] * u[j, c]
     return w

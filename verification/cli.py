@@ -151,6 +151,21 @@ def cmd_report(args) -> int:
     return 0
 
 
+def cmd_bench(args) -> int:
+    from .bench import format_table, run
+
+    out = run(meshes=args.meshes, repeats=args.repeats)
+    if args.out:
+        from .results import atomic_write_text
+
+        atomic_write_text(args.out, json.dumps(out, indent=1, default=_default))
+    if args.json:
+        _print_json(out)
+    else:
+        print(format_table(out))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="tissuebench", description="What real-time soft-tissue models give up for their speed."
@@ -199,6 +214,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="time steps as fractions of each model's critical step",
     )
     s.set_defaults(func=cmd_report)
+
+    s = sub.add_parser("bench", help="performance benchmark: microseconds per step of every model")
+    s.add_argument("--meshes", nargs="+", default=["liver", "liver-x10"], help="stored meshes to run on")
+    s.add_argument("--repeats", type=int, default=15)
+    s.add_argument("--out", help="also write the JSON to this file")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_bench)
     return p
 
 

@@ -1,0 +1,225 @@
+"""The performance benchmark: median microseconds per step of every model on the liver meshes, with
+scipy's BSR sparse matrix-vector product with the same stiffness as the baseline, in the same run.
+
+Each row times the integrator's compiled n-step call (symplectic Euler; the force kernel, the update,
+the tools and the blow-up check), repeated after a warm-up; the median and the spread are reported.
+The scene: the liver held at the centre of its back under gravity, at rest plus a small random
+displacement so that the non-linear models do real work. Speed is never asserted in the tests: this
+command reports it.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+
+import numpy as np
+
+from meshes import stored_mesh
+from meshes.store import STORED
+from realtime import Loading, Material, State, SymplecticEuler, build_model
+from realtime.quasistatic import QuasiStatic
+
+from .runner import git_commit, log, versions
+
+MESHES = ("liver", "liver-x10")
+#: Dense quasi-static models hold (surface dofs)^2 or (free dofs x surface dofs) numbers: past this
+#: many surface dofs they are not built (2 GB of float64 at 16 000).
+DENSE_LIMIT = 6000
+
+
+def machine() -> dict:
+    cpu = "unknown"
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "platform": platform.platform(),
+        "commit": git_commit(),
+        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        **versions(),
+    }
+
+
+def _loading(mesh, density):
+    free = np.ones((mesh.n_vertices, 3))
+    c = mesh.points.mean(axis=0)
+    back = (mesh.points[:, 1] < mesh.points[:, 1].min() + 0.015) & (np.abs(mesh.points[:, 0] - c[0]) < 0.03)
+    free[back] = 0.0
+    from realtime.model import lumped_masses
+
+    g = lumped_masses(mesh.points, mesh.tets, density)[:, None] * np.array([0.0, 0.0, -9.81])
+    return Loading(free=free, external_force=g)
+
+
+def _time_round_robin(cases: list[dict], repeats: int) -> None:
+    """Time every case's ``fn`` (which runs ``n`` steps) in turns, ``repeats`` rounds, after a warm-up
+    call of each; write step_us (median), step_us_min and step_us_max (microseconds per step) into
+    the case. Rounds interleave the cases so that drift of the machine touches all of them alike."""
+    for c in cases:
+        c["fn"]()
+    samples = [[] for _ in cases]
+    for _ in range(repeats):
+        for k, c in enumerate(cases):
+            t0 = time.perf_counter()
+            c["fn"]()
+            samples[k].append((time.perf_counter() - t0) / c["n"] * 1e6)
+    for c, t in zip(cases, samples, strict=True):
+        t = np.sort(t)
+        c.update(step_us=float(np.median(t)), step_us_min=float(t[0]), step_us_max=float(t[-1]))
+
+
+def _step_case(integ, model, state, dt, n):
+    return lambda: integ.step(model, state, dt, n)
+
+
+def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
+    rows = []
+    iso = Material(2.8e4, 0.4, 1000.0, law="stvk")
+    fibre = Material(2.8e4, 0.4, 1000.0, law="stvk", fiber=(1.0, 0.0, 0.0), young_fiber=6e4, volume_penalty=5e4)
+    rng = np.random.default_rng(0)
+    for name in meshes:
+        mesh = stored_mesh(name)
+        base = {"mesh": name, "mesh_sha256": mesh.sha256()[:16], "n_vertices": mesh.n_vertices, "n_tets": mesh.n_tets}
+        loading = _loading(mesh, iso.density)
+        u0 = 1e-4 * rng.standard_normal(mesh.points.shape) * loading.free
+        n = steps if mesh.n_tets < 20000 else max(steps // 5, 5)
+        cases = []
+        for label, model_name, mat in (
+            ("linear-tm", "linear-tm", iso),
+            ("linear-tm (transverse)", "linear-tm", fibre),
+            ("corotational-tm", "corotational-tm", iso),
+            ("stvk-tm", "stvk-tm", iso),
+            ("stvk-tm (transverse + penalty)", "stvk-tm", fibre),
+            ("hybrid-tm (threshold 0.1 h, 10% non-linear)", "hybrid-tm", iso),
+            ("mass-spring", "mass-spring", iso),
+        ):
+            log(f"bench: {name} {label}")
+            model = build_model(model_name, mesh.points, mesh.tets, mat, loading)
+            integ = SymplecticEuler()
+            dt = 0.5 * integ.critical_dt(model)
+            u = u0.copy()
+            if model_name == "hybrid-tm":
+                # move a tenth of the vertices past the threshold: the non-linear part of a local tool
+                near = np.argsort(np.linalg.norm(mesh.points - mesh.points[0], axis=1))[: mesh.n_vertices // 10]
+                u[near] += 2 * model.extra["threshold"] * loading.free[near]
+            state = State(u=u, v=np.zeros_like(u))
+            cases.append(
+                {
+                    "name": label,
+                    "model": model_name,
+                    **base,
+                    "dt": dt,
+                    "integrator": integ.name,
+                    "n": n,
+                    "fn": _step_case(integ, model, state, dt, n),
+                }
+            )
+        # the baseline a user would otherwise write: scipy's BSR product with the same matrix
+        lin = build_model("linear-tm", mesh.points, mesh.tets, iso, loading)
+        K = lin.extra["tensors"].matrix().tobsr(blocksize=(3, 3))
+        x = u0.ravel().copy()
+        reps = 50 if mesh.n_tets < 20000 else 10
+
+        def bsr(K=K, x=x, reps=reps):
+            for _ in range(reps):
+                K @ x
+
+        cases.append(
+            {"name": "scipy-bsr-matvec", "model": None, **base, "nnz_blocks": int(K.nnz // 9), "n": reps, "fn": bsr}
+        )
+        surface = len(mesh.surface_vertices) * 3
+        for model_name in ("precomputed", "condensed"):
+            if surface > DENSE_LIMIT:
+                rows.append(
+                    {
+                        "name": model_name,
+                        "model": model_name,
+                        **base,
+                        "step_us": None,
+                        "skipped": f"{surface} surface dofs: the dense precomputation would not fit",
+                    }
+                )
+                continue
+            log(f"bench: {name} {model_name}")
+            tool = int(mesh.surface_vertices[np.argmax(mesh.points[mesh.surface_vertices, 2])])
+            free = loading.free.copy()
+            free[tool] = 0.0
+            lo = Loading(
+                **{
+                    **loading.__dict__,
+                    "free": free,
+                    "tool_vertex": np.array([tool]),
+                    "tool_mask": np.ones((1, 3)),
+                    "tool_id": np.zeros(1, np.int64),
+                    "tool_kind": np.zeros(1, np.int64),
+                    "tool_vector": np.array([[0.0, 0.0, -0.005]]),
+                    "tool_axis": np.array([[0.0, 0.0, 1.0]]),
+                    "tool_center": np.zeros((1, 3)),
+                    "tool_angle": np.zeros(1),
+                    "tool_ramp": np.zeros(1),
+                }
+            )
+            t0 = time.perf_counter()
+            model = build_model(model_name, mesh.points, mesh.tets, iso, lo)
+            build_s = time.perf_counter() - t0
+            state = State.at_rest(mesh.n_vertices)
+            cases.append(
+                {
+                    "name": f"{model_name} (full update, 1 contact vertex)",
+                    "model": model_name,
+                    **base,
+                    "build_s": build_s,
+                    "n": 1,
+                    "fn": _step_case(QuasiStatic(), model, state, 1e-3, 1),
+                }
+            )
+            if model_name == "precomputed":
+                pc = model.extra["quasistatic"]
+                d = np.array([0.0, 0.0, -0.005])
+
+                def force(pc=pc, tool=tool, d=d):
+                    for _ in range(1000):
+                        pc.tool_force(tool, d)
+
+                cases.append(
+                    {
+                        "name": "precomputed tool-force update (1 contact vertex)",
+                        "model": model_name,
+                        **base,
+                        "n": 1000,
+                        "fn": force,
+                    }
+                )
+        log(f"bench: {name} timing {len(cases)} cases x {repeats} rounds")
+        _time_round_robin(cases, repeats)
+        for c in cases:
+            c.pop("fn")
+            rows.append(c)
+    return {"machine": machine(), "results": rows, "meshes": {m: STORED[m] for m in meshes}}
+
+
+def format_table(out: dict) -> str:
+    lines = [f"machine: {out['machine']['cpu']}, {out['machine']['cores']} cores, numba {out['machine']['numba']}"]
+    for mesh in dict.fromkeys(r["mesh"] for r in out["results"]):
+        rows = [r for r in out["results"] if r["mesh"] == mesh]
+        lines.append(f"\n{mesh}: {rows[0]['n_vertices']} vertices, {rows[0]['n_tets']} tetrahedra")
+        lin = next(r["step_us"] for r in rows if r["name"] == "linear-tm")
+        bsr = next(r["step_us"] for r in rows if r["name"] == "scipy-bsr-matvec")
+        rows = sorted(rows, key=lambda r: r.get("step_us") is None)
+        for r in rows:
+            if r.get("step_us") is None:
+                lines.append(f"  {r['name']:<52} skipped: {r['skipped']}")
+                continue
+            lines.append(
+                f"  {r['name']:<52} {r['step_us']:>10.1f} us  ({r['step_us_min']:.1f} - {r['step_us_max']:.1f})"
+                f"  x{r['step_us'] / lin:5.2f} linear-tm  x{r['step_us'] / bsr:5.2f} bsr"
+            )
+    return "\n".join(lines)
