@@ -187,6 +187,8 @@ class ElasticityProblem:
         L = -ufl.replace(self.residual, {self.u: zero})
         t0 = time.perf_counter()
         problem = LinearProblem(a, L, bcs=self.bcs, u=self.u, petsc_options=opts)
+        if opts.get("pc_type") == "gamg":
+            problem.A.setNearNullSpace(self.rigid_body_modes())
         problem.solve()
         reason = problem.solver.getConvergedReason()
         if reason < 0:
@@ -257,6 +259,185 @@ class ElasticityProblem:
         if self.material.law == "linear" and self.material.volume_penalty == 0.0:
             return self.solve_linear(petsc_options=kwargs.get("petsc_options"))
         return self.solve_newton(**kwargs)
+
+    def rigid_body_modes(self):
+        """The six rigid-body modes as a PETSc near null space (GAMG's coarse space for elasticity)."""
+        x = self.V.tabulate_dof_coordinates()
+        vecs = [fem.Function(self.V) for _ in range(6)]
+        for k in range(3):
+            vecs[k].x.array.reshape(-1, 3)[:, k] = 1.0
+        rot = [(0, 1), (1, 2), (2, 0)]
+        for k, (i, j) in enumerate(rot):
+            arr = vecs[3 + k].x.array.reshape(-1, 3)
+            arr[:, i] = -x[:, j]
+            arr[:, j] = x[:, i]
+        petsc_vecs = []
+        for v in vecs:
+            v.x.scatter_forward()
+            petsc_vecs.append(v.vector)
+        return PETSc.NullSpace().create(vectors=_orthonormal(petsc_vecs), comm=self.comm)
+
+    def energy(self) -> float:
+        """Total elastic energy of the current displacement, J (MPI-reduced)."""
+        F = ufl.Identity(3) + ufl.grad(self.u)
+        local = fem.assemble_scalar(fem.form(self.energy_density(F) * ufl.dx))
+        return self.comm.allreduce(local, op=MPI.SUM)
+
+    def solve_dynamic(
+        self,
+        dt: float,
+        end: float,
+        output_every: float,
+        points: np.ndarray,
+        rayleigh=(0.0, 0.0),
+        newmark=(0.25, 0.5),
+        petsc_options=None,
+        newton_rtol: float = 1e-10,
+    ):
+        """Newmark time integration from rest (average acceleration by default: beta = 1/4, gamma = 1/2,
+        second order, no numerical damping), consistent mass, Rayleigh damping C = a M + b K0 (K0 the
+        stiffness at rest, so the damping is the same linear operator in every law), tools ramped as
+        the scene says, loads applied at t = 0.
+
+        Linear law without penalty: the effective matrix M/(beta dt^2) + C gamma/(beta dt) + K is
+        assembled and factored once. Otherwise Newton on the same residual at every step.
+        Returns times (T,), displacements (T, K, 3) at ``points`` and reactions (T, 3), the first
+        output at t = 0.
+        """
+        beta, gamma = newmark
+        a_m, b_k = rayleigh
+        V = self.V
+        rho = self._constant(self.material.density)
+        u_old, v_old, a_old = fem.Function(V), fem.Function(V), fem.Function(V)
+        w = ufl.TestFunction(V)
+        c1, c2, c3 = 1.0 / (beta * dt * dt), 1.0 / (beta * dt), (1.0 - 2.0 * beta) / (2.0 * beta)
+
+        def accel(u):
+            return c1 * (u - u_old) - c2 * v_old - c3 * a_old
+
+        def veloc(u):
+            return v_old + dt * ((1.0 - gamma) * a_old + gamma * accel(u))
+
+        m = self.material
+
+        def k0(u, test):  # the rest stiffness K0 as a form: inner(C : eps(u), eps(test))
+            Fv = ufl.variable(ufl.Identity(3) + ufl.grad(u))
+            psi = LAWS["linear"](
+                Fv,
+                self._constant(m.lam),
+                self._constant(m.mu),
+                ufl.as_vector(m.fiber_vector.tolist()),
+                self._constant(m.dlam),
+                self._constant(m.dmu),
+            )
+            return ufl.inner(ufl.diff(psi, Fv), ufl.grad(test))
+
+        u = self.u
+        residual = self.residual + rho * ufl.inner(accel(u), w) * ufl.dx
+        if a_m:
+            residual += a_m * rho * ufl.inner(veloc(u), w) * ufl.dx
+        if b_k:
+            residual += b_k * k0(veloc(u), w) * ufl.dx
+        opts = dict(LU_OPTIONS if petsc_options is None else petsc_options)
+        times, values, reactions = [0.0], [self.evaluate(points)], [self.reaction()]
+        self.set_tool_fraction_at(0.0)
+        # initial acceleration: M a0 = f_ext - f_int(0) with the tools' accelerations zero at rest
+        a_trial = ufl.TrialFunction(V)
+        mass_form = rho * ufl.inner(a_trial, w) * ufl.dx
+        zero = fem.Function(V)
+        rhs0 = -ufl.replace(self.residual, {self.u: zero})
+        LinearProblem(mass_form, rhs0, bcs=self._homogeneous_bcs(), u=a_old, petsc_options=opts).solve()
+        linear = self.material.law == "linear" and self.material.volume_penalty == 0.0
+        du = ufl.TrialFunction(V)
+        J = ufl.derivative(residual, u, du)
+        n_steps = int(round(end / dt))
+        every = max(int(round(output_every / dt)), 1)
+        t0 = time.perf_counter()
+        if linear:
+            a_form = fem.form(ufl.replace(J, {u: zero}))
+            A = fem.petsc.assemble_matrix(a_form, bcs=self.bcs)
+            A.assemble()
+            ksp = PETSc.KSP().create(self.comm)
+            ksp.setOperators(A)
+            popts = PETSc.Options()
+            prefix = f"tb_dyn_{id(self)}_"
+            ksp.setOptionsPrefix(prefix)
+            for k, val in opts.items():
+                popts[f"{prefix}{k}"] = val
+            ksp.setFromOptions()
+            L_form = fem.form(-ufl.replace(residual, {u: zero}))
+            b = fem.petsc.create_vector(L_form)
+        else:
+            problem = NonlinearProblem(residual, u, self.bcs, J)
+            solver = NewtonSolver(self.comm, problem)
+            solver.convergence_criterion = "incremental"
+            solver.rtol, solver.atol, solver.max_it = newton_rtol, 1e-300, 25
+            ksp = solver.krylov_solver
+            prefix = ksp.getOptionsPrefix() or ""
+            popts = PETSc.Options()
+            for k, val in opts.items():
+                popts[f"{prefix}{k}"] = val
+            ksp.setFromOptions()
+        iterations = 0
+        for step in range(1, n_steps + 1):
+            t = step * dt
+            self.set_tool_fraction_at(t)
+            if linear:
+                with b.localForm() as loc:
+                    loc.set(0.0)
+                fem.petsc.assemble_vector(b, L_form)
+                fem.petsc.apply_lifting(b, [a_form], bcs=[self.bcs])
+                b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+                fem.petsc.set_bc(b, self.bcs)
+                ksp.solve(b, u.vector)
+                u.x.scatter_forward()
+                iterations += 1
+            else:
+                u.x.array[:] = u_old.x.array  # predictor: the last state
+                its, ok = solver.solve(u)
+                if not ok:
+                    raise ReferenceSolveError(f"Newmark: Newton did not converge at t = {t:.4g} s")
+                iterations += int(its)
+            a_new = c1 * (u.x.array - u_old.x.array) - c2 * v_old.x.array - c3 * a_old.x.array
+            v_old.x.array[:] = v_old.x.array + dt * ((1.0 - gamma) * a_old.x.array + gamma * a_new)
+            a_old.x.array[:] = a_new
+            u_old.x.array[:] = u.x.array
+            if step % every == 0 or step == n_steps:
+                times.append(t)
+                values.append(self.evaluate(points))
+                reactions.append(self.reaction())
+        self.timings["solve_s"] = time.perf_counter() - t0
+        info = {
+            "solver": "newmark",
+            "beta": beta,
+            "gamma": gamma,
+            "dt": dt,
+            "steps": n_steps,
+            "iterations": iterations,
+            "petsc_options": opts,
+            "rayleigh": list(rayleigh),
+        }
+        return np.array(times), np.array(values), np.array(reactions), info
+
+    def _homogeneous_bcs(self):
+        """The same constrained dofs as self.bcs, with value zero."""
+        out = []
+        for fx in self.problem.fixed:
+            for c, name in enumerate("xyz"):
+                if name in fx.components:
+                    Vc, dofs = self._component_dofs(fx.region, c)
+                    out.append(fem.dirichletbc(fem.Function(Vc), dofs, self.V.sub(c)))
+        for tool in self.problem.tools:
+            for c, name in enumerate("xyz"):
+                if name in tool.components:
+                    Vc, dofs = self._component_dofs(tool.region, c)
+                    out.append(fem.dirichletbc(fem.Function(Vc), dofs, self.V.sub(c)))
+        return out
+
+    def set_tool_fraction_at(self, t: float) -> None:
+        """Move every tool to where its ramp puts it at time t (s)."""
+        for tool, c, g in self._tool_functions:
+            g.interpolate(lambda x, tool=tool, c=c: tool.value(x.T, t)[:, c])
 
     # ---- post-processing (MPI-safe) ----
 
@@ -333,3 +514,79 @@ class ElasticityProblem:
         r = fem.petsc.assemble_vector(fem.form(self.residual))
         r.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         return r.array_r.reshape(-1, 3).copy()
+
+
+def _orthonormal(vecs):
+    """Modified Gram-Schmidt on PETSc vectors (in place); returns them."""
+    for i, v in enumerate(vecs):
+        for u in vecs[:i]:
+            v.axpy(-v.dot(u), u)
+        v.normalize()
+    return vecs
+
+
+def manufactured_errors(law: str, degree: int, n: int, material: Material, comm=MPI.COMM_WORLD) -> dict:
+    """Solve -div P(u) = f on the unit cube (n^3 cubes of six tetrahedra) with u = u_exact on the
+    boundary, f = -div P(u_exact) derived in UFL, and return the L2 and H1-seminorm errors.
+
+    u_exact = 0.05 (sin(pi x) sin(pi y) z, x y (1 - z) cos(pi z), sin(pi z) (x + y^2)) is smooth and
+    large enough (5% strain) for the StVK terms to matter. Errors are integrated against the exact
+    expression with quadrature of degree 2 degree + 6, so that the error of the error is negligible.
+    """
+    domain = dmesh.create_unit_cube(comm, n, n, n, dmesh.CellType.tetrahedron)
+    V = fem.VectorFunctionSpace(domain, ("Lagrange", degree))
+    x = ufl.SpatialCoordinate(domain)
+    pi = ufl.pi
+    ue = 0.05 * ufl.as_vector(
+        (
+            ufl.sin(pi * x[0]) * ufl.sin(pi * x[1]) * x[2],
+            x[0] * x[1] * (1 - x[2]) * ufl.cos(pi * x[2]),
+            ufl.sin(pi * x[2]) * (x[0] + x[1] ** 2),
+        )
+    )
+    lam, mu = fem.Constant(domain, PETSc.ScalarType(material.lam)), fem.Constant(domain, PETSc.ScalarType(material.mu))
+    a0 = ufl.as_vector((0.0, 0.0, 0.0))
+
+    def P(u):
+        F = ufl.variable(ufl.Identity(3) + ufl.grad(u))
+        return ufl.diff(LAWS[law](F, lam, mu, a0, 0.0, 0.0), F)
+
+    f = -ufl.div(P(ue))
+    u = fem.Function(V)
+    v = ufl.TestFunction(V)
+    # f is smooth: degree 2 p + 4 integrates it far below the discretisation error (UFL's own estimate
+    # for div P(u_exact) of sines asks for thousands of points per cell)
+    dxf = ufl.dx(metadata={"quadrature_degree": 2 * degree + 4})
+    residual = ufl.inner(P(u), ufl.grad(v)) * dxf - ufl.inner(f, v) * dxf
+    fdim = 2
+    domain.topology.create_connectivity(fdim, 3)
+    facets = dmesh.exterior_facet_indices(domain.topology)
+    dofs = fem.locate_dofs_topological(V, fdim, facets)
+    g = fem.Function(V)
+    g.interpolate(fem.Expression(ue, V.element.interpolation_points()))
+    bc = fem.dirichletbc(g, dofs)
+    u.x.array[:] = g.x.array  # start from the interpolant: Newton converges in a few steps
+    problem = NonlinearProblem(residual, u, [bc], ufl.derivative(residual, u, ufl.TrialFunction(V)))
+    solver = NewtonSolver(comm, problem)
+    solver.convergence_criterion = "incremental"
+    solver.rtol, solver.atol, solver.max_it = 1e-12, 1e-300, 25
+    ksp = solver.krylov_solver
+    prefix = ksp.getOptionsPrefix() or ""
+    popts = PETSc.Options()
+    for k, val in LU_OPTIONS.items():
+        popts[f"{prefix}{k}"] = val
+    ksp.setFromOptions()
+    its, ok = solver.solve(u)
+    if not ok:
+        raise ReferenceSolveError(f"manufactured solution: Newton failed ({law}, P{degree}, n = {n})")
+    dx = ufl.dx(metadata={"quadrature_degree": 2 * degree + 6})
+    e = u - ue
+    l2 = np.sqrt(comm.allreduce(fem.assemble_scalar(fem.form(ufl.inner(e, e) * dx)), op=MPI.SUM))
+    h1 = np.sqrt(comm.allreduce(fem.assemble_scalar(fem.form(ufl.inner(ufl.grad(e), ufl.grad(e)) * dx)), op=MPI.SUM))
+    return {
+        "h": 1.0 / n,
+        "l2": float(l2),
+        "h1": float(h1),
+        "dofs": V.dofmap.index_map.size_global * 3,
+        "newton_iterations": int(its),
+    }

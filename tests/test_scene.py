@@ -80,7 +80,7 @@ def test_fixed_and_tool_overlap_is_an_error(tmp_path):
         box = [[-1.0, -1.0, -1.0], [0.01, 1.0, 1.0]]
         value = [0.0, 0.0, 0.001]
     """)
-    with pytest.raises(SceneError, match=r"load\[1\].*shares vertex"):
+    with pytest.raises(SceneError, match=r"load\[1\].*drives component x of vertex"):
         load_scene(write(tmp_path, text)).mesh  # noqa: B018
 
 

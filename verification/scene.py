@@ -19,7 +19,7 @@ import numpy as np
 from meshes import InvalidMeshError, TetMesh, get_mesh, read_mesh
 from meshes.regions import AllRegion, BoxRegion, Region, SphereRegion, TagRegion
 from realtime.material import LAWS, Material, MaterialError
-from reference.problem import COMPONENTS, Displacement, Fixed, Force, Gravity, Problem, Traction
+from reference.problem import COMPONENTS, Displacement, Fixed, Force, Gravity, Problem, Traction, component_mask
 
 SCENES_DIR = Path(__file__).parent / "scenes"
 
@@ -342,21 +342,25 @@ def build_mesh(spec: dict, scene_path: Path) -> TetMesh:
 
 
 def check_regions(scene: Scene, mesh: TetMesh) -> None:
-    """Every region must hold a vertex; a vertex may not be both fixed and driven by a tool."""
-    fixed_any = np.zeros(mesh.n_vertices, dtype=bool)
+    """Every region must hold a vertex; no component of a vertex may be both fixed and driven by a
+    tool (a roller on y beside a tool pulling x is fine)."""
+    fixed = np.zeros((mesh.n_vertices, 3), dtype=bool)
     for i, fx in enumerate(scene.problem.fixed):
         idx = _vertices(scene, mesh, fx.region, f"fixed[{i}]")
-        fixed_any[idx] = True
+        fixed[idx] |= component_mask(fx.components).astype(bool)
     for i, ld in enumerate(scene.problem.loads):
         if isinstance(ld, Gravity):
             continue
         idx = _vertices(scene, mesh, ld.region, f"load[{i}]")
-        if isinstance(ld, Displacement) and fixed_any[idx].any():
-            v = int(idx[np.argmax(fixed_any[idx])])
-            raise SceneError(
-                f"{scene.path}: load[{i}]: the displacement region shares vertex {v} "
-                f"{mesh.points[v].tolist()} with a fixed region; make them disjoint"
-            )
+        if isinstance(ld, Displacement):
+            clash = fixed[idx] & component_mask(ld.components).astype(bool)
+            if clash.any():
+                k = int(np.argmax(clash.any(axis=1)))
+                v, c = int(idx[k]), "xyz"[int(np.argmax(clash[k]))]
+                raise SceneError(
+                    f"{scene.path}: load[{i}]: the displacement region drives component {c} of vertex {v} "
+                    f"{mesh.points[v].tolist()}, which a fixed region holds; make them disjoint"
+                )
 
 
 def _vertices(scene, mesh, region, where):
