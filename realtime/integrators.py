@@ -12,8 +12,10 @@ Evaluating the internal force at u + beta v is exactly -K u - beta K v for a lin
 tangent stiffness damping to first order for a non-linear one, with no extra matrix.
 
 Stability: both explicit schemes are stable for dt <= dt_crit = (2 / omega_max)(sqrt(1 + xi^2) - xi),
-omega_max^2 the largest eigenvalue of M^-1 K on the free components and xi = (alpha / omega_max +
-beta omega_max) / 2 its damping ratio. A run whose displacement leaves a bound (ten times the mesh's
+omega_max^2 the largest eigenvalue of M^-1 K on the free components and xi = beta omega_max / 2 the
+stiffness damping ratio of that mode. The mass damping alpha is treated implicitly in the velocity
+updates (v <- (v + dt a) / (1 + dt alpha)), so it costs no stability however large it is: the static
+relaxation sets it near 2 omega_1 and, early on, near 2 omega_max. A run whose displacement leaves a bound (ten times the mesh's
 bounding-box diagonal: an unstable run grows geometrically and crosses it in a few dozen steps) or
 becomes NaN raises ``DivergenceError`` naming the step, dt and dt_crit.
 """
@@ -72,7 +74,7 @@ def _damped_arg(u, v, beta, w):
 
 @nb.njit(**_JIT)
 def _run_symplectic_euler(n, dt, t0, force, data, points, im3, free, fext, tools, alpha, beta, bound, u, v, f, w):
-    """n steps of v += dt a(u, v); u += dt v. Returns -1, or the index of the step that blew up.
+    """n steps of v = (v + dt a(u)) / (1 + dt alpha); u += dt v. Returns -1 or the index of the step that blew up.
 
     im3 (3N,) is 1/m per component times the free mask: constrained components keep v = 0 and do not
     move (tools overwrite theirs afterwards). The update is one branch-free loop over 3N components,
@@ -81,7 +83,7 @@ def _run_symplectic_euler(n, dt, t0, force, data, points, im3, free, fext, tools
     tmp = np.empty(3)
     u1, v1, f1, x1 = u.reshape(-1), v.reshape(-1), f.reshape(-1), fext.reshape(-1)
     fr = free.reshape(-1)
-    keep = 1.0 - dt * alpha
+    damp = 1.0 / (1.0 + dt * alpha)  # mass damping treated implicitly: stable for any alpha
     for s in range(n):
         if beta != 0.0:
             _damped_arg(u, v, beta, w)
@@ -90,7 +92,7 @@ def _run_symplectic_euler(n, dt, t0, force, data, points, im3, free, fext, tools
             force(data, u, f)
         ok = True
         for k in range(u1.shape[0]):
-            vk = (keep * v1[k] + dt * (f1[k] + x1[k]) * im3[k]) * fr[k]
+            vk = (v1[k] + dt * (f1[k] + x1[k]) * im3[k]) * damp * fr[k]
             uk = u1[k] + dt * vk
             v1[k] = vk
             u1[k] = uk
@@ -107,15 +109,17 @@ def _run_central_difference(
 ):
     """n steps of velocity Verlet (central difference): half kick, drift, force, half kick.
 
-    a (N, 3) holds the acceleration at entry and at exit. Damping uses the half-step velocity.
+    a (N, 3) holds the undamped acceleration (f_int + f_ext) / m at entry and at exit. Mass damping is
+    implicit in each half kick, v <- (v + h a) / (1 + h alpha): stable for any alpha.
     """
     tmp = np.empty(3)
     h = 0.5 * dt
+    damp = 1.0 / (1.0 + h * alpha)
     for s in range(n):
         for i in range(u.shape[0]):
             for c in range(3):
                 if free[i, c] != 0.0:
-                    v[i, c] += h * a[i, c]
+                    v[i, c] = (v[i, c] + h * a[i, c]) * damp
                     u[i, c] += dt * v[i, c]
         _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
         if beta != 0.0:
@@ -128,10 +132,9 @@ def _run_central_difference(
             im = inv_mass[i]
             for c in range(3):
                 if free[i, c] != 0.0:
-                    ai = (f[i, c] + fext[i, c]) * im - alpha * v[i, c]
+                    ai = (f[i, c] + fext[i, c]) * im
                     a[i, c] = ai
-                    vi = v[i, c] + h * ai
-                    v[i, c] = vi
+                    v[i, c] = (v[i, c] + h * ai) * damp
                     if not abs(u[i, c]) < bound:
                         ok = False
         if not ok:
@@ -292,7 +295,7 @@ class Integrator:
         """dt_crit = (2 / omega_max)(sqrt(1 + xi^2) - xi), s. Pass omega2 if already known."""
         w2 = max_eigenvalue(model) if omega2 is None else omega2
         w = math.sqrt(w2)
-        xi = 0.5 * (self.alpha / w + self.beta * w)
+        xi = 0.5 * self.beta * w  # mass damping is implicit in the updates and costs no stability
         return 2.0 / w * (math.sqrt(1.0 + xi * xi) - xi)
 
     def _common(self, model: Model, state: State):
@@ -309,7 +312,7 @@ class Integrator:
 
 
 class SymplecticEuler(Integrator):
-    """Semi-implicit (symplectic) Euler: v_{n+1} = v_n + dt a(u_n, v_n), u_{n+1} = u_n + dt v_{n+1}."""
+    """Semi-implicit (symplectic) Euler: v_{n+1} = (v_n + dt a(u_n)) / (1 + dt alpha), u_{n+1} = u_n + dt v_{n+1}."""
 
     name = "symplectic-euler"
 
@@ -339,7 +342,7 @@ class CentralDifference(Integrator):
         acc = state.acc
         if acc is None or acc.shape != state.u.shape:
             f0 = model.internal_force(state.u + self.beta * state.v)
-            acc = ((f0 + fext) * inv_mass[:, None] - self.alpha * state.v) * free
+            acc = (f0 + fext) * inv_mass[:, None] * free
             state.acc = acc
         bad = _run_central_difference(
             n, dt, state.t, model.force_kernel, model.data, model.points, inv_mass, free, fext,

@@ -11,6 +11,7 @@ import argparse
 import json
 import logging
 import sys
+from pathlib import Path
 
 from meshes import InvalidMeshError
 from realtime import INTEGRATORS, MODELS, DivergenceError, MaterialError
@@ -151,6 +152,114 @@ def cmd_report(args) -> int:
     return 0
 
 
+def _mpi_comm():
+    """The world communicator when running under mpirun with more than one rank, else None."""
+    try:
+        from mpi4py import MPI
+    except ImportError:  # pragma: no cover - mpi4py comes with dolfinx
+        return None
+    return MPI.COMM_WORLD if MPI.COMM_WORLD.size > 1 else None
+
+
+def _rank0(comm) -> bool:
+    return comm is None or comm.rank == 0
+
+
+def cmd_sweep(args) -> int:
+    from .studies import format_sweep, sweep, sweep_csv
+
+    scene = load_scene(args.scene)
+    comm = _mpi_comm()
+    out = sweep(
+        scene,
+        models=args.models,
+        fractions=args.fractions,
+        dts=args.dts,
+        integrator=args.integrator,
+        largest_stable=not args.no_largest_stable,
+        use_cache=not args.no_cache,
+        comm=comm,
+    )
+    if not _rank0(comm):
+        return 0
+    if args.csv:
+        from .results import atomic_write_text
+
+        atomic_write_text(args.csv, sweep_csv(out))
+    if args.json:
+        _print_json(out)
+    else:
+        print(format_sweep(out))
+    return 0
+
+
+def cmd_converge(args) -> int:
+    from .studies import converge_manufactured, converge_space, converge_time, format_converge
+
+    scene = load_scene(args.scene)
+    if scene.manufactured:
+        out = converge_manufactured(scene)
+    elif args.in_ == "time":
+        out = converge_time(scene, models=args.models or ("linear-tm",))
+    else:
+        out = converge_space(scene, models=args.models or ("linear-tm", "stvk-tm"), levels=args.levels)
+    if args.json:
+        _print_json(out)
+    else:
+        print(format_converge(out))
+    return 0
+
+
+def cmd_stability(args) -> int:
+    from .studies import format_stability, stability
+
+    out = stability(load_scene(args.scene), models=args.models, tol=args.tol, use_cache=not args.no_cache)
+    if args.json:
+        _print_json(out)
+    else:
+        print(format_stability(out))
+    return 0
+
+
+def cmd_advise(args) -> int:
+    from .studies import advise
+
+    comm = _mpi_comm()
+    out = advise(
+        load_scene(args.scene), tol=args.tol, rate=args.rate, metric=args.metric, use_cache=not args.no_cache, comm=comm
+    )
+    if not _rank0(comm):
+        return 0
+    if args.json:
+        _print_json(out)
+    elif out["model"] is None:
+        print(out["why"])
+    else:
+        dt = "quasi-static" if out["dt"] is None else f"dt = {out['dt']:.3g} s"
+        print(f"{out['model']} ({out['integrator']}, {dt}): {args.metric} {out['value']:.3g}, {out['rate_hz']:.0f} Hz")
+        print(f"why: {out['why']}")
+        if out["runner_up"]:
+            r = out["runner_up"]
+            print(f"runner-up: {r['model']} ({args.metric} {r['value']:.3g}, {r['step_us']:.1f} us/step)")
+        for line in out["cheaper_failed"]:
+            print(f"  cheaper, rejected: {line}")
+    return 0
+
+
+def cmd_gate(args) -> int:
+    from .gates import DEFAULT_CONFIG, format_gates, run_gates, update_baselines
+
+    path = Path(args.config) if args.config else DEFAULT_CONFIG
+    rows = run_gates(path, quick=args.quick, use_cache=not args.no_cache)
+    if args.update_baselines:
+        update_baselines(path, rows)
+    if args.json:
+        _print_json({"config": str(path), "gates": rows, "passed": all(r["passed"] for r in rows)})
+    else:
+        print(format_gates(rows))
+    return 0 if all(r["passed"] for r in rows) else 1
+
+
 def cmd_bench(args) -> int:
     from .bench import format_table, run
 
@@ -215,6 +324,53 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.set_defaults(func=cmd_report)
 
+    s = sub.add_parser("sweep", help="error against step time for models x time steps, with the Pareto front")
+    s.add_argument("scene")
+    s.add_argument("--models", nargs="+", choices=sorted(MODELS))
+    s.add_argument("--fractions", type=float, nargs="+", help="time steps as fractions of the critical one")
+    s.add_argument("--dts", type=float, nargs="+", help="time steps in seconds")
+    s.add_argument("--integrator", default="symplectic-euler", choices=sorted(INTEGRATORS))
+    s.add_argument("--no-largest-stable", action="store_true", help="skip the search for the largest stable step")
+    s.add_argument("--csv", help="also write the table as CSV")
+    s.add_argument("--no-cache", action="store_true")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_sweep)
+
+    s = sub.add_parser("converge", help="observed orders in space (mesh refinement) or time (dt halving)")
+    s.add_argument("scene")
+    s.add_argument("--in", dest="in_", choices=("space", "time"), default="space")
+    s.add_argument("--models", nargs="+", choices=sorted(MODELS))
+    s.add_argument("--levels", type=int, default=3, help="mesh levels h, h/2, ... (space)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_converge)
+
+    s = sub.add_parser(
+        "stability", help="largest stable steps and the extremes (nu, E, rotation, compression, slivers)"
+    )
+    s.add_argument("scene")
+    s.add_argument("--models", nargs="+", choices=sorted(MODELS))
+    s.add_argument("--tol", type=float, default=0.1, help="rel_l2 above which a model is called inaccurate")
+    s.add_argument("--no-cache", action="store_true")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_stability)
+
+    s = sub.add_parser("advise", help="the cheapest model, integrator and dt meeting a tolerance at a rate")
+    s.add_argument("scene")
+    s.add_argument("--tol", type=float, required=True, help="largest acceptable error (relative)")
+    s.add_argument("--rate", type=float, required=True, help="update rate the model must sustain, Hz")
+    s.add_argument("--metric", default="rel_l2", choices=("rel_l2", "surface_rel_l2", "reaction_rel_err"))
+    s.add_argument("--no-cache", action="store_true")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_advise)
+
+    s = sub.add_parser("gate", help="CI accuracy gates; exit 1 on a miss")
+    s.add_argument("--config", help="gates file (default: the shipped verification/gates.toml)")
+    s.add_argument("--quick", action="store_true", help="only the gates marked quick")
+    s.add_argument("--update-baselines", action="store_true", help="record the measured values and provenance")
+    s.add_argument("--no-cache", action="store_true")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_gate)
+
     s = sub.add_parser("bench", help="performance benchmark: microseconds per step of every model")
     s.add_argument("--meshes", nargs="+", default=["liver", "liver-x10"], help="stored meshes to run on")
     s.add_argument("--repeats", type=int, default=15)
@@ -235,7 +391,7 @@ def main(argv=None) -> int:
     except DivergenceError as exc:
         print(f"tissuebench: {exc}", file=sys.stderr)
         return 1
-    except NotImplementedError as exc:
+    except (NotImplementedError, ValueError) as exc:
         print(f"tissuebench: {exc}", file=sys.stderr)
         return 2
 

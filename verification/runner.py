@@ -161,8 +161,10 @@ def run_model(
     dt_fraction: float | None = None,
     integrator: str = "symplectic-euler",
     rtol: float = 1e-10,
+    max_steps: int = 2_000_000,
 ) -> Result:
-    """Run a real-time model on a static scene: damped dynamics at dt until settled, then timing.
+    """Run a real-time model on a scene: on a static scene damped dynamics at dt until settled (at
+    most ``max_steps``, else NotConvergedError), then timing; on a dynamic one the trajectory.
 
     dt defaults to ``dt_fraction`` (default 0.9) times the model's critical step. A diverging run
     raises DivergenceError.
@@ -177,20 +179,20 @@ def run_model(
     omega2 = max_eigenvalue(model)
     integ = make_integrator(integrator, scene.time.damping_mass, scene.time.damping_stiffness)
     if isinstance(integ, ImplicitEuler):
-        return _run_implicit(scene, model, integ, dt, dt_fraction, omega2, build_s, rtol)
+        return _run_implicit(scene, model, integ, dt, dt_fraction, omega2, build_s, rtol, min(max_steps, 20_000))
     dt_crit_rest = integ.critical_dt(model, omega2)
     dt_crit = dt_crit_rest
     t1 = time.perf_counter()
     static = None
     if not model.linear:
         # a non-linear model's critical step moves as it deforms: take the smaller of rest and equilibrium
-        static = solve_static(model, dt=None, rtol=rtol)
+        static = solve_static(model, dt=None, rtol=rtol, max_steps=max_steps)
         omega2 = max(omega2, max_eigenvalue(model, static.state.u))
         dt_crit = min(dt_crit_rest, integ.critical_dt(model, omega2))
     if dt is None:
         dt = (0.9 if dt_fraction is None else dt_fraction) * dt_crit
     if static is None or static.dt != dt:
-        static = solve_static(model, dt=dt, rtol=rtol)
+        static = solve_static(model, dt=dt, rtol=rtol, max_steps=max_steps)
     settle_s = time.perf_counter() - t1
     timing = time_steps(model, integ, dt, static.state.copy())
     u = static.state.u
@@ -307,14 +309,14 @@ def _run_dynamic(scene: Scene, model, integrator: str, dt, dt_fraction, build_s:
     return Result(scene.mesh.points, scene.mesh.tets, times, u, reaction, meta)
 
 
-def _run_implicit(scene: Scene, model, integ, dt, dt_fraction, omega2, build_s, rtol) -> Result:
+def _run_implicit(scene: Scene, model, integ, dt, dt_fraction, omega2, build_s, rtol, max_steps) -> Result:
     """Implicit Euler on a static scene: steps of dt (default 10 x the explicit critical step, or
     ``dt_fraction`` times it) until settled. dt_crit reports the explicit limit it steps over."""
     explicit = SymplecticEuler().critical_dt(model, omega2)
     if dt is None:
         dt = (10.0 if dt_fraction is None else dt_fraction) * explicit
     t1 = time.perf_counter()
-    static = solve_static_implicit(model, dt, rtol=rtol, integrator=integ)
+    static = solve_static_implicit(model, dt, rtol=rtol, integrator=integ, max_steps=max_steps)
     settle_s = time.perf_counter() - t1
     timing = time_steps(model, integ, dt, static.state.copy(), n=5, repeats=7)
     u = static.state.u
@@ -404,6 +406,7 @@ def compare(
     dt_fraction: float | None = None,
     integrator: str = "symplectic-euler",
     reference: Result | None = None,
+    max_steps: int = 2_000_000,
     **ref_options,
 ) -> dict:
     """Metrics of one model run against the scene's reference (DESIGN.md section 6).
@@ -413,7 +416,7 @@ def compare(
     ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
     base = {"scene": scene.name, "model": model_name, "integrator": integrator}
     try:
-        res = run_model(scene, model_name, dt=dt, dt_fraction=dt_fraction, integrator=integrator)
+        res = run_model(scene, model_name, dt=dt, dt_fraction=dt_fraction, integrator=integrator, max_steps=max_steps)
     except DivergenceError as exc:
         return {
             **base,

@@ -7,6 +7,7 @@ scene is evaluated as code.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -60,6 +61,7 @@ class Scene:
     time: TimeSpec
     raw: dict = field(repr=False, default_factory=dict)
     _mesh: TetMesh | None = field(default=None, repr=False)
+    manufactured: dict | None = None
 
     @property
     def mesh(self) -> TetMesh:
@@ -77,17 +79,7 @@ class Scene:
         """A copy with material fields changed (for studies over nu, E)."""
         raw = json.loads(json.dumps(self.raw))
         raw.setdefault("material", {}).update(changes)
-        return Scene(
-            self.name,
-            self.description,
-            self.path,
-            self.mesh_spec,
-            self.material.replace(**changes),
-            self.problem,
-            self.time,
-            raw,
-            self._mesh,
-        )
+        return dataclasses.replace(self, material=self.material.replace(**changes), raw=raw)
 
 
 def builtin_scenes() -> dict[str, Path]:
@@ -305,13 +297,44 @@ def parse(path: Path, data: dict) -> Scene:
     )
     damping.finish(("mass", "stiffness"))
     tr.finish(("mode", "end", "output_every", "damping"))
-    top.finish(("name", "description", "mesh", "material", "fixed", "load", "time"))
-    if not fixed and not any(isinstance(ld, Displacement) for ld in loads) and tspec.mode == "static":
+    manufactured = None
+    if top.has("manufactured"):
+        mr2 = _Reader(path, top.get("manufactured"), "manufactured")
+        degrees = mr2.get("degrees", [1, 2])
+        if not (isinstance(degrees, list) and degrees and all(d in (1, 2) for d in degrees)):
+            mr2.fail("degrees", f"must be a list of 1 and/or 2, got {degrees!r}")
+        sizes = _Reader(path, mr2.get("sizes"), "manufactured.sizes")
+        per = {}
+        for d in degrees:
+            v = sizes.get(str(d))
+            if not (isinstance(v, list) and len(v) >= 2 and all(isinstance(n, int) and n >= 1 for n in v)):
+                sizes.fail(str(d), f"must be a list of at least two mesh sizes (cubes per side), got {v!r}")
+            per[str(d)] = v
+        sizes.finish(tuple(str(d) for d in degrees))
+        mr2.finish(("degrees", "sizes"))
+        manufactured = {"degrees": degrees, "sizes": per}
+    top.finish(("name", "description", "mesh", "material", "fixed", "load", "time", "manufactured"))
+    if (
+        not fixed
+        and not any(isinstance(ld, Displacement) for ld in loads)
+        and tspec.mode == "static"
+        and not manufactured
+    ):
         raise SceneError(
             f"{path}: fixed: a static scene needs a [[fixed]] region or a displacement load "
             "(otherwise rigid motions are free and there is no equilibrium)"
         )
-    return Scene(name, description, path, spec, material, Problem(tuple(fixed), tuple(loads)), tspec, raw=data)
+    return Scene(
+        name,
+        description,
+        path,
+        spec,
+        material,
+        Problem(tuple(fixed), tuple(loads)),
+        tspec,
+        raw=data,
+        manufactured=manufactured,
+    )
 
 
 def load_scene(name_or_path: str | Path) -> Scene:
