@@ -31,6 +31,7 @@ def solve_static(
     comm=MPI.COMM_WORLD,
     newton_steps: int = 1,
     points: np.ndarray | None = None,
+    min_increment: float = 1e-4,
 ) -> dict:
     """Solve, evaluate at ``points`` (K, 3) m (default the scene mesh's vertices), describe the run.
 
@@ -45,7 +46,8 @@ def solve_static(
     for level in levels:
         t0 = time.perf_counter()
         ep = ElasticityProblem(mesh, material, problem, degree=degree, refine=level, comm=comm)
-        info = ep.solve(steps=newton_steps) if material.law != "linear" or material.volume_penalty else ep.solve()
+        nonlinear = material.law != "linear" or material.volume_penalty
+        info = ep.solve(steps=newton_steps, min_increment=min_increment) if nonlinear else ep.solve()
         values.append(ep.evaluate(mesh.points if points is None else points))
         reactions.append(ep.reaction())
         info.update(

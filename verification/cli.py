@@ -313,7 +313,12 @@ def build_parser() -> argparse.ArgumentParser:
         s.set_defaults(func=func)
 
     s = sub.add_parser("report", help="HTML report with plots and data")
-    s.add_argument("scenes", nargs="*", help="scenes (default: cantilever cantilever-pull)")
+    s.add_argument(
+        "scenes",
+        nargs="*",
+        help="scenes (default: cantilever cantilever-pull cantilever-dynamic, with the "
+        "convergence and stability studies)",
+    )
     s.add_argument("--out", help="report directory (default reports/NAME)")
     s.add_argument(
         "--fractions",

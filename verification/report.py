@@ -1,16 +1,18 @@
 """The HTML report: one self-contained page (images embedded) plus its data as JSON and CSV.
 
-For each scene: the scene file and its mesh's quality, the reference and its own error estimate, the
-real-time models at several time steps (fractions of each one's critical step) with their errors
-and step times, the error-versus-microseconds-per-step plot, and pictures of the reference and the
-model deformed side by side, the model coloured by its error. Every number on the page comes from
-runs made while writing it (or from the reference cache, which records the run that made it).
+Per scene: the scene file and its mesh's quality; the reference with its own error estimate; the
+sweep of every model over time steps (fractions of each one's critical step and the largest stable
+one) as a table and as error against microseconds per step with the Pareto front; the advisor's
+answer; the reference and each model deformed side by side, the model coloured by its error; for
+dynamic scenes the tool's force over time. Then the convergence studies (the reference's orders on
+a manufactured solution, the integrators' orders in time) as log-log plots with reference slopes,
+and the stability study. Every number comes from runs made for the page or from the caches, which
+record the run that made them.
 """
 
 from __future__ import annotations
 
 import base64
-import csv
 import html
 import io
 import json
@@ -25,14 +27,25 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
-from realtime import MODELS  # noqa: E402
-from realtime.models import QUASI_STATIC  # noqa: E402
-
 from .results import atomic_write_text  # noqa: E402
-from .runner import REFERENCE_DEFAULTS, compare, git_commit, log, reference_result, versions  # noqa: E402
+from .runner import REFERENCE_DEFAULTS, git_commit, log, reference_result, run_model, versions  # noqa: E402
 from .scene import load_scene  # noqa: E402
+from .studies import (  # noqa: E402
+    advise,
+    converge_manufactured,
+    converge_time,
+    stability,
+    sweep,
+    sweep_csv,
+)
 
-DEFAULT_SCENES = ["cantilever", "cantilever-pull"]
+DEFAULT_SCENES = ["cantilever", "cantilever-pull", "cantilever-dynamic"]
+#: The advisor's question on every scene of the report: 5% error at a haptic 1 kHz.
+ADVISE_TOL, ADVISE_RATE = 0.05, 1000.0
+#: The stability study of the default report: the cantilever, three models (the others' columns
+#: cost minutes each at nu = 0.4999; ``tissuebench stability cantilever`` runs them all).
+STABILITY_SCENE, STABILITY_MODELS = "cantilever", ("linear-tm", "stvk-tm", "precomputed")
+PICTURE_MODELS = ("linear-tm", "stvk-tm", "mass-spring", "precomputed")
 REPORTS = Path("reports")
 
 
@@ -43,35 +56,44 @@ def _png(fig) -> str:
     return base64.b64encode(buf.getvalue()).decode()
 
 
+def _img(data: str, alt: str, wide: bool = False) -> str:
+    return f'<img{" class=wide" if wide else ""} alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+
+
 def plot_error_vs_speed(rows: list[dict], ref_est: float | None, title: str) -> str:
-    """Log-log rel_l2 against step_us, one series per model, points labelled with dt / dt_crit."""
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    for model in sorted({r["model"] for r in rows}):
-        pts = [r for r in rows if r["model"] == model and r["status"] == "ok"]
-        if not pts:
-            continue
-        ax.loglog([r["step_us"] for r in pts], [max(r["rel_l2"], 1e-16) for r in pts], "o-", label=model)
+    """Log-log rel_l2 against step_us, one series per model, the Pareto front as a staircase."""
+    fig, ax = plt.subplots(figsize=(7.2, 4.6))
+    ok = [r for r in rows if r["status"] == "ok"]
+    for model in sorted({r["model"] for r in ok}):
+        pts = sorted((r for r in ok if r["model"] == model), key=lambda r: r["step_us"])
+        ax.loglog([r["step_us"] for r in pts], [max(r["rel_l2"], 1e-16) for r in pts], "o", label=model, alpha=0.8)
         for r in pts:
+            label = "q-s" if r["dt"] is None else f"{r['dt'] / r['dt_crit']:.2g}"
             ax.annotate(
-                f"{r['dt'] / r['dt_crit']:.2g} dt_c",
-                (r["step_us"], max(r["rel_l2"], 1e-16)),
-                textcoords="offset points",
-                xytext=(5, 4),
-                fontsize=8,
+                label, (r["step_us"], max(r["rel_l2"], 1e-16)), textcoords="offset points", xytext=(4, 3), fontsize=7
             )
-    ok = [max(r["rel_l2"], 1e-16) for r in rows if r["status"] == "ok"]
+    front = sorted((r for r in ok if r.get("pareto")), key=lambda r: r["step_us"])
+    if front:
+        ax.step(
+            [r["step_us"] for r in front],
+            [r["rel_l2"] for r in front],
+            where="post",
+            color="k",
+            lw=1,
+            label="Pareto front",
+        )
+    errs = [max(r["rel_l2"], 1e-16) for r in ok]
     if ref_est:
         ax.axhline(ref_est, color="grey", ls="--", lw=1, label="reference error estimate")
-        lo = min(ok + [ref_est]) / 10
+        lo = min(errs + [ref_est]) / 10
         ax.axhspan(lo, 10 * ref_est, color="grey", alpha=0.12, label="at reference accuracy (< 10x)")
-        ax.set_ylim(lo, max(ok + [10 * ref_est]) * 3)
+        ax.set_ylim(lo, max(errs + [10 * ref_est]) * 3)
     ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.3g"))
-    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel("median wall time of one step (us)")
     ax.set_ylabel("relative L2 displacement error")
-    ax.set_title(title)
+    ax.set_title(title + "  (labels: dt / dt_crit; q-s: quasi-static)", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7, loc="best")
     return _png(fig)
 
 
@@ -81,23 +103,22 @@ def plot_deformation(mesh, u_ref: np.ndarray, u_model: np.ndarray, model: str, t
     err = np.linalg.norm(u_model - u_ref, axis=1) * 1e3
     lo, hi = mesh.bounding_box()
     span = float((hi - lo).max())
-    fig = plt.figure(figsize=(11, 4.2))
+    fig = plt.figure(figsize=(11, 4.0))
     for k, (u, name) in enumerate(((u_ref, "reference"), (u_model, model))):
         ax = fig.add_subplot(1, 2, k + 1, projection="3d")
-        x = mesh.points + u
-        tri = x[faces]
+        tri = (mesh.points + u)[faces]
         if k == 0:
             coll = Poly3DCollection(tri, facecolor=(0.75, 0.78, 0.85), edgecolor=(0.3, 0.3, 0.3, 0.3), linewidths=0.2)
         else:
-            vals = err[faces].mean(axis=1)
             coll = Poly3DCollection(tri, cmap="viridis", edgecolor=(0.2, 0.2, 0.2, 0.2), linewidths=0.2)
-            coll.set_array(vals)
+            coll.set_array(err[faces].mean(axis=1))
             coll.set_clim(0.0, max(float(err.max()), 1e-12))
             fig.colorbar(coll, ax=ax, shrink=0.6, label="|u - u*| (mm)")
         ax.add_collection3d(coll)
-        rest = mesh.points[faces]
         ax.add_collection3d(
-            Poly3DCollection(rest, facecolor=(0, 0, 0, 0), edgecolor=(0.6, 0.1, 0.1, 0.15), linewidths=0.2)
+            Poly3DCollection(
+                mesh.points[faces], facecolor=(0, 0, 0, 0), edgecolor=(0.6, 0.1, 0.1, 0.15), linewidths=0.2
+            )
         )
         c = 0.5 * (lo + hi)
         for setlim, i in ((ax.set_xlim, 0), (ax.set_ylim, 1), (ax.set_zlim, 2)):
@@ -105,11 +126,38 @@ def plot_deformation(mesh, u_ref: np.ndarray, u_model: np.ndarray, model: str, t
         ax.set_box_aspect((1, 1, 1))
         ax.view_init(elev=18, azim=-60)
         ax.set_title(f"{name} (rest shape in red)", fontsize=9)
-        ax.set_xlabel("x (m)", fontsize=7)
-        ax.set_ylabel("y (m)", fontsize=7)
-        ax.set_zlabel("z (m)", fontsize=7)
         ax.tick_params(labelsize=6)
     fig.suptitle(title, fontsize=10)
+    return _png(fig)
+
+
+def plot_reaction(times, ref_reaction, runs: dict, title: str) -> str:
+    """The tool's force (z) over time: what a haptic device would render."""
+    fig, ax = plt.subplots(figsize=(7.2, 3.6))
+    ax.plot(times, ref_reaction[:, 2], "k-", lw=2, label="reference")
+    for model, r in runs.items():
+        ax.plot(times, r[:, 2], lw=1, label=model)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("tool force, z (N)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    return _png(fig)
+
+
+def plot_convergence(res: dict, title: str, xlabel: str) -> str:
+    """Log-log error against h (or dt) with dashed reference slopes at the theoretical orders."""
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for s in res["series"]:
+        h, e = np.array(s["h"]), np.array(s["error"])
+        line = ax.loglog(h, e, "o-", label=f"{s['label']}: {s['order']:.2f}")[0]
+        if s.get("theory"):
+            ax.loglog(h, e[-1] * (h / h[-1]) ** s["theory"], "--", color=line.get_color(), lw=0.8, alpha=0.7)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("error")
+    ax.set_title(title + " (dashed: theoretical slopes)", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
     return _png(fig)
 
 
@@ -121,66 +169,97 @@ def _fmt(v, spec=".3g"):
     return html.escape(str(v))
 
 
+def _sweep_table(rows: list[dict]) -> str:
+    head = (
+        "<tr><th>model</th><th>integrator</th><th>dt (s)</th><th>dt / dt_crit</th><th>rel_l2</th>"
+        "<th>surface_rel_l2</th><th>max_err (m)</th><th>reaction_rel_err</th><th>volume_err</th>"
+        "<th>step (us)</th><th>spread (us)</th><th>rate (Hz)</th><th>Pareto</th></tr>"
+    )
+    out = [head]
+    for r in rows:
+        ratio = "quasi-static" if r["dt"] is None else _fmt(r["dt"] / r["dt_crit"], ".2f")
+        if r.get("largest_stable"):
+            ratio += " (largest stable)"
+        if r["status"] != "ok":
+            out.append(
+                f"<tr class='bad'><td>{r['model']}</td><td>{r['integrator']}</td><td>{_fmt(r['dt'])}</td>"
+                f"<td>{ratio}</td><td colspan='9'>diverged at step {r['step']} (critical dt "
+                f"{_fmt(r['dt_crit'])} s)</td></tr>"
+            )
+            continue
+        acc = " <em>(at reference accuracy)</em>" if r["at_reference_accuracy"] else ""
+        out.append(
+            f"<tr><td>{r['model']}</td><td>{r['integrator']}</td><td>{_fmt(r['dt'])}</td><td>{ratio}</td>"
+            f"<td>{_fmt(r['rel_l2'])}{acc}</td><td>{_fmt(r['surface_rel_l2'])}</td><td>{_fmt(r['max_err'])}</td>"
+            f"<td>{_fmt(r['reaction_rel_err'])}</td><td>{_fmt(r['volume_err'])}</td><td>{_fmt(r['step_us'], '.1f')}</td>"
+            f"<td>{_fmt(r['step_us_min'], '.1f')} - {_fmt(r['step_us_max'], '.1f')}</td><td>{_fmt(r['rate_hz'], '.0f')}</td>"
+            f"<td>{'yes' if r.get('pareto') else ''}</td></tr>"
+        )
+    return "<table>" + "".join(out) + "</table>"
+
+
+def _advice_html(a: dict) -> str:
+    if not a.get("model"):
+        return f"<p class='advice'>No model meets rel_l2 &le; {ADVISE_TOL} at {ADVISE_RATE:.0f} Hz. {html.escape(a['why'])}</p>"
+    dt = "quasi-static" if a["dt"] is None else f"dt = {a['dt']:.3g} s"
+    runner = a.get("runner_up")
+    ru = (
+        f" Runner-up: <b>{runner['model']}</b> (rel_l2 {runner['value']:.3g}, {runner['step_us']:.1f} us/step)."
+        if runner
+        else ""
+    )
+    rej = "".join(f"<li>{html.escape(x)}</li>" for x in a.get("cheaper_failed", []))
+    return (
+        f"<p class='advice'>For rel_l2 &le; {ADVISE_TOL} at {ADVISE_RATE:.0f} Hz: <b>{a['model']}</b> "
+        f"({a['integrator']}, {dt}; rel_l2 {a['value']:.3g}, {a['rate_hz']:.0f} Hz). {html.escape(a['why'])}.{ru}</p>"
+        + (f"<details><summary>cheaper runs rejected</summary><ul>{rej}</ul></details>" if rej else "")
+    )
+
+
 def scene_section(name: str, fractions: list[float]) -> tuple[str, dict]:
     scene = load_scene(name)
     mesh = scene.mesh
     ref = reference_result(scene, **REFERENCE_DEFAULTS)
     est = ref.meta.get("ref_err_estimate")
-    rows = []
-    for model in sorted(MODELS):
-        for f in [None] if model in QUASI_STATIC else fractions:
-            log(f"report: {scene.name} {model}" + ("" if f is None else f" dt = {f} dt_crit"))
-            rows.append(compare(scene, model, dt_fraction=f, reference=ref))
-    best = {}
-    for r in rows:
-        if r["status"] == "ok" and (r["model"] not in best or (r["dt"] or 0) > (best[r["model"]]["dt"] or 0)):
-            best[r["model"]] = r
-    pictures = []
-    from .runner import run_model
-
-    for model, r in sorted(best.items()):
-        res = run_model(scene, model, dt=r["dt"])
+    log(f"report: sweep {scene.name}")
+    sw = sweep(scene, fractions=fractions)
+    rows = sw["rows"]
+    adv = advise(scene, tol=ADVISE_TOL, rate=ADVISE_RATE)
+    pictures, reactions = [], {}
+    for model in PICTURE_MODELS:
+        good = [r for r in rows if r["model"] == model and r["status"] == "ok"]
+        if not good:
+            continue
+        r = max(good, key=lambda r: r["dt"] or 0.0)
+        res = run_model(scene, model, dt=r["dt"], integrator=r["integrator"] if r["dt"] else "symplectic-euler")
+        k = int(np.argmax(np.abs(ref.displacement).max(axis=(1, 2))))
+        at = "quasi-static" if r["dt"] is None else f"dt = {r['dt']:.3g} s"
+        when = f", t = {ref.times[k]:.3g} s" if scene.time.mode == "dynamic" else ""
         pictures.append(
             plot_deformation(
                 mesh,
-                ref.displacement[-1],
-                res.displacement[-1],
+                ref.displacement[k],
+                res.displacement[k],
                 model,
-                f"{scene.name}: {model} at dt = {r['dt']:.3g} s, rel_l2 = {r['rel_l2']:.3g}",
+                f"{scene.name}: {model} ({at}{when}), rel_l2 = {r['rel_l2']:.3g}",
             )
         )
+        reactions[model] = res.reaction
     q = mesh.quality()
     plot = plot_error_vs_speed(rows, est, f"{scene.name}: error against speed")
-    table = [
-        "<tr><th>model</th><th>dt (s)</th><th>dt / dt_crit</th><th>status</th><th>rel_l2</th><th>surface_rel_l2</th>"
-        "<th>max_err (m)</th><th>reaction_rel_err</th><th>volume_err</th><th>step (us)</th><th>spread (us)</th>"
-        "<th>rate (Hz)</th><th>settle (steps)</th></tr>"
-    ]
-    for r in rows:
-        if r["status"] != "ok":
-            table.append(
-                f"<tr class='bad'><td>{r['model']}</td><td>{_fmt(r['dt'])}</td><td>{_fmt(r['dt'] / r['dt_crit'], '.2f')}</td>"
-                f"<td colspan='10'>diverged at step {r['step']} (critical dt {_fmt(r['dt_crit'])} s)</td></tr>"
-            )
-            continue
-        acc = " <em>(at reference accuracy)</em>" if r["at_reference_accuracy"] else ""
-        ratio = "quasi-static" if r["dt"] is None else _fmt(r["dt"] / r["dt_crit"], ".2f")
-        table.append(
-            f"<tr><td>{r['model']}</td><td>{_fmt(r['dt'])}</td><td>{ratio}</td><td>ok</td>"
-            f"<td>{_fmt(r['rel_l2'])}{acc}</td><td>{_fmt(r['surface_rel_l2'])}</td><td>{_fmt(r['max_err'])}</td>"
-            f"<td>{_fmt(r['reaction_rel_err'])}</td><td>{_fmt(r['volume_err'])}</td><td>{_fmt(r['step_us'], '.1f')}</td>"
-            f"<td>{_fmt(r['step_us_min'], '.1f')} - {_fmt(r['step_us_max'], '.1f')}</td><td>{_fmt(r['rate_hz'], '.0f')}</td>"
-            f"<td>{r['settle_steps']}</td></tr>"
+    extra = ""
+    if scene.time.mode == "dynamic" and scene.problem.tools:
+        extra = "<h3>The tool's force over time</h3>" + _img(
+            plot_reaction(ref.times, ref.reaction, reactions, f"{scene.name}: force on the tool"), "tool force"
         )
-    solves = ref.meta.get("solves", [])
     ref_lines = "".join(
-        f"<li>level {s['level']}: {s['n_dofs']} dofs, {s['n_cells']} cells, {s['solver']} ({s.get('iterations')} iterations), "
-        f"{s['wall_s']:.1f} s</li>"
-        for s in solves
+        f"<li>{'level ' + str(s['level']) if 'level' in s else ''} {s.get('n_dofs', '')} dofs, {s['solver']} "
+        f"({s.get('iterations')} iterations), {s.get('wall_s', 0):.1f} s</li>"
+        for s in ref.meta.get("solves", [])
     )
     section = f"""
-<section>
-<h2>{html.escape(scene.name)}</h2>
+<section id="{html.escape(scene.name)}">
+<h2>{html.escape(scene.name)} ({scene.time.mode})</h2>
 <p>{html.escape(scene.description)}</p>
 <details><summary>scene file {html.escape(str(scene.path.name))}</summary><pre>{html.escape(scene.path.read_text())}</pre></details>
 <h3>Mesh</h3>
@@ -190,49 +269,130 @@ edges {q["min_edge_m"] * 1e3:.2f} to {q["max_edge_m"] * 1e3:.2f} mm.</p>
 <h3>Reference</h3>
 <p>dolfinx, law <b>{ref.meta["law"]}</b>, P{ref.meta["degree"]} at refinement {ref.meta["refine"]},
 LU by {html.escape(str((ref.meta.get("petsc_options") or {}).get("pc_factor_mat_solver_type", "?")))};
-own error estimate <b>{_fmt(est)}</b> ({html.escape(ref.meta.get("estimate", ""))}); reaction
-{_fmt(float(np.linalg.norm(ref.reaction[-1])))} N. Solved at commit {html.escape(str(ref.meta.get("commit")))}, {html.escape(str(ref.meta.get("date")))}.</p>
+own error estimate <b>{_fmt(est)}</b> ({html.escape(ref.meta.get("estimate", ""))}).
+Solved at commit {html.escape(str(ref.meta.get("commit")))}, {html.escape(str(ref.meta.get("date")))}.</p>
 <ul>{ref_lines}</ul>
 <h3>Error against speed</h3>
-<img alt="error against step time for {html.escape(scene.name)}" src="data:image/png;base64,{plot}">
-<table>{"".join(table)}</table>
+{_img(plot, f"error against step time for {scene.name}")}
+{_sweep_table(rows)}
+<h3>Advisor</h3>
+{_advice_html(adv)}
+{extra}
 <h3>Deformed shapes</h3>
-{"".join(f'<img class="wide" alt="deformed {html.escape(scene.name)}" src="data:image/png;base64,{p}">' for p in pictures)}
+{"".join(_img(p, f"deformed {scene.name}", wide=True) for p in pictures)}
 </section>"""
-    data = {
+    return section, {
         "scene": scene.name,
         "scene_sha256": scene.sha256(),
         "mesh_sha256": mesh.sha256(),
         "mesh_quality": q,
         "reference": ref.meta,
-        "runs": rows,
+        "sweep": sw,
+        "advice": adv,
     }
-    return section, data
 
 
-CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
-table{border-collapse:collapse;font-size:13px;margin:1em 0}td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}
-th{background:#f0f2f5}tr.bad td{color:#a00}img{max-width:640px;display:block}img.wide{max-width:100%}
-pre{background:#f6f8fa;padding:1em;font-size:12px}code{font-size:12px}"""
+def convergence_section() -> tuple[str, dict]:
+    log("report: convergence")
+    man = converge_manufactured(load_scene("manufactured"))
+    tim = converge_time(load_scene("cantilever-dynamic"), models=("linear-tm",))
+    rows = "".join(
+        f"<tr><td>{s['label']}</td><td>{s['order']:.2f}</td><td>{s['theory']}</td>"
+        f"<td>{', '.join(f'{e:.3g}' for e in s['error'])}</td></tr>"
+        for s in man["series"] + tim["series"]
+    )
+    text = f"""
+<section>
+<h2>Convergence</h2>
+<p>The reference on a manufactured StVK solution of the unit cube (errors in L2 and the H1 seminorm against the exact
+field), and the explicit integrators' trajectories on <code>cantilever-dynamic</code> against their own run at
+0.025 dt_crit. Fitted orders beside the theoretical ones.</p>
+<table><tr><th>series</th><th>observed order</th><th>theory</th><th>errors</th></tr>{rows}</table>
+{_img(plot_convergence(man, "reference, manufactured solution", "h"), "reference convergence")}
+{_img(plot_convergence(tim, "linear-tm, time step", "dt (s)"), "time convergence")}
+</section>"""
+    return text, {"manufactured": man, "time": tim}
 
 
-def write_report(scenes: list[str] | None = None, out: str | None = None, fractions=(0.25, 0.5, 0.9, 1.1)) -> Path:
-    """Run everything the report shows and write it; returns the HTML file's path."""
+def stability_section() -> tuple[str, dict]:
+    log("report: stability")
+    res = stability(load_scene(STABILITY_SCENE), models=STABILITY_MODELS)
+    models = list(res["table"][0]["models"]) if res["table"] else []
+    for row in res["table"]:
+        for m in row["models"]:
+            if m not in models:
+                models.append(m)
+    head = "<tr><th>case</th>" + "".join(f"<th>{html.escape(m)}</th>" for m in models) + "</tr>"
+    body = []
+    for row in res["table"]:
+        cells = []
+        for m in models:
+            c = row["models"].get(m)
+            if c is None:
+                cells.append("<td></td>")
+                continue
+            txt = c["status"]
+            if "rel_l2" in c:
+                txt += f"<br>rel_l2 {c['rel_l2']:.3g}"
+            if "vs_baseline" in c:
+                txt += f" ({c['vs_baseline']:.2g}x)"
+            if c.get("settle_ms"):
+                txt += f"<br>settles in {c['settle_ms']:.0f} ms"
+            if "detail" in c:
+                txt += f"<br><small>{html.escape(c['detail'][:160])}</small>"
+            cls = " class='bad'" if c["status"] not in ("ok",) else ""
+            cells.append(f"<td{cls}>{txt}</td>")
+        body.append(f"<tr id='{row['case']}'><td>{row['case']} = {row['value']:.4g}</td>{''.join(cells)}</tr>")
+    summary = "".join(f"<li>{html.escape(x)}</li>" for x in res["summary"])
+    text = f"""
+<section>
+<h2>Stability at the extremes: {STABILITY_SCENE}</h2>
+<p>Models {", ".join(STABILITY_MODELS)} (all models: <code>tissuebench stability {STABILITY_SCENE}</code>).
+Tolerance on rel_l2: {res["tol"]}; "(Nx)" is the error against the model's own error on the unchanged scene.</p>
+<ul>{summary}</ul>
+<table>{head}{"".join(body)}</table>
+</section>"""
+    return text, res
+
+
+CSS = """body{font-family:system-ui,sans-serif;max-width:1250px;margin:2em auto;padding:0 1em;color:#222}
+table{border-collapse:collapse;font-size:12px;margin:1em 0}td,th{border:1px solid #ccc;padding:3px 6px;text-align:right;vertical-align:top}
+th{background:#f0f2f5}td.bad,tr.bad td{color:#a00}img{max-width:760px;display:block}img.wide{max-width:100%}
+pre{background:#f6f8fa;padding:1em;font-size:12px}code{font-size:12px}p.advice{background:#eef6ee;padding:.6em}"""
+
+
+def write_report(
+    scenes: list[str] | None = None,
+    out: str | None = None,
+    fractions=(0.25, 0.5, 0.9, 1.1),
+    studies: bool | None = None,
+) -> Path:
+    """Run everything the report shows and write it; returns the HTML file's path. The convergence and
+    stability sections are part of the default report (``studies`` None) and optional otherwise."""
     scenes = scenes or DEFAULT_SCENES
-    name = "default" if scenes == DEFAULT_SCENES else "-".join(scenes)
+    default = scenes == DEFAULT_SCENES
+    studies = default if studies is None else studies
+    name = "default" if default else "-".join(scenes)
     outdir = Path(out) if out else REPORTS / name
     t0 = time.perf_counter()
-    sections, data = [], []
+    sections, data = [], {"scenes": []}
     for s in scenes:
         sec, d = scene_section(s, list(fractions))
         sections.append(sec)
-        data.append(d)
+        data["scenes"].append(d)
+    if studies:
+        for fn, key in ((convergence_section, "convergence"), (stability_section, "stability")):
+            sec, d = fn()
+            sections.append(sec)
+            data[key] = d
     meta = {
         "commit": git_commit(),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "versions": versions(),
         "wall_s": time.perf_counter() - t0,
     }
+    data["meta"] = meta
+    nav = "".join(f"<a href='#{html.escape(s)}'>{html.escape(s)}</a> " for s in scenes)
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>tissuebench report: {html.escape(name)}</title>
 <style>{CSS}</style></head><body>
 <h1>tissuebench report: {html.escape(name)}</h1>
@@ -240,35 +400,13 @@ def write_report(scenes: list[str] | None = None, out: str | None = None, fracti
 beside its own error estimate; an error below ten times that estimate is "at reference accuracy", not a number to trust.
 Step times are medians of repeated compiled n-step calls after a warm-up, on this machine.</p>
 <p>Commit {html.escape(meta["commit"])}, {meta["date"]}, {html.escape(json.dumps(meta["versions"]))}; written in {meta["wall_s"]:.0f} s.
-Data: <a href="data.json">data.json</a>, <a href="runs.csv">runs.csv</a>.</p>
+Data: <a href="data.json">data.json</a>, <a href="runs.csv">runs.csv</a>. Scenes: {nav}</p>
 {"".join(sections)}
 </body></html>"""
     outdir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(outdir / "data.json", json.dumps({"meta": meta, "scenes": data}, indent=1, default=str))
-    buf = io.StringIO()
-    cols = [
-        "scene",
-        "model",
-        "integrator",
-        "status",
-        "dt",
-        "dt_crit",
-        "rel_l2",
-        "surface_rel_l2",
-        "max_err",
-        "reaction_rel_err",
-        "volume_err",
-        "ref_err_estimate",
-        "step_us",
-        "step_us_min",
-        "step_us_max",
-        "rate_hz",
-        "settle_steps",
-    ]
-    w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore")
-    w.writeheader()
-    for d in data:
-        for r in d["runs"]:
-            w.writerow(r)
-    atomic_write_text(outdir / "runs.csv", buf.getvalue())
+    atomic_write_text(outdir / "data.json", json.dumps(data, indent=1, default=str))
+    csv = "scene," + sweep_csv(data["scenes"][0]["sweep"]).splitlines()[0] + "\n"
+    for d in data["scenes"]:
+        csv += "".join(f"{d['scene']},{line}\n" for line in sweep_csv(d["sweep"]).splitlines()[1:])
+    atomic_write_text(outdir / "runs.csv", csv)
     return atomic_write_text(outdir / "index.html", page).resolve()

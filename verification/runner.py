@@ -59,7 +59,7 @@ def git_commit() -> str:
         return "unknown"
 
 
-def reference_key(scene: Scene, degree: int, refine: int, estimate: bool) -> str:
+def reference_key(scene: Scene, degree: int, refine: int, estimate: bool, newton=(1, 1e-4)) -> str:
     from reference.fem import LU_OPTIONS
 
     text = json.dumps(
@@ -68,6 +68,7 @@ def reference_key(scene: Scene, degree: int, refine: int, estimate: bool) -> str
             "degree": degree,
             "refine": refine,
             "estimate": estimate,
+            "newton": list(newton),
             "solver": LU_OPTIONS,
             "version": REFERENCE_VERSION,
         },
@@ -77,15 +78,23 @@ def reference_key(scene: Scene, degree: int, refine: int, estimate: bool) -> str
 
 
 def reference_result(
-    scene: Scene, degree: int = 2, refine: int = 0, estimate: bool = True, use_cache: bool = True
+    scene: Scene,
+    degree: int = 2,
+    refine: int = 0,
+    estimate: bool = True,
+    use_cache: bool = True,
+    newton_steps: int = 1,
+    min_increment: float = 1e-4,
 ) -> Result:
-    """The scene's static reference, from the cache or solved now (and then cached)."""
+    """The scene's reference, from the cache or solved now (and then cached). ``newton_steps`` and
+    ``min_increment`` set the non-linear static solve's first load increment (1 / newton_steps) and the
+    smallest increment it may halve to before it gives up."""
     from mpi4py import MPI
 
     from reference.driver import solve_dynamic as reference_dynamic
     from reference.driver import solve_static as reference_static
 
-    key = reference_key(scene, degree, refine, estimate)
+    key = reference_key(scene, degree, refine, estimate, (newton_steps, min_increment))
     path = cache_dir() / "reference" / f"{scene.name}-{key}.npz"
     if use_cache and path.exists():
         return Result.load(path)
@@ -107,7 +116,16 @@ def reference_result(
         )
         times, disp, reac = sol["times"], sol["displacement"], sol["reaction"]
     else:
-        sol = reference_static(mesh, scene.material, scene.problem, degree=degree, refine=refine, estimate=estimate)
+        sol = reference_static(
+            mesh,
+            scene.material,
+            scene.problem,
+            degree=degree,
+            refine=refine,
+            estimate=estimate,
+            newton_steps=newton_steps,
+            min_increment=min_increment,
+        )
         times, disp, reac = np.zeros(1), sol["displacement"][None], sol["reaction"][None]
     meta = sol["meta"]
     meta.update(

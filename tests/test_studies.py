@@ -1,0 +1,202 @@
+"""The harness's studies: sweep and its Pareto front, resume after a kill, converge, stability, advise, gate."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from verification.cli import main
+from verification.runner import cache_dir, reference_result
+from verification.scene import load_scene
+from verification.studies import (
+    LINEAR_MODELS,
+    deformation_summary,
+    largest_stable_fraction,
+    pareto_front,
+)
+
+
+def brute_force_front(points):
+    keep = []
+    for i, (x, y) in enumerate(points):
+        dominated = any((a <= x and b <= y) and (a < x or b < y) for j, (a, b) in enumerate(points) if j != i)
+        if not dominated:
+            keep.append(i)
+    return sorted(keep, key=lambda i: points[i])
+
+
+def test_pareto_front_on_synthetic_points(rng):
+    # a known front: points on the curve y = 1/x are mutually non-dominated; points above it are not
+    front = [(x, 1.0 / x) for x in (1.0, 2.0, 4.0, 8.0)]
+    above = [(1.5, 1.5), (3.0, 0.9), (8.0, 0.2), (2.0, 0.6)]
+    pts = front + above
+    assert [pts[i] for i in pareto_front(pts)] == sorted(front)
+    # and against a brute force on random clouds (continuous values: no ties)
+    for _ in range(20):
+        cloud = [tuple(p) for p in rng.random((40, 2))]
+        assert pareto_front(cloud) == brute_force_front(cloud)
+
+
+def test_pareto_front_keeps_one_of_duplicates():
+    pts = [(1.0, 1.0), (1.0, 1.0), (2.0, 0.5)]
+    assert [pts[i] for i in pareto_front(pts)] == [(1.0, 1.0), (2.0, 0.5)]
+
+
+@pytest.mark.slow
+def test_sweep_json_lists_every_model(capsys):
+    from realtime import MODELS
+
+    assert main(["sweep", "cantilever-pull", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert {r["model"] for r in out["rows"]} == set(MODELS)
+    for r in out["rows"]:
+        if r["status"] == "ok":
+            assert r["rel_l2"] >= 0 and r["step_us"] > 0
+    ok = [r for r in out["rows"] if r["status"] == "ok"]
+    # by construction: nothing on the front is dominated, everything off it is
+    for r in ok:
+        dominated = any(
+            q["step_us"] <= r["step_us"]
+            and q["rel_l2"] <= r["rel_l2"]
+            and (q["step_us"] < r["step_us"] or q["rel_l2"] < r["rel_l2"])
+            for q in ok
+        )
+        assert r["pareto"] == (not dominated)
+    assert any(r.get("largest_stable") for r in out["rows"])
+
+
+@pytest.mark.slow
+def test_killed_sweep_resumes_from_the_cache(tmp_path):
+    env = dict(os.environ, TISSUEBENCH_CACHE=str(tmp_path / "cache"))
+    args = [
+        sys.executable,
+        "-m",
+        "verification.cli",
+        "sweep",
+        "cantilever-pull",
+        "--models",
+        "linear-tm",
+        "mass-spring",
+        "--fractions",
+        "0.3",
+        "0.5",
+        "0.7",
+        "--no-largest-stable",
+        "--json",
+    ]
+    # the reference first, so that the kill lands among the model runs
+    subprocess.run(
+        [sys.executable, "-m", "verification.cli", "reference", "cantilever-pull"],
+        env=env,
+        check=True,
+        capture_output=True,
+        timeout=900,
+    )
+    runs = tmp_path / "cache" / "runs"
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.time() + 600
+    while time.time() < deadline and not (runs.exists() and len(list(runs.glob("*.json"))) >= 2):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    finished = len(list(runs.glob("*.json")))
+    assert 2 <= finished < 6, "the kill should land half-way"
+    assert not list(runs.glob(".tmp-*")), "no half-written run file"
+    done = subprocess.run(args, env=env, capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert out["cached"] == finished and out["computed"] == 6 - finished
+
+
+@pytest.mark.slow
+def test_converge_on_the_manufactured_scene(capsys):
+    assert main(["converge", "manufactured", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert len(out["series"]) == 4
+    for s in out["series"]:
+        assert s["order"] == pytest.approx(s["theory"], abs=0.1)
+    assert main(["converge", "manufactured"]) == 0
+    assert "order" in capsys.readouterr().out
+
+
+def test_largest_stable_step_of_linear_tm_on_the_cantilever():
+    lim = largest_stable_fraction(load_scene("cantilever"), "linear-tm", use_cache=False)
+    # the bisection brackets the limit to 2.5/2^7 of dt_crit; the contract is 25%
+    assert lim["stable"] == pytest.approx(1.0, abs=0.25)
+    assert lim["unstable"] - lim["stable"] < 0.03
+
+
+@pytest.mark.slow
+def test_stability_reports_nearly_incompressible_honestly(capsys):
+    assert main(["stability", "cantilever", "--models", "linear-tm", "stvk-tm", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    row = next(r for r in out["table"] if r["case"] == "poisson" and r["value"] == 0.4999)
+    assert set(row["models"]) >= {"linear-tm", "stvk-tm", "linear-tm (implicit)", "stvk-tm (implicit)"}
+    # the P1 models lock at nu = 0.4999: their error grows well beyond the nu = 0.45 baseline
+    assert row["models"]["linear-tm"]["vs_baseline"] > 2.0
+    assert any("nu = 0.4999" in line for line in out["summary"])
+    assert out["limits"]["linear-tm"]["stable"] == pytest.approx(1.0, abs=0.25)
+
+
+def test_deformation_summary_of_a_rigid_rotation():
+    scene = load_scene("block-twist")
+    m = scene.mesh
+    th = np.radians(30.0)
+    R = np.array([[np.cos(th), -np.sin(th), 0], [np.sin(th), np.cos(th), 0], [0, 0, 1.0]])
+    d = deformation_summary(m.points, m.tets, m.points @ R.T - m.points)
+    assert d["max_rotation_deg"] == pytest.approx(30.0, abs=1e-9)
+
+
+@pytest.mark.slow
+def test_advise_small_displacement_recommends_a_linear_model(capsys):
+    # P1 against P2 on the pressed block is 5.3% for every model: the tolerance admits the P1
+    # discretisation error, so what decides is cost, and linear costs least
+    assert main(["advise", "block-press", "--tol", "0.08", "--rate", "1000", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["model"] in LINEAR_MODELS
+    assert out["why"].startswith("linear is enough")
+    assert out["runner_up"] is not None and out["deformation"]["max_rotation_deg"] < 5
+
+
+@pytest.mark.slow
+def test_advise_large_rotation_recommends_a_rotation_invariant_model(capsys):
+    assert main(["advise", "block-twist", "--tol", "0.05", "--rate", "1000", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["model"] not in LINEAR_MODELS and out["model"] is not None
+    assert out["why"].startswith("needs a rotation-invariant model")
+    assert any(line.startswith("linear-tm") for line in out["cheaper_failed"])
+    assert out["deformation"]["max_rotation_deg"] > 30
+
+
+def test_gate_passes_the_shipped_quick_gates_and_fails_a_tightened_bound(tmp_path, capsys):
+    from verification.gates import DEFAULT_CONFIG
+
+    assert main(["gate", "--quick"]) == 0
+    text = DEFAULT_CONFIG.read_text()
+    tight = tmp_path / "gates.toml"
+    tight.write_text(text.replace("bound = 0.02\n", "bound = 0.01\n", 1))  # measured 0.0146
+    capsys.readouterr()
+    assert main(["gate", "--quick", "--config", str(tight)]) == 1
+    assert "MISS" in capsys.readouterr().out
+
+
+def test_gate_baselines_carry_provenance():
+    from verification.gates import DEFAULT_CONFIG, load_gates
+
+    for g in load_gates(DEFAULT_CONFIG):
+        b = g["baseline"]
+        assert {"value", "commit", "mesh_sha256", "date", "options"} <= set(b)
+        assert b["value"] <= g["bound"]
+
+
+def test_reference_cache_is_keyed_and_reused():
+    scene = load_scene("cantilever-pull")
+    a = reference_result(scene, degree=1, refine=0, estimate=False)
+    files = list((cache_dir() / "reference").glob("cantilever-pull-*.npz"))
+    b = reference_result(scene, degree=1, refine=0, estimate=False)
+    assert files and np.array_equal(a.displacement, b.displacement) and a.meta == b.meta
