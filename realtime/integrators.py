@@ -38,12 +38,22 @@ _JIT = dict(nogil=True, cache=True)
 class DivergenceError(RuntimeError):
     """An explicit run blew up; carries the step, the time step and the critical one."""
 
-    def __init__(self, model: str, step: int, dt: float, dt_crit: float, integrator: str):
-        self.step, self.dt, self.dt_crit = step, dt, dt_crit
+    def __init__(self, model: str, step: int, dt: float, dt_crit: float, integrator: str, reason: str = ""):
+        self.step, self.dt, self.dt_crit, self.reason = step, dt, dt_crit, reason
         super().__init__(
             f"{model} with {integrator} diverged at step {step}: dt = {dt:.4g} s, "
-            f"critical dt = {dt_crit:.4g} s (ratio {dt / dt_crit:.3g})"
+            f"critical dt = {dt_crit:.4g} s (ratio {dt / dt_crit:.3g})" + (f"; {reason}" if reason else "")
         )
+
+
+def _blowup_reason(model: Model, u: np.ndarray) -> str:
+    """Which of the two blow-up criteria fired: a non-finite value, or the displacement bound."""
+    if not np.all(np.isfinite(u)):
+        return "the displacement became NaN or infinite"
+    return (
+        f"the displacement reached {float(np.abs(u).max()):.3g} m, beyond 10 x the body's size "
+        f"({blowup_bound(model):.3g} m)"
+    )
 
 
 class NotConvergedError(RuntimeError):
@@ -178,7 +188,8 @@ def _tangent_product(force, data, u, y, linear, out, t1, t2):
 def _run_implicit_euler(
     n, dt, t0, force, data, linear, points, mass, free, fext, tools, alpha, beta, bound, tol, maxit, u, v, work
 ):
-    """n steps of linearised implicit Euler; returns (-1 or the failed step, total CG iterations).
+    """n steps of linearised implicit Euler; returns (-1 or the failed step, total CG iterations, the
+    most CG iterations one step took).
 
     (M (1 + dt alpha) + (dt beta + dt^2) K) dv = dt (f(u) + f_ext - alpha M v - (beta + dt) K v), K the
     tangent at u_n, solved by CG with the Jacobi preconditioner of the mass term on the free
@@ -189,6 +200,7 @@ def _run_implicit_euler(
     cm = 1.0 + dt * alpha
     ck = dt * beta + dt * dt
     total = 0
+    worst = 0
     nv = u.shape[0]
     for s in range(n):
         force(data, u, f)
@@ -226,6 +238,7 @@ def _run_implicit_euler(
                     p[i, c] = z[i, c] + b * p[i, c]
             it += 1
         total += it
+        worst = max(worst, it)
         ok = True
         for i in range(nv):
             for c in range(3):
@@ -236,8 +249,8 @@ def _run_implicit_euler(
                         ok = False
         _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
         if not ok:
-            return s, total
-    return -1, total
+            return s, total, worst
+    return -1, total, worst
 
 
 def blowup_bound(model: Model) -> float:
@@ -245,14 +258,10 @@ def blowup_bound(model: Model) -> float:
     return 10.0 * float(np.linalg.norm(model.points.max(axis=0) - model.points.min(axis=0)))
 
 
-def max_eigenvalue(model: Model, u: np.ndarray | None = None, tol: float = 1e-8) -> float:
-    """Largest eigenvalue omega_max^2 (1/s^2) of M^-1 K on the free components.
-
-    K is the stiffness at displacement u (default: rest), applied through the force kernel: exactly
-    for a linear model, by a central difference of the force for a non-linear one. The symmetric form
-    M^-1/2 K M^-1/2 is handed to ARPACK's Lanczos (scipy eigsh), which converges in a few dozen
-    products where plain power iteration needs hundreds and stops below the true value.
-    """
+def _scaled_stiffness(model: Model, u: np.ndarray | None = None) -> spla.LinearOperator:
+    """M^-1/2 K M^-1/2 on the free components as a LinearOperator, K the stiffness at displacement u
+    (default: rest), applied through the force kernel: exactly for a linear model, by a central
+    difference of the force for a non-linear one."""
     n = model.n_vertices
     u0 = np.zeros((n, 3)) if u is None else np.asarray(u, dtype=float)
     free = model.loading.free.ravel() != 0.0
@@ -272,10 +281,29 @@ def max_eigenvalue(model: Model, u: np.ndarray | None = None, tol: float = 1e-8)
         return s * kz[free]
 
     m = int(free.sum())
-    op = spla.LinearOperator((m, m), matvec=matvec, dtype=float)
-    v0 = np.random.default_rng(0).standard_normal(m)
-    val = spla.eigsh(op, k=1, which="LA", tol=tol, v0=v0, return_eigenvectors=False)
-    return float(val[0])
+    return spla.LinearOperator((m, m), matvec=matvec, dtype=float)
+
+
+def max_eigenvalue(model: Model, u: np.ndarray | None = None, tol: float = 1e-8) -> float:
+    """Largest eigenvalue omega_max^2 (1/s^2) of M^-1 K on the free components (K at u, default rest).
+
+    The symmetric form M^-1/2 K M^-1/2 is handed to ARPACK's Lanczos (scipy eigsh), which converges in
+    a few dozen products where plain power iteration needs hundreds and stops below the true value.
+    """
+    op = _scaled_stiffness(model, u)
+    v0 = np.random.default_rng(0).standard_normal(op.shape[0])
+    return float(spla.eigsh(op, k=1, which="LA", tol=tol, v0=v0, return_eigenvectors=False)[0])
+
+
+def min_eigenvalue(model: Model, tol: float = 1e-3) -> float:
+    """Smallest eigenvalue omega_1^2 (1/s^2) of M^-1 K on the free components, at rest, by Lanczos to
+    a relative tolerance ``tol`` (enough to choose a time step): the slowest mode, the one a static
+    relaxation must settle."""
+    op = _scaled_stiffness(model)
+    v0 = np.random.default_rng(0).standard_normal(op.shape[0])
+    return float(
+        spla.eigsh(op, k=1, which="SA", tol=tol, v0=v0, maxiter=100 * op.shape[0], return_eigenvectors=False)[0]
+    )
 
 
 def element_critical_dt(model: Model) -> float:
@@ -308,7 +336,7 @@ class Integrator:
     def _diverged(self, model, state, step, dt, dt_crit):
         if dt_crit is None:
             dt_crit = self.critical_dt(model)
-        raise DivergenceError(model.name, step, dt, dt_crit, self.name)
+        raise DivergenceError(model.name, step, dt, dt_crit, self.name, _blowup_reason(model, state.u))
 
 
 class SymplecticEuler(Integrator):
@@ -363,14 +391,15 @@ class ImplicitEuler(Integrator):
     for non-linear ones). First order; numerically dissipative (damps high frequencies).
 
     Attributes: alpha, beta (Rayleigh), tol (CG relative residual), maxit (CG iterations per step),
-    iterations (CG iterations of the last ``step`` call, all its steps together).
+    iterations (CG iterations of the last ``step`` call, all its steps together), worst_iterations
+    (the most one step of it took; equal to maxit when CG stopped unconverged).
     """
 
     name = "implicit-euler"
 
-    def __init__(self, alpha: float = 0.0, beta: float = 0.0, tol: float = 1e-10, maxit: int = 2000):
+    def __init__(self, alpha: float = 0.0, beta: float = 0.0, tol: float = 1e-10, maxit: int = 5000):
         super().__init__(alpha=alpha, beta=beta)
-        self.tol, self.maxit, self.iterations = tol, maxit, 0
+        self.tol, self.maxit, self.iterations, self.worst_iterations = tol, maxit, 0, 0
 
     def critical_dt(self, model: Model, omega2: float | None = None) -> float:
         return math.inf  # A-stable for linear models; the non-linear ones are checked by the blow-up bound
@@ -379,14 +408,16 @@ class ImplicitEuler(Integrator):
         """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up."""
         lo = model.loading
         work = tuple(np.zeros_like(state.u) for _ in range(9))
-        bad, its = _run_implicit_euler(
+        bad, its, worst = _run_implicit_euler(
             n, dt, state.t, model.force_kernel, model.data, model.linear, model.points, model.mass, lo.free,
             lo.external_force, lo.tools_tuple(), self.alpha, self.beta, blowup_bound(model), self.tol,
             self.maxit, state.u, state.v, work,
         )  # fmt: skip
-        self.iterations = int(its)
+        self.iterations, self.worst_iterations = int(its), int(worst)
         if bad >= 0:
-            raise DivergenceError(model.name, state.steps + bad, dt, math.inf, self.name)
+            raise DivergenceError(
+                model.name, state.steps + bad, dt, math.inf, self.name, _blowup_reason(model, state.u)
+            )
         state.t += n * dt
         state.steps += n
         return state
@@ -523,6 +554,12 @@ def solve_static_implicit(
     residual = np.inf
     for k in range(1, max_steps + 1):
         integ.step(model, state, dt, 1)
+        if integ.worst_iterations >= integ.maxit:
+            raise NotConvergedError(
+                f"{model.name}: implicit Euler's CG did not converge in {integ.maxit} iterations at step {k} "
+                f"(dt = {dt:.3g} s): (M + dt^2 K) is too ill-conditioned for the mass preconditioner; "
+                "a smaller dt or a stronger preconditioner is needed"
+            )
         if state.t < arrived:
             continue
         r = (model.internal_force(state.u) + lo.external_force) * lo.free

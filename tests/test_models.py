@@ -219,3 +219,57 @@ def test_corotational_refuses_fibres():
     mesh = cylinder()
     with pytest.raises(ValueError, match="isotropic"):
         build_model("corotational-tm", mesh.points, mesh.tets, FIBRE)
+
+
+@pytest.mark.parametrize("name", ["precomputed", "condensed"])
+def test_quasi_static_models_equal_the_static_linear_solution(name):
+    """Cotin's superposition and Bro-Nielsen's condensation against a direct sparse solve of K u = f
+    with the tool's dofs prescribed (a displacement load on surface vertices): precomputed at every
+    vertex, condensed at the surface vertices, to 1e-8 (both are exact algebra: round-off)."""
+    import scipy.sparse.linalg as spla
+
+    from realtime.quasistatic import QuasiStatic
+    from verification.loading import build_loading
+    from verification.scene import load_scene
+
+    scene = load_scene("cantilever-pull").with_material(law="linear")
+    mesh = scene.mesh
+    loading = build_loading(mesh, scene.material.density, scene.problem)
+    assert np.all(np.isin(loading.tool_vertex, mesh.surface_vertices))
+    model = build_model(name, mesh.points, mesh.tets, scene.material, loading)
+    u, reaction = QuasiStatic().equilibrium(model)
+    K = model.extra["tensors"].matrix()
+    held = loading.free.ravel() == 0.0
+    exact = np.zeros(3 * mesh.n_vertices)
+    prescribed = np.zeros((mesh.n_vertices, 3))
+    prescribed[loading.tool_vertex] = model.tool_displacement(np.inf) * loading.tool_mask
+    exact[held] = prescribed.ravel()[held]
+    rhs = loading.external_force.ravel()[~held] - K[~held][:, held] @ exact[held]
+    exact[~held] = spla.spsolve(K[~held][:, ~held].tocsc(), rhs)
+    exact = exact.reshape(-1, 3)
+    where = np.arange(mesh.n_vertices) if name == "precomputed" else mesh.surface_vertices
+    assert np.linalg.norm(u[where] - exact[where]) / np.linalg.norm(exact[where]) < 1e-8
+    assert np.linalg.norm(reaction - model.reaction(exact)) / np.linalg.norm(reaction) < 1e-8
+
+
+def test_precomputed_tool_force_equals_the_full_update():
+    """The haptic one-vertex update gives the same force as the full superposition."""
+    from realtime.quasistatic import Precomputed
+
+    mesh = stored_mesh("beam")
+    free = np.ones((mesh.n_vertices, 3))
+    free[mesh.points[:, 0] < 1e-9] = 0.0
+    from realtime import Loading
+
+    model = build_model(
+        "linear-tm",
+        mesh.points,
+        mesh.tets,
+        ISO.replace(law="linear"),
+        Loading(free=free, external_force=np.zeros_like(free)),
+    )
+    pc = Precomputed(model)
+    k = int(mesh.surface_vertices[np.argmax(mesh.points[mesh.surface_vertices, 0])])
+    d = np.array([0.0, 0.001, -0.002])
+    _, F = pc.solve(3 * k + np.arange(3), d)
+    np.testing.assert_allclose(pc.tool_force(k, d), F, rtol=1e-10)

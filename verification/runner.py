@@ -22,7 +22,7 @@ import numpy as np
 
 import realtime
 from realtime import DivergenceError, ImplicitEuler, State, SymplecticEuler, build_model, make_integrator, solve_static
-from realtime.integrators import max_eigenvalue, solve_static_implicit
+from realtime.integrators import max_eigenvalue, min_eigenvalue, solve_static_implicit
 from realtime.models import QUASI_STATIC
 from realtime.quasistatic import QuasiStatic
 
@@ -328,11 +328,14 @@ def _run_dynamic(scene: Scene, model, integrator: str, dt, dt_fraction, build_s:
 
 
 def _run_implicit(scene: Scene, model, integ, dt, dt_fraction, omega2, build_s, rtol, max_steps) -> Result:
-    """Implicit Euler on a static scene: steps of dt (default 10 x the explicit critical step, or
-    ``dt_fraction`` times it) until settled. dt_crit reports the explicit limit it steps over."""
+    """Implicit Euler on a static scene: steps of dt (default 2 / omega_1, the slowest mode's time
+    scale; or ``dt_fraction`` times the explicit critical step) until settled. dt_crit reports the
+    explicit limit it steps over."""
     explicit = SymplecticEuler().critical_dt(model, omega2)
     if dt is None:
-        dt = (10.0 if dt_fraction is None else dt_fraction) * explicit
+        # a static implicit solve steps on the slowest mode's time scale: dt = 2 / omega_1 damps it by
+        # 1/sqrt(5) a step; a fraction, if given, is of the explicit critical step
+        dt = 2.0 / math.sqrt(min_eigenvalue(model)) if dt_fraction is None else dt_fraction * explicit
     t1 = time.perf_counter()
     static = solve_static_implicit(model, dt, rtol=rtol, integrator=integ, max_steps=max_steps)
     settle_s = time.perf_counter() - t1

@@ -552,6 +552,7 @@ def format_stability(res: dict) -> str:
         out.append(f"{row['case']} = {row['value']:.4g}:")
         for m, c in row["models"].items():
             extra = f" rel_l2 {c['rel_l2']:.3g}" if "rel_l2" in c else ""
+            extra += f", dt_crit {c['dt_crit']:.3g} s" if c.get("dt_crit") else ""
             extra += f" ({c['vs_baseline']:.2g} x baseline)" if "vs_baseline" in c else ""
             extra += f" {c['detail']}" if "detail" in c else ""
             out.append(f"    {m:<28} {c['status']:<16}{extra}")
