@@ -60,5 +60,7 @@ def test_report_has_plots_and_data(tmp_path):
     assert text.count("data:image/png;base64,") >= 2  # the error/speed plot and a deformation picture
     assert "diverged at step" in text  # 1.1 x the critical step blows up, and the page says so
     data = json.loads((tmp_path / "r" / "data.json").read_text())
-    assert {r["status"] for r in data["scenes"][0]["runs"]} == {"ok", "diverged"}
+    assert {r["status"] for r in data["scenes"][0]["sweep"]["rows"]} == {"ok", "diverged"}
+    assert data["scenes"][0]["advice"]["why"]
+    assert "Pareto front" in text and "Advisor" in text
     assert (tmp_path / "r" / "runs.csv").read_text().startswith("scene,model")

@@ -68,7 +68,7 @@ def plot_error_vs_speed(rows: list[dict], ref_est: float | None, title: str) -> 
         pts = sorted((r for r in ok if r["model"] == model), key=lambda r: r["step_us"])
         ax.loglog([r["step_us"] for r in pts], [max(r["rel_l2"], 1e-16) for r in pts], "o", label=model, alpha=0.8)
         for r in pts:
-            label = "q-s" if r["dt"] is None else f"{r['dt'] / r['dt_crit']:.2g}"
+            label = "q-s" if not r.get("dt_crit") else f"{r['dt'] / r['dt_crit']:.2g}"
             ax.annotate(
                 label, (r["step_us"], max(r["rel_l2"], 1e-16)), textcoords="offset points", xytext=(4, 3), fontsize=7
             )
@@ -177,7 +177,7 @@ def _sweep_table(rows: list[dict]) -> str:
     )
     out = [head]
     for r in rows:
-        ratio = "quasi-static" if r["dt"] is None else _fmt(r["dt"] / r["dt_crit"], ".2f")
+        ratio = "quasi-static" if not r.get("dt_crit") else _fmt(r["dt"] / r["dt_crit"], ".2f")
         if r.get("largest_stable"):
             ratio += " (largest stable)"
         if r["status"] != "ok":
