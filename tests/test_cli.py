@@ -62,5 +62,5 @@ def test_report_has_plots_and_data(tmp_path):
     data = json.loads((tmp_path / "r" / "data.json").read_text())
     assert {r["status"] for r in data["scenes"][0]["sweep"]["rows"]} == {"ok", "diverged"}
     assert data["scenes"][0]["advice"]["why"]
-    assert "Pareto front" in text and "Advisor" in text
+    assert "<th>Pareto</th>" in text and "<h3>Advisor</h3>" in text
     assert (tmp_path / "r" / "runs.csv").read_text().startswith("scene,model")
