@@ -321,6 +321,8 @@ EXTREME_POISSON = (0.3, 0.45, 0.49, 0.4999)
 STABILITY_BUDGET = 200_000
 #: The stability study's references: P2 without the refined solve behind the error estimate (ten
 #: variants of a scene, each a non-linear solve: the estimate would triple the cost).
+#: References that could not be solved in this process, by scene hash (they are not cached on disk).
+_FAILED_REFERENCES: dict[str, str] = {}
 STABILITY_REFERENCE = {"degree": 2, "refine": 0, "estimate": False, "newton_steps": 4, "min_increment": 1e-2}
 EXTREME_YOUNG = (1e3, 1e5, 1e7)
 
@@ -404,6 +406,8 @@ def _cell(scene: Scene, model: str, integrator: str, tol: float, baseline: float
     from realtime import NotConvergedError
     from reference.fem import ReferenceSolveError
 
+    if scene.sha256() in _FAILED_REFERENCES:  # a reference that failed once fails again: do not re-solve it
+        return _alone(scene, model, integrator, f"no reference ({_FAILED_REFERENCES[scene.sha256()]})")
     try:
         row = cached_compare(
             scene,
@@ -417,6 +421,7 @@ def _cell(scene: Scene, model: str, integrator: str, tol: float, baseline: float
             max_steps=STABILITY_BUDGET,
         )
     except ReferenceSolveError as exc:
+        _FAILED_REFERENCES[scene.sha256()] = str(exc)
         return _alone(scene, model, integrator, f"no reference ({exc})")
     except NotConvergedError as exc:
         return {"status": "not settled", "detail": str(exc)}
