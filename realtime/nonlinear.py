@@ -183,27 +183,34 @@ def stvk_force(data, u, f):
 
 
 @nb.njit(**_JIT)
+def _stvk_density(H, prm):
+    """StVK energy density (J/m^3) at F = I + H with the law_params prm: lam/2 tr(E)^2 + mu E:E
+    + dlam/2 (a.Ea)^2 + dmu |Ea|^2 + kappa/2 (J - 1)^2 (the energy stvk_force differentiates)."""
+    lam, mu, dlam, dmu, kappa = prm[0], prm[1], prm[5], prm[6], prm[7]
+    a = prm[2:5]
+    F = np.eye(3) + H
+    E = 0.5 * (F.T @ F - np.eye(3))
+    tr = E[0, 0] + E[1, 1] + E[2, 2]
+    ea = E @ a
+    aea = a @ ea
+    J = np.linalg.det(F)
+    return (
+        0.5 * lam * tr * tr
+        + mu * np.sum(E * E)
+        + 0.5 * dlam * aea * aea
+        + dmu * (ea @ ea)
+        + 0.5 * kappa * (J - 1.0) ** 2
+    )
+
+
+@nb.njit(**_JIT)
 def stvk_energy(data, u):
     """sum_e V_e W(F_e), J: lam/2 tr(E)^2 + mu E:E + dlam/2 (a.Ea)^2 + dmu |Ea|^2 + kappa/2 (J-1)^2."""
     tets, g, vol, prm, H, S, P = data
-    lam, mu, dlam, dmu, kappa = prm[0], prm[1], prm[5], prm[6], prm[7]
-    a = prm[2:5]
     w = 0.0
     for e in range(tets.shape[0]):
         _grad_u(tets, g, e, u, H)
-        F = np.eye(3) + H
-        E = 0.5 * (F.T @ F - np.eye(3))
-        tr = E[0, 0] + E[1, 1] + E[2, 2]
-        ea = E @ a
-        aea = a @ ea
-        J = np.linalg.det(F)
-        w += vol[e] * (
-            0.5 * lam * tr * tr
-            + mu * np.sum(E * E)
-            + 0.5 * dlam * aea * aea
-            + dmu * (ea @ ea)
-            + 0.5 * kappa * (J - 1.0) ** 2
-        )
+        w += vol[e] * _stvk_density(H, prm)
     return w
 
 
@@ -396,8 +403,6 @@ def hybrid_energy(data, u):
     """Energy of the same split, with the flags of the current u."""
     lin, tets, g, vol, prm, ke, threshold, flags, H, S, P = data
     w = linear_tm_energy(lin, u)
-    lam, mu, dlam, dmu, kappa = prm[0], prm[1], prm[5], prm[6], prm[7]
-    a = prm[2:5]
     thr2 = threshold[0] * threshold[0]
     for e in range(tets.shape[0]):
         nonlinear = False
@@ -408,19 +413,7 @@ def hybrid_energy(data, u):
         if not nonlinear:
             continue
         _grad_u(tets, g, e, u, H)
-        F = np.eye(3) + H
-        E = 0.5 * (F.T @ F - np.eye(3))
-        tr = E[0, 0] + E[1, 1] + E[2, 2]
-        ea = E @ a
-        aea = a @ ea
-        J = np.linalg.det(F)
-        w += vol[e] * (
-            0.5 * lam * tr * tr
-            + mu * np.sum(E * E)
-            + 0.5 * dlam * aea * aea
-            + dmu * (ea @ ea)
-            + 0.5 * kappa * (J - 1.0) ** 2
-        )
+        w += vol[e] * _stvk_density(H, prm)
         for p in range(4):
             for q in range(4):
                 w -= 0.5 * (u[tets[e, p]] @ (ke[e, p, q] @ u[tets[e, q]]))

@@ -35,6 +35,22 @@ class ReferenceSolveError(RuntimeError):
     """The reference could not solve (Newton failed at a load fraction, a singular system...)."""
 
 
+def newton_solver(comm, problem, rtol: float, max_it: int, petsc_options: dict) -> NewtonSolver:
+    """dolfinx's Newton solver converging on the increment (|du| < rtol |u|), its linear solves set
+    by ``petsc_options`` (default: MUMPS LU)."""
+    solver = NewtonSolver(comm, problem)
+    solver.convergence_criterion = "incremental"
+    solver.rtol, solver.atol, solver.max_it = rtol, 1e-300, max_it
+    solver.report = False
+    ksp = solver.krylov_solver
+    prefix = ksp.getOptionsPrefix() or ""
+    opts = PETSc.Options()
+    for key, val in petsc_options.items():
+        opts[f"{prefix}{key}"] = val
+    ksp.setFromOptions()
+    return solver
+
+
 def dolfinx_mesh(mesh: TetMesh, comm=MPI.COMM_WORLD, refine: int = 0):
     """A distributed dolfinx mesh of a TetMesh (rank 0 holds the input), refined ``refine`` times
     uniformly (each tetrahedron into eight)."""
@@ -209,18 +225,7 @@ class ElasticityProblem:
         du = ufl.TrialFunction(self.V)
         J = ufl.derivative(self.residual, self.u, du)
         problem = NonlinearProblem(self.residual, self.u, self.bcs, J)
-        solver = NewtonSolver(self.comm, problem)
-        solver.convergence_criterion = "incremental"
-        solver.rtol = rtol
-        solver.atol = 1e-300
-        solver.max_it = max_it
-        solver.report = False
-        ksp = solver.krylov_solver
-        prefix = ksp.getOptionsPrefix() or ""
-        popts = PETSc.Options()
-        for k, val in opts.items():
-            popts[f"{prefix}{k}"] = val
-        ksp.setFromOptions()
+        solver = newton_solver(self.comm, problem, rtol, max_it, opts)
         t0 = time.perf_counter()
         done, inc = 0.0, 1.0 / steps
         history = []
@@ -369,15 +374,7 @@ class ElasticityProblem:
             b = fem.petsc.create_vector(L_form)
         else:
             problem = NonlinearProblem(residual, u, self.bcs, J)
-            solver = NewtonSolver(self.comm, problem)
-            solver.convergence_criterion = "incremental"
-            solver.rtol, solver.atol, solver.max_it = newton_rtol, 1e-300, 25
-            ksp = solver.krylov_solver
-            prefix = ksp.getOptionsPrefix() or ""
-            popts = PETSc.Options()
-            for k, val in opts.items():
-                popts[f"{prefix}{k}"] = val
-            ksp.setFromOptions()
+            solver = newton_solver(self.comm, problem, newton_rtol, 25, opts)
         iterations = 0
         for step in range(1, n_steps + 1):
             t = step * dt
@@ -567,15 +564,7 @@ def manufactured_errors(law: str, degree: int, n: int, material: Material, comm=
     bc = fem.dirichletbc(g, dofs)
     u.x.array[:] = g.x.array  # start from the interpolant: Newton converges in a few steps
     problem = NonlinearProblem(residual, u, [bc], ufl.derivative(residual, u, ufl.TrialFunction(V)))
-    solver = NewtonSolver(comm, problem)
-    solver.convergence_criterion = "incremental"
-    solver.rtol, solver.atol, solver.max_it = 1e-12, 1e-300, 25
-    ksp = solver.krylov_solver
-    prefix = ksp.getOptionsPrefix() or ""
-    popts = PETSc.Options()
-    for k, val in LU_OPTIONS.items():
-        popts[f"{prefix}{k}"] = val
-    ksp.setFromOptions()
+    solver = newton_solver(comm, problem, 1e-12, 25, LU_OPTIONS)
     its, ok = solver.solve(u)
     if not ok:
         raise ReferenceSolveError(f"manufactured solution: Newton failed ({law}, P{degree}, n = {n})")
