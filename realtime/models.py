@@ -35,18 +35,17 @@ def build_linear_tm(points, tets, material: Material, loading: Loading | None = 
     """
     points, tets = prepare_mesh(points, tets)
     tm = TensorMass(points, tets, material)
-    return Model(
-        name="linear-tm",
-        points=points,
-        tets=tets,
-        material=material,
-        mass=lumped_masses(points, tets, material.density),
-        loading=loading if loading is not None else Loading.free_body(len(points)),
-        force_kernel=linear_tm_force,
-        energy_kernel=linear_tm_energy,
-        data=tm.kernel_data(),
-        linear=True,
-        extra={"tensors": tm},
+    return _model(
+        "linear-tm",
+        points,
+        tets,
+        material,
+        loading,
+        linear_tm_force,
+        linear_tm_energy,
+        tm.kernel_data(),
+        True,
+        tensors=tm,
     )
 
 

@@ -9,6 +9,7 @@ collectively, first) and rank 0 gathers and prints the table.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -343,16 +344,8 @@ def _far_face_tool(scene: Scene, kind: str):
         tool = Displacement(region=region, translation=(-0.5 * float(hi[0] - lo[0]), 0.0, 0.0), ramp=1.0)
     raw = json.loads(json.dumps(scene.raw))
     raw["load"] = [{"variant": kind}]
-    return Scene(
-        f"{scene.name}-{kind}",
-        scene.description,
-        scene.path,
-        scene.mesh_spec,
-        scene.material,
-        Problem(scene.problem.fixed, (tool,)),
-        scene.time,
-        raw,
-        scene.mesh,
+    return dataclasses.replace(
+        scene, name=f"{scene.name}-{kind}", problem=Problem(scene.problem.fixed, (tool,)), raw=raw
     )
 
 
@@ -389,17 +382,7 @@ def _sliver_variant(scene: Scene):
     raw = json.loads(json.dumps(scene.raw))
     raw["mesh"] = {"sliver_of": scene.mesh.sha256()}
     sliver = TetMesh(best, mesh.tets, vertex_tags=mesh.vertex_tags, source=f"{mesh.source} with a sliver at vertex {v}")
-    return Scene(
-        f"{scene.name}-sliver",
-        scene.description,
-        scene.path,
-        scene.mesh_spec,
-        scene.material,
-        scene.problem,
-        scene.time,
-        raw,
-        sliver,
-    )
+    return dataclasses.replace(scene, name=f"{scene.name}-sliver", raw=raw, _mesh=sliver)
 
 
 def _cell(scene: Scene, model: str, integrator: str, tol: float, baseline: float | None, use_cache: bool) -> dict:
@@ -728,17 +711,7 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
         truth = reference_static(
             fine, scene.material, scene.problem, degree=2, estimate=False, points=mesh.points, newton_steps=2
         )["displacement"]
-        level = Scene(
-            scene.name,
-            scene.description,
-            scene.path,
-            scene.mesh_spec,
-            scene.material,
-            scene.problem,
-            scene.time,
-            {**scene.raw, "level": k},
-            mesh,
-        )
+        level = dataclasses.replace(scene, raw={**scene.raw, "level": k}, _mesh=mesh)
         from .runner import run_model
 
         for m in models:
