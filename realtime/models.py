@@ -14,6 +14,8 @@ from .geometry import signed_volumes, unique_edges
 from .material import Material
 from .model import Loading, Model, lumped_masses, prepare_mesh
 from .nonlinear import (
+    BLOCK,
+    block_data,
     corotational_energy,
     corotational_force,
     hybrid_energy,
@@ -103,7 +105,8 @@ def build_stvk_tm(points, tets, material: Material, loading: Loading | None = No
     """Non-linear StVK tensor-mass (Picinbono et al. 2003), isotropic or transversely isotropic, with
     the volume penalty when ``material.volume_penalty`` > 0. Rotation invariant."""
     points, tets = prepare_mesh(points, tets)
-    data = (*tet_data(points, tets), law_params(material), *_scratch(3))
+    btets, geo = block_data(points, tets)
+    data = (btets, geo, law_params(material), np.zeros(9 * BLOCK), np.ones(len(btets), dtype=np.bool_))
     return _model("stvk-tm", points, tets, material, loading, stvk_force, stvk_energy, data, False)
 
 
@@ -139,14 +142,15 @@ def build_hybrid_tm(
         threshold = 0.1 * float(np.linalg.norm(points[e[:, 0]] - points[e[:, 1]], axis=1).mean())
     if not threshold >= 0.0:
         raise ValueError(f"hybrid-tm: threshold = {threshold!r} must be >= 0 m")
+    btets, geo = block_data(points, tets)
     data = (
         tm.kernel_data(),
-        *tet_data(points, tets),
+        btets,
+        geo,
         law_params(material),
-        np.ascontiguousarray(tm.ke),
+        np.zeros(9 * BLOCK),
         np.array([float(threshold)]),
-        np.zeros(len(tets), dtype=np.bool_),
-        *_scratch(3),
+        np.zeros(len(btets), dtype=np.bool_),
     )
     return _model(
         "hybrid-tm",
