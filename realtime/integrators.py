@@ -23,7 +23,7 @@ becomes NaN raises ``DivergenceError`` naming the step, dt and dt_crit.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba as nb
 import numpy as np
@@ -83,16 +83,17 @@ def _damped_arg(u, v, beta, w):
 
 
 @nb.njit(**_JIT)
-def _run_symplectic_euler(n, dt, t0, force, data, points, im3, free, fext, tools, alpha, beta, bound, u, v, f, w):
+def _run_symplectic_euler(n, dt, t0, force, data, points, per_dof, tools, alpha, beta, bound, u, v, f, w):
     """n steps of v = (v + dt a(u)) / (1 + dt alpha); u += dt v. Returns -1 or the index of the step that blew up.
 
-    im3 (3N,) is 1/m per component times the free mask: constrained components keep v = 0 and do not
-    move (tools overwrite theirs afterwards). The update is one branch-free loop over 3N components,
-    which LLVM vectorises.
+    per_dof (3N, 3): per component, the free mask, the free mask / m (1/kg) and the external
+    acceleration f_ext / m on free components (m/s^2). Constrained components keep v = 0 and do not
+    move (tools overwrite theirs afterwards). The update is one branch-free loop over 3N components
+    that reads two arrays and writes two, which LLVM vectorises (more arrays, and it would need more
+    run-time overlap checks than it is willing to emit).
     """
     tmp = np.empty(3)
-    u1, v1, f1, x1 = u.reshape(-1), v.reshape(-1), f.reshape(-1), fext.reshape(-1)
-    fr = free.reshape(-1)
+    u1, v1, f1 = u.reshape(-1), v.reshape(-1), f.reshape(-1)
     damp = 1.0 / (1.0 + dt * alpha)  # mass damping treated implicitly: stable for any alpha
     for s in range(n):
         if beta != 0.0:
@@ -100,15 +101,15 @@ def _run_symplectic_euler(n, dt, t0, force, data, points, im3, free, fext, tools
             force(data, w, f)
         else:
             force(data, u, f)
-        ok = True
+        out = 0
         for k in range(u1.shape[0]):
-            vk = (v1[k] + dt * (f1[k] + x1[k]) * im3[k]) * damp * fr[k]
+            vk = (per_dof[k, 0] * v1[k] + dt * (per_dof[k, 1] * f1[k] + per_dof[k, 2])) * damp
             uk = u1[k] + dt * vk
             v1[k] = vk
             u1[k] = uk
-            ok &= abs(uk) < bound
+            out += not abs(uk) < bound  # NaN counts too
         _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
-        if not ok:
+        if out:
             return s
     return -1
 
@@ -312,11 +313,37 @@ def element_critical_dt(model: Model) -> float:
 
 
 @dataclass
+class _Prepared:
+    """Per-model arrays of the step kernels (see Integrator._prepare)."""
+
+    model: Model
+    inv_mass: np.ndarray  # (N,) 1/kg
+    per_dof: np.ndarray  # (3N, 3): free mask, free mask / m (1/kg), free f_ext / m (m/s^2)
+    tools: tuple
+    bound: float  # m, the blow-up bound
+    f: np.ndarray  # (N, 3) force buffer
+    w: np.ndarray  # (N, 3) buffer for u + beta v
+
+    @staticmethod
+    def of(model: Model) -> _Prepared:
+        lo = model.loading
+        inv_mass = 1.0 / model.mass
+        free = lo.free.reshape(-1)
+        im = np.repeat(inv_mass, 3) * free
+        per_dof = np.ascontiguousarray(np.stack([free, im, lo.external_force.reshape(-1) * im], axis=1))
+        n = model.n_vertices
+        return _Prepared(
+            model, inv_mass, per_dof, lo.tools_tuple(), blowup_bound(model), np.empty((n, 3)), np.empty((n, 3))
+        )
+
+
+@dataclass
 class Integrator:
     """Base of the explicit integrators: Rayleigh damping coefficients alpha (1/s), beta (s)."""
 
     alpha: float = 0.0
     beta: float = 0.0
+    _prepared: _Prepared | None = field(default=None, init=False, repr=False, compare=False)
     name = "base"
 
     def critical_dt(self, model: Model, omega2: float | None = None) -> float:
@@ -326,12 +353,13 @@ class Integrator:
         xi = 0.5 * self.beta * w  # mass damping is implicit in the updates and costs no stability
         return 2.0 / w * (math.sqrt(1.0 + xi * xi) - xi)
 
-    def _common(self, model: Model, state: State):
-        lo = model.loading
-        inv_mass = 1.0 / model.mass
-        f = np.empty_like(state.u)
-        w = np.empty_like(state.u)
-        return inv_mass, lo.free, lo.external_force, lo.tools_tuple(), f, w
+    def _prepare(self, model: Model) -> _Prepared:
+        """What every call on ``model`` needs, computed on the first call and kept while the model
+        stays the same object (a Model is immutable): a haptic loop calling ``step`` with n = 1 then
+        pays only the compiled call. One integrator per thread: the force buffers are shared."""
+        if self._prepared is None or self._prepared.model is not model:
+            self._prepared = _Prepared.of(model)
+        return self._prepared
 
     def _diverged(self, model, state, step, dt, dt_crit):
         if dt_crit is None:
@@ -346,11 +374,10 @@ class SymplecticEuler(Integrator):
 
     def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None):
         """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up."""
-        inv_mass, free, fext, tools, f, w = self._common(model, state)
-        im3 = np.repeat(inv_mass, 3) * free.ravel()
+        p = self._prepare(model)
         bad = _run_symplectic_euler(
-            n, dt, state.t, model.force_kernel, model.data, model.points, im3, free, fext,
-            tools, self.alpha, self.beta, blowup_bound(model), state.u, state.v, f, w,
+            n, dt, state.t, model.force_kernel, model.data, model.points, p.per_dof,
+            p.tools, self.alpha, self.beta, p.bound, state.u, state.v, p.f, p.w,
         )  # fmt: skip
         if bad >= 0:
             self._diverged(model, state, state.steps + bad, dt, dt_crit)
@@ -366,15 +393,16 @@ class CentralDifference(Integrator):
 
     def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None):
         """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up."""
-        inv_mass, free, fext, tools, f, w = self._common(model, state)
+        p = self._prepare(model)
+        lo = model.loading
         acc = state.acc
         if acc is None or acc.shape != state.u.shape:
             f0 = model.internal_force(state.u + self.beta * state.v)
-            acc = (f0 + fext) * inv_mass[:, None] * free
+            acc = (f0 + lo.external_force) * p.inv_mass[:, None] * lo.free
             state.acc = acc
         bad = _run_central_difference(
-            n, dt, state.t, model.force_kernel, model.data, model.points, inv_mass, free, fext,
-            tools, self.alpha, self.beta, blowup_bound(model), state.u, state.v, acc, f, w,
+            n, dt, state.t, model.force_kernel, model.data, model.points, p.inv_mass, lo.free,
+            lo.external_force, p.tools, self.alpha, self.beta, p.bound, state.u, state.v, acc, p.f, p.w,
         )  # fmt: skip
         if bad >= 0:
             self._diverged(model, state, state.steps + bad, dt, dt_crit)
@@ -407,10 +435,11 @@ class ImplicitEuler(Integrator):
     def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None):
         """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up."""
         lo = model.loading
+        p = self._prepare(model)
         work = tuple(np.zeros_like(state.u) for _ in range(9))
         bad, its, worst = _run_implicit_euler(
             n, dt, state.t, model.force_kernel, model.data, model.linear, model.points, model.mass, lo.free,
-            lo.external_force, lo.tools_tuple(), self.alpha, self.beta, blowup_bound(model), self.tol,
+            lo.external_force, p.tools, self.alpha, self.beta, p.bound, self.tol,
             self.maxit, state.u, state.v, work,
         )  # fmt: skip
         self.iterations, self.worst_iterations = int(its), int(worst)
