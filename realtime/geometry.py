@@ -153,3 +153,17 @@ def min_altitudes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     x = points[faces]
     areas = 0.5 * np.linalg.norm(np.cross(x[:, :, 1] - x[:, :, 0], x[:, :, 2] - x[:, :, 0]), axis=2)
     return 3.0 * vol / areas.max(axis=1)
+
+
+def morton_order(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Permutation (M,) int64 that sorts tetrahedra along the Z-order (Morton) curve of their centroids
+    on a 1024^3 grid: tetrahedra close in space come out close in the order, so a block of them
+    touches few vertices (cache reuse) and a local deformation touches few blocks."""
+    c = points[tets].mean(axis=1)
+    lo, span = c.min(axis=0), np.maximum(np.ptp(c, axis=0), np.finfo(float).tiny)
+    q = np.minimum((c - lo) / span * 1024, 1023).astype(np.int64)
+    code = np.zeros(len(q), dtype=np.int64)
+    for bit in range(10):
+        for d in range(3):
+            code |= ((q[:, d] >> bit) & 1) << (3 * bit + d)
+    return np.argsort(code, kind="stable")

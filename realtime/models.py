@@ -150,6 +150,7 @@ def build_hybrid_tm(
         law_params(material),
         np.zeros(9 * BLOCK),
         np.array([float(threshold)]),
+        np.zeros(len(points), dtype=np.bool_),
         np.zeros(len(btets), dtype=np.bool_),
     )
     return _model(

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .geometry import shape_gradients
+from .geometry import morton_order, shape_gradients
 from .laws import linear_energy as linear_density
 from .laws import stvk_energy as stvk_density
 from .laws import volume_penalty_energy
@@ -238,12 +238,14 @@ _UBLOCK = np.uint64(BLOCK)
 def block_data(points: np.ndarray, tets: np.ndarray):
     """The StVK kernels' geometry in blocks of BLOCK tetrahedra.
 
-    Returns tets (P, 4) int64 and geo (10 P,) float64, P = BLOCK ceil(M / BLOCK): the last block is
-    padded with zero-volume tetrahedra on vertex 0, which contribute nothing. Block b holds, for its
-    tetrahedron q (mesh tetrahedron b BLOCK + q), geo[(10 b + 3 a + c) BLOCK + q] = g_{a+1, c} (1/m,
-    a, c = 0..2; g_0 = -(g_1 + g_2 + g_3)) and geo[(10 b + 9) BLOCK + q] = V (m^3).
+    Returns tets (P, 4) int64 and geo (10 P,) float64, P = BLOCK ceil(M / BLOCK): the tetrahedra in
+    Morton order (neighbours share blocks; the kernels sum over all of them, so their order is
+    internal), the last block padded with zero-volume tetrahedra on vertex 0, which contribute
+    nothing. Block b holds, for its tetrahedron q (row b BLOCK + q of the returned tets),
+    geo[(10 b + 3 a + c) BLOCK + q] = g_{a+1, c} (1/m, a, c = 0..2; g_0 = -(g_1 + g_2 + g_3)) and
+    geo[(10 b + 9) BLOCK + q] = V (m^3).
     """
-    t, g, vol = tet_data(points, tets)
+    t, g, vol = tet_data(points, tets[morton_order(points, tets)])
     m = len(t)
     p = BLOCK * -(-m // BLOCK)
     tp = np.zeros((p, 4), dtype=np.int64)
@@ -453,21 +455,20 @@ def hybrid_force(data, u, f):
     round-off). Threshold infinity: none, exactly the linear-tm force. Blocks with no flagged
     tetrahedron cost only the flag test.
     data: (linear-tm data tuple, tets (P, 4) int64 and geo (10 P,) from block_data, prm (8,)
-           law_params, W (9 BLOCK,) float64 scratch, threshold (1,) m, flags (P,) bool scratch)
+           law_params, W (9 BLOCK,) float64 scratch, threshold (1,) m, scratch: moved (N,) bool,
+           flags (P,) bool)
     """
-    lin, tets, geo, prm, W, threshold, flags = data
+    lin, tets, geo, prm, W, threshold, moved, flags = data
     linear_tm_force(lin, u, f)
     thr2 = threshold[0] * threshold[0]
+    for i in range(u.shape[0]):
+        moved[i] = u[i, 0] * u[i, 0] + u[i, 1] * u[i, 1] + u[i, 2] * u[i, 2] > thr2
     for b in range(tets.shape[0] // BLOCK):
         e0 = b * BLOCK
         count = 0
         for e in range(e0, e0 + BLOCK):
-            moved = False
-            for a in range(4):
-                i = tets[e, a]
-                moved |= u[i, 0] * u[i, 0] + u[i, 1] * u[i, 1] + u[i, 2] * u[i, 2] > thr2
-            flags[e] = moved
-            count += moved
+            flags[e] = moved[tets[e, 0]] | moved[tets[e, 1]] | moved[tets[e, 2]] | moved[tets[e, 3]]
+            count += flags[e]
         if count == 0:
             continue
         _gather(tets, e0, u, W)
