@@ -25,7 +25,6 @@ from .nonlinear import (
     spring_force,
     stvk_energy,
     stvk_force,
-    tet_data,
 )
 from .tensor_mass import TensorMass, linear_tm_energy, linear_tm_force
 
@@ -81,10 +80,6 @@ def cut(model: Model, which) -> Model:
     return Model(**{**model.__dict__, "tets": alive_tets, "mass": mass, "loading": loading})
 
 
-def _scratch(k: int):
-    return tuple(np.zeros((3, 3)) for _ in range(k))
-
-
 def _model(name, points, tets, material, loading, force, energy, data, linear, **extra) -> Model:
     return Model(
         name=name,
@@ -121,7 +116,9 @@ def build_corotational_tm(points, tets, material: Material, loading: Loading | N
             "law is not the gradient of an energy); use stvk-tm for fibres"
         )
     points, tets = prepare_mesh(points, tets)
-    data = (*tet_data(points, tets), law_params(material), *_scratch(4))
+    btets, geo = block_data(points, tets)
+    scratch = (np.zeros(9 * BLOCK), np.zeros(10 * BLOCK), np.ones(len(btets), dtype=np.bool_))
+    data = (btets, geo, law_params(material), *scratch)
     return _model(
         "corotational-tm", points, tets, material, loading, corotational_force, corotational_energy, data, False
     )

@@ -9,9 +9,9 @@ P1 energy sum_e V_e W(F_e): for StVK it is the same force as Picinbono's non-lin
 whose vertex, edge, triangle and tetrahedron tensors are the expansion of this expression in powers
 of u; evaluating P per element is the cheaper way to the same numbers (about 130 flops a tetrahedron
 against a few hundred for the tensor sums), and the cross-solver test checks it against dolfinx's
-P1 StVK residual. The StVK and hybrid kernels evaluate blocks of tetrahedra at once, vectorised across
-tetrahedra (the block section below); the corotational kernel's polar iteration has a data-dependent
-trip count and runs one tetrahedron at a time.
+P1 StVK residual. The kernels evaluate blocks of tetrahedra at once, vectorised across tetrahedra (the
+block section below); the corotational polar iteration runs on a whole block until its slowest
+tetrahedron has converged.
 
 Data tuples are documented at each kernel; all arrays are float64 unless said, and scratch arrays
 passed in the tuple keep the kernels free of allocation.
@@ -32,8 +32,9 @@ from .tensor_mass import linear_tm_energy, linear_tm_force
 _JIT = dict(nogil=True, cache=True)
 #: The force kernels of the step loop: contraction to fused multiply-adds and reassociation change
 #: results at round-off level only (the cross-solver tests hold at 1e-10); no NaN/inf assumptions, so
-#: the blow-up check still sees a NaN.
-_HOT = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz", "arcp"})
+#: the blow-up check still sees a NaN. Division by zero gives inf as in numpy instead of raising, which
+#: would put a branch in the element loops and keep them from vectorising.
+_HOT = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz", "arcp"}, error_model="numpy")
 
 
 def tet_data(points: np.ndarray, tets: np.ndarray):
@@ -48,178 +49,8 @@ def law_params(material: Material) -> np.ndarray:
     return np.array([material.lam, material.mu, a[0], a[1], a[2], material.dlam, material.dmu, material.volume_penalty])
 
 
-@nb.njit(inline="always", **_JIT)
-def _grad_u(tets, g, e, u, H):
-    """H (3, 3) = sum_a u_a (x) g_a on tetrahedron e."""
-    i0, i1, i2, i3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
-    for r in range(3):
-        d1 = u[i1, r] - u[i0, r]
-        d2 = u[i2, r] - u[i0, r]
-        d3 = u[i3, r] - u[i0, r]
-        for c in range(3):
-            H[r, c] = d1 * g[e, 0, c] + d2 * g[e, 1, c] + d3 * g[e, 2, c]
-
-
-@nb.njit(inline="always", **_JIT)
-def _scatter(tets, g, e, vol, P, f):
-    """f_a -= V P g_a for the four vertices of tetrahedron e (g_0 = -(g_1 + g_2 + g_3))."""
-    i0, i1, i2, i3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
-    for r in range(3):
-        f1 = vol * (P[r, 0] * g[e, 0, 0] + P[r, 1] * g[e, 0, 1] + P[r, 2] * g[e, 0, 2])
-        f2 = vol * (P[r, 0] * g[e, 1, 0] + P[r, 1] * g[e, 1, 1] + P[r, 2] * g[e, 1, 2])
-        f3 = vol * (P[r, 0] * g[e, 2, 0] + P[r, 1] * g[e, 2, 1] + P[r, 2] * g[e, 2, 2])
-        f[i1, r] -= f1
-        f[i2, r] -= f2
-        f[i3, r] -= f3
-        f[i0, r] += f1 + f2 + f3
-
-
 # ---------------------------------------------------------------------------------------------
-# corotational
-
-
-@nb.njit(inline="always", **_HOT)
-def _polar(f00, f01, f02, f10, f11, f12, f20, f21, f22):
-    """Rotation (9-tuple, row-major) of the polar decomposition F = R U.
-
-    Scaled Newton iteration R <- (g R + R^-T / g) / 2, g = (|R^-1|_F / |R|_F)^(1/2) (Higham 1986):
-    quadratic convergence for det F > 0, in registers; the scaling is dropped near convergence and
-    the loop stops when a step changes R by less than 1e-9 (the next error is its square). An inverted or flat element (det F <= 1e-12)
-    takes the SVD instead, with the sign of the smallest singular direction flipped so that R stays
-    a rotation (Irving, Teran & Fedkiw 2004).
-    """
-    d = f00 * (f11 * f22 - f12 * f21) - f01 * (f10 * f22 - f12 * f20) + f02 * (f10 * f21 - f11 * f20)
-    if d <= 1e-12:
-        F = np.empty((3, 3))
-        F[0, 0], F[0, 1], F[0, 2] = f00, f01, f02
-        F[1, 0], F[1, 1], F[1, 2] = f10, f11, f12
-        F[2, 0], F[2, 1], F[2, 2] = f20, f21, f22
-        U, _, Vt = np.linalg.svd(F)
-        if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
-            U[:, 2] = -U[:, 2]
-        Q = U @ Vt
-        return Q[0, 0], Q[0, 1], Q[0, 2], Q[1, 0], Q[1, 1], Q[1, 2], Q[2, 0], Q[2, 1], Q[2, 2]
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = f00, f01, f02, f10, f11, f12, f20, f21, f22
-    change = 1.0
-    for _ in range(30):
-        c00 = r11 * r22 - r12 * r21
-        c01 = r12 * r20 - r10 * r22
-        c02 = r10 * r21 - r11 * r20
-        c10 = r02 * r21 - r01 * r22
-        c11 = r00 * r22 - r02 * r20
-        c12 = r01 * r20 - r00 * r21
-        c20 = r01 * r12 - r02 * r11
-        c21 = r02 * r10 - r00 * r12
-        c22 = r00 * r11 - r01 * r10
-        det = r00 * c00 + r01 * c01 + r02 * c02
-        gam = 1.0
-        if change > 1e-4:  # far from orthogonal: Higham's scaling; near it, gamma -> 1 and costs two roots
-            nr = (
-                r00 * r00
-                + r01 * r01
-                + r02 * r02
-                + r10 * r10
-                + r11 * r11
-                + r12 * r12
-                + r20 * r20
-                + r21 * r21
-                + r22 * r22
-            )
-            nc = (
-                c00 * c00
-                + c01 * c01
-                + c02 * c02
-                + c10 * c10
-                + c11 * c11
-                + c12 * c12
-                + c20 * c20
-                + c21 * c21
-                + c22 * c22
-            )
-            gam = np.sqrt(np.sqrt(nc / (det * det * nr)))
-        a = 0.5 * gam
-        b = 0.5 / (gam * det)  # R^-T = cof(R) / det(R)
-        n00, n01, n02 = a * r00 + b * c00, a * r01 + b * c01, a * r02 + b * c02
-        n10, n11, n12 = a * r10 + b * c10, a * r11 + b * c11, a * r12 + b * c12
-        n20, n21, n22 = a * r20 + b * c20, a * r21 + b * c21, a * r22 + b * c22
-        change = (
-            (n00 - r00) ** 2
-            + (n01 - r01) ** 2
-            + (n02 - r02) ** 2
-            + (n10 - r10) ** 2
-            + (n11 - r11) ** 2
-            + (n12 - r12) ** 2
-            + (n20 - r20) ** 2
-            + (n21 - r21) ** 2
-            + (n22 - r22) ** 2
-        )
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
-        if change < 1e-18:  # |dR|_F < 1e-9: quadratic convergence puts this iterate at round-off
-            break
-    return r00, r01, r02, r10, r11, r12, r20, r21, r22
-
-
-@nb.njit(**_HOT)
-def corotational_force(data, u, f):
-    """Corotational linear force: f_a -= V R sigma(sym(R^T F) - I) g_a, R the polar rotation of F.
-
-    This is the exact gradient of W(F) = lam/2 tr(S - I)^2 + mu |S - I|^2, S = R^T F the polar stretch
-    (the "corotated" energy; SOFA's TetrahedronFEMForceField, method "polar").
-    data: (tets (M,4) int64, grads (M,3,3), vol (M,), prm (8,) law_params, 4 scratch (3,3))
-    """
-    tets, g, vol, prm, H = data[0], data[1], data[2], data[3], data[4]
-    lam, mu = prm[0], prm[1]
-    f[:] = 0.0
-    for e in range(tets.shape[0]):
-        _grad_u(tets, g, e, u, H)
-        f00, f01, f02 = 1.0 + H[0, 0], H[0, 1], H[0, 2]
-        f10, f11, f12 = H[1, 0], 1.0 + H[1, 1], H[1, 2]
-        f20, f21, f22 = H[2, 0], H[2, 1], 1.0 + H[2, 2]
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _polar(f00, f01, f02, f10, f11, f12, f20, f21, f22)
-        # strain in the rotated frame: sym(R^T F) - I
-        s00 = r00 * f00 + r10 * f10 + r20 * f20 - 1.0
-        s11 = r01 * f01 + r11 * f11 + r21 * f21 - 1.0
-        s22 = r02 * f02 + r12 * f12 + r22 * f22 - 1.0
-        s01 = 0.5 * (r00 * f01 + r10 * f11 + r20 * f21 + r01 * f00 + r11 * f10 + r21 * f20)
-        s02 = 0.5 * (r00 * f02 + r10 * f12 + r20 * f22 + r02 * f00 + r12 * f10 + r22 * f20)
-        s12 = 0.5 * (r01 * f02 + r11 * f12 + r21 * f22 + r02 * f01 + r12 * f11 + r22 * f21)
-        ltr = lam * (s00 + s11 + s22)
-        t00, t11, t22 = 2.0 * mu * s00 + ltr, 2.0 * mu * s11 + ltr, 2.0 * mu * s22 + ltr
-        t01, t02, t12 = 2.0 * mu * s01, 2.0 * mu * s02, 2.0 * mu * s12
-        # P = R sigma
-        P = H
-        P[0, 0] = r00 * t00 + r01 * t01 + r02 * t02
-        P[0, 1] = r00 * t01 + r01 * t11 + r02 * t12
-        P[0, 2] = r00 * t02 + r01 * t12 + r02 * t22
-        P[1, 0] = r10 * t00 + r11 * t01 + r12 * t02
-        P[1, 1] = r10 * t01 + r11 * t11 + r12 * t12
-        P[1, 2] = r10 * t02 + r11 * t12 + r12 * t22
-        P[2, 0] = r20 * t00 + r21 * t01 + r22 * t02
-        P[2, 1] = r20 * t01 + r21 * t11 + r22 * t12
-        P[2, 2] = r20 * t02 + r21 * t12 + r22 * t22
-        _scatter(tets, g, e, vol[e], P, f)
-
-
-@nb.njit(**_JIT)
-def corotational_energy(data, u):
-    """sum_e V_e (lam/2 tr(S - I)^2 + mu |S - I|^2), S = R^T F."""
-    tets, g, vol, prm, H = data[0], data[1], data[2], data[3], data[4]
-    lam, mu = prm[0], prm[1]
-    w = 0.0
-    for e in range(tets.shape[0]):
-        _grad_u(tets, g, e, u, H)
-        F = np.eye(3) + H
-        r = _polar(F[0, 0], F[0, 1], F[0, 2], F[1, 0], F[1, 1], F[1, 2], F[2, 0], F[2, 1], F[2, 2])
-        R = np.array(r).reshape(3, 3)
-        S = R.T @ F - np.eye(3)
-        S = 0.5 * (S + S.T)
-        tr = S[0, 0] + S[1, 1] + S[2, 2]
-        w += vol[e] * (0.5 * lam * tr * tr + mu * np.sum(S * S))
-    return w
-
-
-# ---------------------------------------------------------------------------------------------
-# StVK (and hybrid): blocks of tetrahedra in struct-of-arrays layout
+# Blocks of tetrahedra in struct-of-arrays layout (StVK, corotational, hybrid)
 #
 # Each kernel walks the mesh in blocks of BLOCK tetrahedra, in three loops per block: gather the
 # displacement differences u_a - u_0 into a scratch block (indexed loads), evaluate the elements on
@@ -236,7 +67,7 @@ _UBLOCK = np.uint64(BLOCK)
 
 
 def block_data(points: np.ndarray, tets: np.ndarray):
-    """The StVK kernels' geometry in blocks of BLOCK tetrahedra.
+    """The element kernels' geometry in blocks of BLOCK tetrahedra.
 
     Returns tets (P, 4) int64 and geo (10 P,) float64, P = BLOCK ceil(M / BLOCK): the tetrahedra in
     Morton order (neighbours share blocks; the kernels sum over all of them, so their order is
@@ -287,6 +118,55 @@ def _scatter_block(tets, e0, W, f, mask):
 
 
 @nb.njit(inline="always", **_HOT)
+def _lane_rows(A, off, q):
+    """Rows 0..8 of lane q of the block at uint64 offset ``off`` in A (a row-major 3x3 as a 9-tuple)."""
+    return (
+        A[off + _ROW[0] + q], A[off + _ROW[1] + q], A[off + _ROW[2] + q],
+        A[off + _ROW[3] + q], A[off + _ROW[4] + q], A[off + _ROW[5] + q],
+        A[off + _ROW[6] + q], A[off + _ROW[7] + q], A[off + _ROW[8] + q],
+    )  # fmt: skip
+
+
+@nb.njit(inline="always", **_HOT)
+def _lane_store(A, q, r):
+    """Rows 0..8 of lane q of the block array A (offset 0) = the row-major 9-tuple r."""
+    A[_ROW[0] + q], A[_ROW[1] + q], A[_ROW[2] + q] = r[0], r[1], r[2]
+    A[_ROW[3] + q], A[_ROW[4] + q], A[_ROW[5] + q] = r[3], r[4], r[5]
+    A[_ROW[6] + q], A[_ROW[7] + q], A[_ROW[8] + q] = r[6], r[7], r[8]
+
+
+@nb.njit(inline="always", **_HOT)
+def _lane_in(W, geo, gb, q):
+    """H = grad u = sum_a (u_a - u_0) (x) g_a of lane q (row-major 9-tuple, from the displacement
+    differences in W), its gradients g_1..g_3 (row-major 9-tuple, 1/m) and its volume V (m^3)."""
+    ax, bx, cx, ay, by, cy, az, bz, cz = _lane_rows(W, _ROW[0], q)
+    g = _lane_rows(geo, gb, q)
+    g10, g11, g12, g20, g21, g22, g30, g31, g32 = g
+    H = (
+        ax * g10 + bx * g20 + cx * g30, ax * g11 + bx * g21 + cx * g31, ax * g12 + bx * g22 + cx * g32,
+        ay * g10 + by * g20 + cy * g30, ay * g11 + by * g21 + cy * g31, ay * g12 + by * g22 + cy * g32,
+        az * g10 + bz * g20 + cz * g30, az * g11 + bz * g21 + cz * g31, az * g12 + bz * g22 + cz * g32,
+    )  # fmt: skip
+    return H, g, geo[gb + _ROW[9] + q]
+
+
+@nb.njit(inline="always", **_HOT)
+def _lane_out(W, q, v, P, g):
+    """W[(3 a + r) BLOCK + q] = V (P g_{a+1})_r: the element's forces, P and g row-major 9-tuples."""
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
+    g10, g11, g12, g20, g21, g22, g30, g31, g32 = g
+    W[_ROW[0] + q] = v * (p00 * g10 + p01 * g11 + p02 * g12)
+    W[_ROW[1] + q] = v * (p10 * g10 + p11 * g11 + p12 * g12)
+    W[_ROW[2] + q] = v * (p20 * g10 + p21 * g11 + p22 * g12)
+    W[_ROW[3] + q] = v * (p00 * g20 + p01 * g21 + p02 * g22)
+    W[_ROW[4] + q] = v * (p10 * g20 + p11 * g21 + p12 * g22)
+    W[_ROW[5] + q] = v * (p20 * g20 + p21 * g21 + p22 * g22)
+    W[_ROW[6] + q] = v * (p00 * g30 + p01 * g31 + p02 * g32)
+    W[_ROW[7] + q] = v * (p10 * g30 + p11 * g31 + p12 * g32)
+    W[_ROW[8] + q] = v * (p20 * g30 + p21 * g31 + p22 * g32)
+
+
+@nb.njit(inline="always", **_HOT)
 def _pk2(e00, e11, e22, e01, e02, e12, lam, mu2, a0, a1, a2, dlam, dmu, fibre):
     """S = lam tr(E) I + 2 mu E + dlam (a.Ea) a (x) a + dmu (a (x) Ea + Ea (x) a), the six components
     (00, 11, 22, 01, 02, 12) of the StVK law (Picinbono et al. 2003, eq. 9) for the strain E."""
@@ -322,23 +202,8 @@ def _stvk_block(W, geo, gb, prm, minus_linear):
     lam, mu2, a0, a1, a2, dlam, dmu, kappa = prm[0], 2.0 * prm[1], prm[2], prm[3], prm[4], prm[5], prm[6], prm[7]
     fibre = dlam != 0.0 or dmu != 0.0
     for q in range(_UBLOCK):
-        ax, bx, cx = W[_ROW[0] + q], W[_ROW[1] + q], W[_ROW[2] + q]
-        ay, by, cy = W[_ROW[3] + q], W[_ROW[4] + q], W[_ROW[5] + q]
-        az, bz, cz = W[_ROW[6] + q], W[_ROW[7] + q], W[_ROW[8] + q]
-        g10, g11, g12 = geo[gb + _ROW[0] + q], geo[gb + _ROW[1] + q], geo[gb + _ROW[2] + q]
-        g20, g21, g22 = geo[gb + _ROW[3] + q], geo[gb + _ROW[4] + q], geo[gb + _ROW[5] + q]
-        g30, g31, g32 = geo[gb + _ROW[6] + q], geo[gb + _ROW[7] + q], geo[gb + _ROW[8] + q]
-        v = geo[gb + _ROW[9] + q]
-        # H = grad u = sum_a (u_a - u_0) (x) g_a
-        h00 = ax * g10 + bx * g20 + cx * g30
-        h01 = ax * g11 + bx * g21 + cx * g31
-        h02 = ax * g12 + bx * g22 + cx * g32
-        h10 = ay * g10 + by * g20 + cy * g30
-        h11 = ay * g11 + by * g21 + cy * g31
-        h12 = ay * g12 + by * g22 + cy * g32
-        h20 = az * g10 + bz * g20 + cz * g30
-        h21 = az * g11 + bz * g21 + cz * g31
-        h22 = az * g12 + bz * g22 + cz * g32
+        H, g, v = _lane_in(W, geo, gb, q)
+        h00, h01, h02, h10, h11, h12, h20, h21, h22 = H
         # Green-Lagrange E = (H + H^T + H^T H) / 2
         e00 = h00 + 0.5 * (h00 * h00 + h10 * h10 + h20 * h20)
         e11 = h11 + 0.5 * (h01 * h01 + h11 * h11 + h21 * h21)
@@ -389,15 +254,7 @@ def _stvk_block(W, geo, gb, prm, minus_linear):
             p20 += k * (f01 * f12 - f02 * f11)
             p21 += k * (f02 * f10 - f00 * f12)
             p22 += k * (f00 * f11 - f01 * f10)
-        W[_ROW[0] + q] = v * (p00 * g10 + p01 * g11 + p02 * g12)
-        W[_ROW[1] + q] = v * (p10 * g10 + p11 * g11 + p12 * g12)
-        W[_ROW[2] + q] = v * (p20 * g10 + p21 * g11 + p22 * g12)
-        W[_ROW[3] + q] = v * (p00 * g20 + p01 * g21 + p02 * g22)
-        W[_ROW[4] + q] = v * (p10 * g20 + p11 * g21 + p12 * g22)
-        W[_ROW[5] + q] = v * (p20 * g20 + p21 * g21 + p22 * g22)
-        W[_ROW[6] + q] = v * (p00 * g30 + p01 * g31 + p02 * g32)
-        W[_ROW[7] + q] = v * (p10 * g30 + p11 * g31 + p12 * g32)
-        W[_ROW[8] + q] = v * (p20 * g30 + p21 * g31 + p22 * g32)
+        _lane_out(W, q, v, (p00, p01, p02, p10, p11, p12, p20, p21, p22), g)
 
 
 @nb.njit(**_HOT)
@@ -439,6 +296,177 @@ def stvk_energy(data, u):
     for e in range(tets.shape[0]):
         F, vol = _block_grad_u(tets, geo, e, u)
         w += vol * (stvk_density(F, prm[0], prm[1], a, prm[5], prm[6]) + volume_penalty_energy(F, prm[7]))
+    return w
+
+
+# ---------------------------------------------------------------------------------------------
+# corotational
+
+
+@nb.njit(inline="always", **_HOT)
+def _polar_step(r, scaled):
+    """One scaled Newton step of the polar iteration R <- (g R + R^-T / g) / 2 (Higham 1986) on R
+    (9-tuple, row-major), with g = (|R^-1|_F / |R|_F)^(1/2) if ``scaled``, else 1 (near convergence g
+    -> 1, and it costs two roots). Returns the new R and |dR|_F^2."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
+    c00 = r11 * r22 - r12 * r21
+    c01 = r12 * r20 - r10 * r22
+    c02 = r10 * r21 - r11 * r20
+    c10 = r02 * r21 - r01 * r22
+    c11 = r00 * r22 - r02 * r20
+    c12 = r01 * r20 - r00 * r21
+    c20 = r01 * r12 - r02 * r11
+    c21 = r02 * r10 - r00 * r12
+    c22 = r00 * r11 - r01 * r10
+    det = r00 * c00 + r01 * c01 + r02 * c02
+    gam = 1.0
+    if scaled:
+        nr = r00 * r00 + r01 * r01 + r02 * r02 + r10 * r10 + r11 * r11 + r12 * r12 + r20 * r20 + r21 * r21 + r22 * r22
+        nc = c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12 + c20 * c20 + c21 * c21 + c22 * c22
+        gam = np.sqrt(np.sqrt(nc / (det * det * nr)))
+    a = 0.5 * gam
+    b = 0.5 / (gam * det)  # R^-T = cof(R) / det(R)
+    n = (
+        a * r00 + b * c00, a * r01 + b * c01, a * r02 + b * c02,
+        a * r10 + b * c10, a * r11 + b * c11, a * r12 + b * c12,
+        a * r20 + b * c20, a * r21 + b * c21, a * r22 + b * c22,
+    )  # fmt: skip
+    change = (
+        (n[0] - r00) ** 2 + (n[1] - r01) ** 2 + (n[2] - r02) ** 2
+        + (n[3] - r10) ** 2 + (n[4] - r11) ** 2 + (n[5] - r12) ** 2
+        + (n[6] - r20) ** 2 + (n[7] - r21) ** 2 + (n[8] - r22) ** 2
+    )  # fmt: skip
+    return n, change
+
+
+#: A Newton step that changes R by less than 1e-9 (Frobenius) ends the polar iteration: convergence is
+#: quadratic, so the iterate is then at round-off. Scaling stops below a change of 1e-2.
+_POLAR_DONE = 1e-18
+_POLAR_SCALED = 1e-4
+
+
+@nb.njit(inline="always", **_HOT)
+def _polar(F):
+    """Rotation (9-tuple, row-major) of the polar decomposition F = R U, F a row-major 9-tuple.
+
+    Scaled Newton iteration (_polar_step): quadratic convergence for det F > 0, in registers. An
+    inverted or flat element (det F <= 1e-12) takes the SVD instead, with the sign of the smallest
+    singular direction flipped so that R stays a rotation (Irving, Teran & Fedkiw 2004).
+    """
+    if _det(F) <= 1e-12:
+        U, _, Vt = np.linalg.svd(np.array(F).reshape(3, 3))
+        if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
+            U[:, 2] = -U[:, 2]
+        Q = U @ Vt
+        return Q[0, 0], Q[0, 1], Q[0, 2], Q[1, 0], Q[1, 1], Q[1, 2], Q[2, 0], Q[2, 1], Q[2, 2]
+    r, change = F, 1.0
+    for _ in range(30):
+        r, change = _polar_step(r, change > _POLAR_SCALED)
+        if change < _POLAR_DONE:
+            break
+    return r
+
+
+@nb.njit(inline="always", **_HOT)
+def _plus_identity(H):
+    """F = I + H, row-major 9-tuples."""
+    return (1.0 + H[0], H[1], H[2], H[3], 1.0 + H[4], H[5], H[6], H[7], 1.0 + H[8])
+
+
+@nb.njit(inline="always", **_HOT)
+def _det(F):
+    """det of a row-major 9-tuple."""
+    f00, f01, f02, f10, f11, f12, f20, f21, f22 = F
+    return f00 * (f11 * f22 - f12 * f21) - f01 * (f10 * f22 - f12 * f20) + f02 * (f10 * f21 - f11 * f20)
+
+
+@nb.njit(inline="always", **_HOT)
+def _corotated_pk1(F, r, lam, mu):
+    """P = R sigma(sym(R^T F) - I), R (row-major 9-tuple) the polar rotation of F: the stress of the
+    corotated energy lam/2 tr(S - I)^2 + mu |S - I|^2, S = R^T F."""
+    f00, f01, f02, f10, f11, f12, f20, f21, f22 = F
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
+    s00 = r00 * f00 + r10 * f10 + r20 * f20 - 1.0
+    s11 = r01 * f01 + r11 * f11 + r21 * f21 - 1.0
+    s22 = r02 * f02 + r12 * f12 + r22 * f22 - 1.0
+    s01 = 0.5 * (r00 * f01 + r10 * f11 + r20 * f21 + r01 * f00 + r11 * f10 + r21 * f20)
+    s02 = 0.5 * (r00 * f02 + r10 * f12 + r20 * f22 + r02 * f00 + r12 * f10 + r22 * f20)
+    s12 = 0.5 * (r01 * f02 + r11 * f12 + r21 * f22 + r02 * f01 + r12 * f11 + r22 * f21)
+    ltr = lam * (s00 + s11 + s22)
+    t00, t11, t22 = 2.0 * mu * s00 + ltr, 2.0 * mu * s11 + ltr, 2.0 * mu * s22 + ltr
+    t01, t02, t12 = 2.0 * mu * s01, 2.0 * mu * s02, 2.0 * mu * s12
+    return (
+        r00 * t00 + r01 * t01 + r02 * t02, r00 * t01 + r01 * t11 + r02 * t12, r00 * t02 + r01 * t12 + r02 * t22,
+        r10 * t00 + r11 * t01 + r12 * t02, r10 * t01 + r11 * t11 + r12 * t12, r10 * t02 + r11 * t12 + r12 * t22,
+        r20 * t00 + r21 * t01 + r22 * t02, r20 * t01 + r21 * t11 + r22 * t12, r20 * t02 + r21 * t12 + r22 * t22,
+    )  # fmt: skip
+
+
+@nb.njit(inline="always", **_HOT)
+def _corotational_block(W, R, geo, gb, lam, mu):
+    """Element forces of one block, in place in W (as _stvk_block), for the corotated law.
+
+    The polar iteration runs on all the block's tetrahedra at once, rotations in the scratch R (10
+    BLOCK,: nine rows of R and the last change), until the slowest has converged; the tetrahedra
+    that converged earlier take a few more steps at round-off. Inverted ones start from R = I (which
+    stays put) and take the SVD afterwards, one at a time.
+    """
+    inverted = 0
+    for q in range(_UBLOCK):
+        F = _plus_identity(_lane_in(W, geo, gb, q)[0])
+        ok = _det(F) > 1e-12
+        _lane_store(R, q, F if ok else (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
+        R[_ROW[9] + q] = 1.0
+        inverted += not ok
+    for _ in range(30):
+        active = 0
+        for q in range(_UBLOCK):
+            n, change = _polar_step(_lane_rows(R, _ROW[0], q), R[_ROW[9] + q] > _POLAR_SCALED)
+            _lane_store(R, q, n)
+            R[_ROW[9] + q] = change
+            active += change >= _POLAR_DONE
+        if active == 0:
+            break
+    if inverted:
+        for q in range(_UBLOCK):
+            F = _plus_identity(_lane_in(W, geo, gb, q)[0])
+            if _det(F) <= 1e-12:
+                _lane_store(R, q, _polar(F))
+    for q in range(_UBLOCK):
+        H, g, v = _lane_in(W, geo, gb, q)
+        _lane_out(W, q, v, _corotated_pk1(_plus_identity(H), _lane_rows(R, _ROW[0], q), lam, mu), g)
+
+
+@nb.njit(**_HOT)
+def corotational_force(data, u, f):
+    """Corotational linear force: f_a -= V R sigma(sym(R^T F) - I) g_a, R the polar rotation of F.
+
+    This is the exact gradient of W(F) = lam/2 tr(S - I)^2 + mu |S - I|^2, S = R^T F the polar stretch
+    (the "corotated" energy; SOFA's TetrahedronFEMForceField, method "polar").
+    data: (tets (P, 4) int64 and geo (10 P,) from block_data, prm (8,) law_params,
+           scratch: W (9 BLOCK,), R (10 BLOCK,) float64, everywhere (P,) bool all True)
+    """
+    tets, geo, prm, W, R, everywhere = data
+    f[:] = 0.0
+    for b in range(tets.shape[0] // BLOCK):
+        _gather(tets, b * BLOCK, u, W)
+        _corotational_block(W, R, geo, np.uint64(b) * _GEO_ROWS, prm[0], prm[1])
+        _scatter_block(tets, b * BLOCK, W, f, everywhere)
+
+
+@nb.njit(**_JIT)
+def corotational_energy(data, u):
+    """sum_e V_e (lam/2 tr(S - I)^2 + mu |S - I|^2), S = R^T F."""
+    tets, geo, prm = data[0], data[1], data[2]
+    lam, mu = prm[0], prm[1]
+    w = 0.0
+    for e in range(tets.shape[0]):
+        F, vol = _block_grad_u(tets, geo, e, u)
+        R = np.array(_polar((F[0, 0], F[0, 1], F[0, 2], F[1, 0], F[1, 1], F[1, 2], F[2, 0], F[2, 1], F[2, 2])))
+        S = R.reshape(3, 3).T @ F - np.eye(3)
+        S = 0.5 * (S + S.T)
+        tr = S[0, 0] + S[1, 1] + S[2, 2]
+        w += vol * (0.5 * lam * tr * tr + mu * np.sum(S * S))
     return w
 
 
