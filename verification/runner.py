@@ -435,7 +435,12 @@ def compare(
     A diverging run gives {"status": "diverged", ...} with the step, dt and dt_crit instead of errors.
     """
     ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
-    base = {"scene": scene.name, "model": model_name, "integrator": integrator}
+    # a quasi-static model has its own update whatever integrator was asked for
+    base = {
+        "scene": scene.name,
+        "model": model_name,
+        "integrator": "quasi-static" if model_name in QUASI_STATIC else integrator,
+    }
     try:
         res = run_model(scene, model_name, dt=dt, dt_fraction=dt_fraction, integrator=integrator, max_steps=max_steps)
     except DivergenceError as exc:
