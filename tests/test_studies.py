@@ -50,11 +50,13 @@ def test_pareto_front_keeps_one_of_duplicates():
 @pytest.mark.slow
 def test_sweep_json_lists_every_model(capsys):
     from realtime import MODELS
+    from realtime.models import QUASI_STATIC
 
     assert main(["sweep", "cantilever-pull", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert {r["model"] for r in out["rows"]} == set(MODELS)
     for r in out["rows"]:
+        assert r["integrator"] == ("quasi-static" if r["model"] in QUASI_STATIC else "symplectic-euler")
         if r["status"] == "ok":
             assert r["rel_l2"] >= 0 and r["step_us"] > 0
     ok = [r for r in out["rows"] if r["status"] == "ok"]
