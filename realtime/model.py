@@ -22,6 +22,20 @@ _JIT = dict(nogil=True, cache=True)
 
 TOOL_TRANSLATION = 0
 TOOL_ROTATION = 1
+#: How a tool travels from 0 at t = 0 to its full value at t = ramp: "linear" (a constant speed, with
+#: jumps in velocity at both ends) or "smooth" (the quintic 10 s^3 - 15 s^4 + 6 s^5 of s = t / ramp,
+#: whose velocity and acceleration vanish at both ends). Index = the code in Loading.tool_ramp_shape.
+RAMP_SHAPES = ("linear", "smooth")
+
+
+@nb.njit(**_JIT)
+def ramp_fraction(t: float, ramp: float, shape: int) -> float:
+    """Fraction in [0, 1] of its travel a tool has made at time t (s), for a ramp of ``ramp`` s (0:
+    at once) and the shape RAMP_SHAPES[shape]."""
+    s = 1.0 if ramp <= 0.0 else min(max(t / ramp, 0.0), 1.0)
+    if shape == 1:
+        return s * s * s * (10.0 + s * (6.0 * s - 15.0))
+    return s
 
 
 @dataclass(frozen=True)
@@ -39,8 +53,9 @@ class Loading:
         tool_axis: (L, 3) float64, unit rotation axis (rotations).
         tool_center: (L, 3) float64, point on the axis, m (rotations).
         tool_angle: (L,) float64, final angle, rad (rotations).
-        tool_ramp: (L,) float64, s; the tool moves linearly in time (the angle, for rotations) and holds
+        tool_ramp: (L,) float64, s; the tool moves (the angle, for rotations) from 0 at t = 0 and holds
             its final value from t = ramp on; 0 means applied at once.
+        tool_ramp_shape: (L,) int64, the index in RAMP_SHAPES of how it moves in between.
     """
 
     free: np.ndarray
@@ -54,6 +69,13 @@ class Loading:
     tool_center: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     tool_angle: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tool_ramp: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tool_ramp_shape: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.tool_ramp_shape is None:  # linear unless said otherwise
+            object.__setattr__(self, "tool_ramp_shape", np.zeros(len(self.tool_ramp), dtype=np.int64))
+        if len(self.tool_ramp_shape) != len(self.tool_ramp):
+            raise ValueError(f"Loading: {len(self.tool_ramp)} tool ramps but {len(self.tool_ramp_shape)} ramp shapes")
 
     @staticmethod
     def free_body(n_vertices: int) -> Loading:
@@ -72,6 +94,7 @@ class Loading:
             self.tool_center,
             self.tool_angle,
             self.tool_ramp,
+            self.tool_ramp_shape,
         )
 
 
@@ -185,9 +208,9 @@ def prepare_mesh(points, tets) -> tuple[np.ndarray, np.ndarray]:
 
 
 @nb.njit(**_JIT)
-def _tool_value(X, kind, vector, axis, center, angle, ramp, t, out):
+def _tool_value(X, kind, vector, axis, center, angle, ramp, shape, t, out):
     """Displacement (3,) of rest point X (3,) under one tool at time t; written to out (3,)."""
-    s = 1.0 if ramp <= 0.0 else min(t / ramp, 1.0)
+    s = ramp_fraction(t, ramp, shape)
     if kind == 0:
         for c in range(3):
             out[c] = s * vector[c]
@@ -208,7 +231,7 @@ def _tool_value(X, kind, vector, axis, center, angle, ramp, t, out):
 
 @nb.njit(**_JIT)
 def _tool_displacements(points, tools, t, out):
-    vert, mask, tid, kind, vector, axis, center, angle, ramp = tools
+    vert, mask, tid, kind, vector, axis, center, angle, ramp, shape = tools
     for p in range(vert.shape[0]):
         k = tid[p]
-        _tool_value(points[vert[p]], kind[k], vector[k], axis[k], center[k], angle[k], ramp[k], t, out[p])
+        _tool_value(points[vert[p]], kind[k], vector[k], axis[k], center[k], angle[k], ramp[k], shape[k], t, out[p])

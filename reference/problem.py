@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from meshes.regions import Region
+from realtime.model import RAMP_SHAPES, ramp_fraction
 
 COMPONENTS = ("x", "y", "z")
 
@@ -54,11 +55,12 @@ class Traction:
 
 @dataclass(frozen=True)
 class Displacement:
-    """A tool: the region follows a prescribed translation or rigid rotation, ramped linearly.
+    """A tool: the region follows a prescribed translation or rigid rotation, ramped in time.
 
     translation (3,) m, or rotation: axis (3,) unit, center (3,) m, angle in degrees. The
-    displacement (the angle, for a rotation) grows linearly from 0 at t = 0 to its value at t = ramp
-    and then holds.
+    displacement (the angle, for a rotation) grows from 0 at t = 0 to its value at t = ramp and then
+    holds; ramp_shape "linear" (constant speed) or "smooth" (realtime.model.ramp_fraction: velocity
+    and acceleration zero at both ends).
     """
 
     region: Region
@@ -68,6 +70,7 @@ class Displacement:
     center: tuple[float, float, float] | None = None
     angle: float = 0.0
     ramp: float = 0.0
+    ramp_shape: str = "linear"
 
     @property
     def is_rotation(self) -> bool:
@@ -75,7 +78,7 @@ class Displacement:
 
     def fraction(self, t: float) -> float:
         """Ramp factor s(t) in [0, 1]."""
-        return 1.0 if self.ramp <= 0.0 else min(t / self.ramp, 1.0)
+        return float(ramp_fraction(t, self.ramp, RAMP_SHAPES.index(self.ramp_shape)))
 
     def value(self, x: np.ndarray, t: float = math.inf) -> np.ndarray:
         """Prescribed displacement (K, 3) m at rest points x (K, 3) m and time t (s)."""

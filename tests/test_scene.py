@@ -2,6 +2,7 @@
 
 import textwrap
 
+import numpy as np
 import pytest
 
 from verification.cli import main
@@ -87,3 +88,33 @@ def test_fixed_and_tool_overlap_is_an_error(tmp_path):
 def test_unknown_scene_name():
     with pytest.raises(SceneError, match="not a built-in scene"):
         load_scene("no-such-scene")
+
+
+TOOL = GOOD.replace(
+    'kind = "gravity"\nvalue = [0.0, 0.0, -9.81]',
+    'kind = "displacement"\nbox = [[0.0999, -1.0, -1.0], [1.0, 1.0, 1.0]]\nvalue = [0.0, 0.0, -0.005]\n'
+    'ramp = 0.05\nramp_shape = "smooth"',
+)
+assert TOOL != GOOD
+
+
+def test_smooth_ramp_reaches_both_ends_at_rest(tmp_path):
+    """ramp_shape = "smooth": the tool's fraction is the quintic 10 s^3 - 15 s^4 + 6 s^5, whose
+    velocity and acceleration vanish at both ends; the scene passes it to the reference's tool and to
+    the real-time models' alike (one function: realtime.model.ramp_fraction)."""
+    from verification.runner import model_for
+
+    scene = load_scene(write(tmp_path, TOOL))
+    tool = scene.problem.tools[0]
+    assert tool.ramp_shape == "smooth"
+    t = 0.05 * np.array([0.0, 1e-3, 0.5, 1 - 1e-3, 1.0, 2.0])
+    s = np.array([tool.fraction(x) for x in t])
+    # the quintic at these points; near the ends it moves as 10 s^3 (zero velocity and acceleration)
+    np.testing.assert_allclose(
+        s, [0.0, 1e-8 - 1.5e-11 + 6e-15, 0.5, 1 - 1e-8 + 1.5e-11 - 6e-15, 1.0, 1.0], rtol=1e-6, atol=1e-18
+    )
+    model = model_for(scene, "linear-tm")
+    assert model.loading.tool_ramp_shape.tolist() == [1]
+    np.testing.assert_allclose(model.tool_displacement(0.025)[:, 2], -0.0025, rtol=1e-12)
+    with pytest.raises(SceneError, match=r"load\[0\]\.ramp_shape.*'cubic' is not one of linear, smooth"):
+        load_scene(write(tmp_path, TOOL.replace('"smooth"', '"cubic"')))

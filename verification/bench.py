@@ -190,6 +190,7 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                     "tool_center": np.zeros((1, 3)),
                     "tool_angle": np.zeros(1),
                     "tool_ramp": np.zeros(1),
+                    "tool_ramp_shape": np.zeros(1, np.int64),
                 }
             )
             t0 = time.perf_counter()

@@ -13,7 +13,7 @@ import numpy as np
 
 from meshes import TetMesh
 from realtime.geometry import face_areas
-from realtime.model import TOOL_ROTATION, TOOL_TRANSLATION, Loading, lumped_masses
+from realtime.model import RAMP_SHAPES, TOOL_ROTATION, TOOL_TRANSLATION, Loading, lumped_masses
 from reference.problem import Displacement, Fixed, Force, Gravity, Problem, Traction, component_mask
 
 
@@ -34,7 +34,7 @@ def build_loading(mesh: TetMesh, density: float, problem: Problem) -> Loading:
         free[fx.region.vertices(mesh)] *= 1.0 - component_mask(fx.components)
     mass = lumped_masses(mesh.points, mesh.tets, density)
     tool = {k: [] for k in ("vertex", "mask", "id")}
-    tools = {k: [] for k in ("kind", "vector", "axis", "center", "angle", "ramp")}
+    tools = {k: [] for k in ("kind", "vector", "axis", "center", "angle", "ramp", "shape")}
     for ld in problem.loads:
         if isinstance(ld, Gravity):
             fext += mass[:, None] * np.asarray(ld.value)
@@ -63,6 +63,7 @@ def build_loading(mesh: TetMesh, density: float, problem: Problem) -> Loading:
             tools["center"].append(ld.center or (0.0, 0.0, 0.0))
             tools["angle"].append(np.radians(ld.angle))
             tools["ramp"].append(ld.ramp)
+            tools["shape"].append(RAMP_SHAPES.index(ld.ramp_shape))
     if tools["kind"]:
         return Loading(
             free=free,
@@ -76,5 +77,6 @@ def build_loading(mesh: TetMesh, density: float, problem: Problem) -> Loading:
             tool_center=np.asarray(tools["center"], dtype=np.float64),
             tool_angle=np.asarray(tools["angle"], dtype=np.float64),
             tool_ramp=np.asarray(tools["ramp"], dtype=np.float64),
+            tool_ramp_shape=np.asarray(tools["shape"], dtype=np.int64),
         )
     return Loading(free=free, external_force=fext)

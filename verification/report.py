@@ -200,7 +200,8 @@ def _sweep_table(rows: list[dict]) -> str:
 
 def _advice_html(a: dict) -> str:
     if not a.get("model"):
-        return f"<p class='advice'>No model meets rel_l2 &le; {ADVISE_TOL} at {ADVISE_RATE:.0f} Hz. {html.escape(a['why'])}</p>"
+        why = a["why"]  # it already says that no model meets the bound
+        return f"<p class='advice'>{html.escape(why[0].upper() + why[1:])}</p>"
     dt = "quasi-static" if a["dt"] is None else f"dt = {a['dt']:.3g} s"
     runner = a.get("runner_up")
     ru = (

@@ -20,6 +20,7 @@ import numpy as np
 from meshes import InvalidMeshError, TetMesh, get_mesh, read_mesh
 from meshes.regions import AllRegion, BoxRegion, Region, SphereRegion, TagRegion
 from realtime.material import LAWS, Material, MaterialError
+from realtime.model import RAMP_SHAPES
 from reference.problem import COMPONENTS, Displacement, Fixed, Force, Gravity, Problem, Traction, component_mask
 
 SCENES_DIR = Path(__file__).parent / "scenes"
@@ -209,10 +210,11 @@ def _load(r: _Reader):
         return load
     comps = _components(r)
     ramp = r.number("ramp", 0.0, nonneg=True)
+    shape = r.string("ramp_shape", RAMP_SHAPES, default="linear")
     if r.has("value") == r.has("rotation"):
         r.fail("", "a displacement needs exactly one of value (a translation) or rotation")
     if r.has("value"):
-        load = Displacement(region, comps, translation=r.vec3("value"), ramp=ramp)
+        load = Displacement(region, comps, translation=r.vec3("value"), ramp=ramp, ramp_shape=shape)
     else:
         sub = _Reader(r.path, r.get("rotation"), r.key("rotation"))
         axis = np.asarray(sub.vec3("axis"))
@@ -225,9 +227,10 @@ def _load(r: _Reader):
             center=sub.vec3("center"),
             angle=sub.number("angle"),
             ramp=ramp,
+            ramp_shape=shape,
         )
         sub.finish(("axis", "center", "angle"))
-    r.finish(("kind", "value", "rotation", "ramp", "components") + REGION_KEYS)
+    r.finish(("kind", "value", "rotation", "ramp", "ramp_shape", "components") + REGION_KEYS)
     return load
 
 
