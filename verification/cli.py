@@ -250,7 +250,8 @@ def cmd_gate(args) -> int:
     from .gates import DEFAULT_CONFIG, format_gates, run_gates, update_baselines
 
     path = Path(args.config) if args.config else DEFAULT_CONFIG
-    rows = run_gates(path, quick=args.quick, use_cache=not args.no_cache)
+    # a baseline names the commit that measured it: never a run cached by older code
+    rows = run_gates(path, quick=args.quick, use_cache=not (args.no_cache or args.update_baselines))
     if args.update_baselines:
         update_baselines(path, rows)
     if args.json:
@@ -371,7 +372,11 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("gate", help="CI accuracy gates; exit 1 on a miss")
     s.add_argument("--config", help="gates file (default: the shipped verification/gates.toml)")
     s.add_argument("--quick", action="store_true", help="only the gates marked quick")
-    s.add_argument("--update-baselines", action="store_true", help="record the measured values and provenance")
+    s.add_argument(
+        "--update-baselines",
+        action="store_true",
+        help="record the measured values and provenance (runs afresh, not from the run cache)",
+    )
     s.add_argument("--no-cache", action="store_true")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_gate)
