@@ -4,7 +4,9 @@ A ``Model`` is built once (``realtime.build_model``) and never changes during a 
 tetrahedra, lumped masses, the material, the model's force kernel with its precomputed data, and the
 ``Loading`` (constraints, external forces, tools). A ``State`` is what an integrator advances:
 displacements, velocities, time. Nothing in a Model refers to a State, so one model can drive many
-states (a sweep over time steps, a haptic thread beside a visual one).
+states in turn (a sweep over time steps). The element kernels keep their scratch blocks in the model's
+data and an integrator keeps its force buffers, so that a step allocates nothing: two threads that
+step at the same time (a haptic loop beside a visual one) each need their own model and integrator.
 """
 
 from __future__ import annotations
