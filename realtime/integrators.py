@@ -356,7 +356,7 @@ class Integrator:
         """dt_crit = (2 / omega_max)(sqrt(1 + xi^2) - xi), s. Pass omega2 if already known."""
         w2 = max_eigenvalue(model) if omega2 is None else omega2
         w = math.sqrt(w2)
-        xi = 0.5 * self.beta * w  # mass damping is implicit in the updates and costs no stability
+        xi = 0.5 * self.beta * w  # mass damping (implicit or trapezoidal in the updates) costs no stability
         return 2.0 / w * (math.sqrt(1.0 + xi * xi) - xi)
 
     def _prepare(self, model: Model) -> _Prepared:

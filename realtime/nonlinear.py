@@ -406,10 +406,10 @@ def _corotated_pk1(F, r, lam, mu):
 def _corotational_block(W, R, geo, gb, lam, mu):
     """Element forces of one block, in place in W (as _stvk_block), for the corotated law.
 
-    The polar iteration runs on all the block's tetrahedra at once, rotations in the scratch R (10
-    BLOCK,: nine rows of R and the last change), until the slowest has converged; the tetrahedra
-    that converged earlier take a few more steps at round-off. Inverted ones start from R = I (which
-    stays put) and take the SVD afterwards, one at a time.
+    The polar iteration runs on all the block's tetrahedra at once, with the rotations in the scratch
+    R (10 BLOCK,) float64 (rows 0..8 the rotation, row 9 the last change), until the slowest has
+    converged; those that converged earlier take a few more steps at round-off. Inverted ones start
+    from R = I (which stays put) and take the SVD afterwards, one at a time.
     """
     inverted = 0
     for q in range(_UBLOCK):
