@@ -5,8 +5,9 @@ Each row times the integrator's compiled n-step call (symplectic Euler; the forc
 the tools and the blow-up check), each call from the same state, in rounds that interleave the rows
 after a warm-up; the median and the spread are reported. The scene: the liver held at the centre of
 its back under gravity, at rest plus a small random displacement so that the non-linear models do real
-work (the hybrid row: a tenth of the vertices moved past its threshold). Speed is never asserted in
-the tests: this command reports it.
+work (the hybrid row: a tenth of the vertices moved past its threshold). The "haptic loop" rows call
+step with n = 1, once per step, as a 1000 Hz device loop does: the cost of a whole call, Python and
+numba's dispatch included. Speed is never asserted in the tests: this command reports it.
 """
 
 from __future__ import annotations
@@ -92,6 +93,20 @@ def _step_case(integ, model, state, dt, n):
     return fn
 
 
+def _haptic_case(integ, model, state, dt, calls):
+    """``calls`` separate step(n = 1) calls, as a haptic loop makes them: the cost of one call, Python
+    and numba's dispatch included, from the same start every time."""
+    u0, v0 = state.u.copy(), state.v.copy()
+
+    def fn():
+        np.copyto(state.u, u0)
+        np.copyto(state.v, v0)
+        for _ in range(calls):
+            integ.step(model, state, dt, 1)
+
+    return fn
+
+
 def _nonlinear_fraction(model, u) -> float:
     """Fraction of tetrahedra a hybrid model treats as non-linear at displacement u (N, 3) m."""
     moved = np.linalg.norm(u, axis=1) > model.extra["threshold"]
@@ -110,6 +125,7 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
         u0 = 1e-4 * rng.standard_normal(mesh.points.shape) * loading.free
         n = steps if mesh.n_tets < 20000 else max(steps // 2, 5)
         cases = []
+        haptic = []
         for label, model_name, mat in (
             ("linear-tm", "linear-tm", iso),
             ("linear-tm (transverse)", "linear-tm", fibre),
@@ -144,10 +160,20 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                     "fn": _step_case(integ, model, state, dt, n),
                 }
             )
+            if label in ("linear-tm", "stvk-tm"):
+                haptic.append(
+                    {
+                        **cases[-1],
+                        "name": f"{label}, one step a call (haptic loop)",
+                        "n": n,
+                        "fn": _haptic_case(SymplecticEuler(), model, State(u=u.copy(), v=np.zeros_like(u)), dt, n),
+                    }
+                )
             if model_name == "hybrid-tm":
                 cases[-1]["probe"] = lambda model=model, state=state: {
                     "nonlinear_fraction": _nonlinear_fraction(model, state.u)
                 }
+        cases += haptic
         # the baseline a user would otherwise write: scipy's BSR product with the same matrix
         lin = build_model("linear-tm", mesh.points, mesh.tets, iso, loading)
         K = lin.extra["tensors"].matrix().tobsr(blocksize=(3, 3))
