@@ -54,6 +54,14 @@ def edge_index(edges: np.ndarray, n_vertices: int, pairs: np.ndarray) -> np.ndar
     return np.where(keys[pos] == want, pos, -1)
 
 
+def assemble_blocks(rows: np.ndarray, cols: np.ndarray, blocks: np.ndarray, n: int) -> sp.csr_matrix:
+    """Sum 3x3 blocks (K, 3, 3) N/m at block positions (rows, cols) (K,) int into a (3n, 3n) CSR
+    matrix (dof 3 i + c); repeated positions add up."""
+    r = (3 * rows[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
+    c = (3 * cols[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
+    return sp.coo_matrix((blocks.ravel(), (r.ravel(), c.ravel())), shape=(3 * n, 3 * n)).tocsr()
+
+
 class TensorMass:
     """Vertex and edge stiffness tensors of a tetrahedral mesh.
 
@@ -112,10 +120,7 @@ class TensorMass:
         i = np.concatenate([np.arange(n), self.edges[:, 0], self.edges[:, 1]])
         j = np.concatenate([np.arange(n), self.edges[:, 1], self.edges[:, 0]])
         blocks = np.concatenate([self.vertex_tensors, self.edge_tensors, self.edge_tensors.transpose(0, 2, 1)])
-        rows = (3 * i[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
-        cols = (3 * j[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
-        K = sp.coo_matrix((blocks.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n, 3 * n))
-        return K.tocsr()
+        return assemble_blocks(i, j, blocks, n)
 
     def kernel_data(self):
         """The tuple the force kernel ``linear_tm_force`` takes, laid out for one forward pass:

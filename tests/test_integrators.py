@@ -45,6 +45,30 @@ def test_max_eigenvalue_matches_dense():
     assert 0.2 * dt < element_critical_dt(model) < 5 * dt
 
 
+@pytest.mark.parametrize("name, nu", [("linear-tm", 0.45), ("stvk-tm", 0.4999), ("mass-spring", 0.3)])
+def test_min_eigenvalue_matches_dense(name, nu):
+    """omega_1^2 by shift-invert on the rest stiffness (exact at rest for these models) against the
+    dense eigenvalues of M^-1/2 K M^-1/2, K from the force kernel's finite differences at rest; the
+    tolerance is the 1e-3 the time-step choice asks for."""
+    from realtime.integrators import min_eigenvalue
+
+    mat = Material(5e5, nu, 1000.0, law="stvk")
+    mesh, lin = clamped_beam(mat)
+    model = build_model(name, mesh.points, mesh.tets, mat, lin.loading)
+    free = model.loading.free.ravel() != 0
+    h = 1e-9  # columns of K = -df/du by central differences of the force (exact for linear-tm)
+    cols = []
+    for k in np.flatnonzero(free):
+        e = np.zeros(3 * mesh.n_vertices)
+        e[k] = h
+        e = e.reshape(-1, 3)
+        cols.append((model.internal_force(-e) - model.internal_force(e)).ravel()[free] / (2 * h))
+    K = np.array(cols).T
+    s = 1 / np.sqrt(np.repeat(model.mass, 3))[free]
+    dense = np.linalg.eigvalsh(0.5 * (K + K.T) * s[:, None] * s[None, :]).min()
+    assert min_eigenvalue(model) == pytest.approx(dense, rel=1e-3)
+
+
 EXPLICIT_MODELS = ["linear-tm", "corotational-tm", "stvk-tm", "hybrid-tm", "mass-spring"]
 
 
@@ -161,6 +185,62 @@ def test_implicit_euler_settles_on_the_static_solution():
     err = np.linalg.norm(state.u.ravel() - static) / np.linalg.norm(static)
     # each step shrinks the error by the amplification of the slowest mode, 1 / (1 + dt^2 omega_1^2)
     assert err < 1e-8
+
+
+@pytest.mark.parametrize("name", ["linear-tm", "mass-spring"])
+def test_factored_preconditioner_solves_the_rest_system(name, rng):
+    """The sparse LU the implicit integrator preconditions with, applied in numba (permutations,
+    triangular solves, free components only), against scipy's direct solve of the same system
+    (M (1 + dt alpha) + (dt beta + dt^2) K0) on the free components: round-off."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    from realtime.integrators import _factor_solve, _factorise, rest_stiffness
+
+    mesh, lin = clamped_beam()
+    model = build_model(name, mesh.points, mesh.tets, MAT, lin.loading)
+    dt, alpha, beta = 1e-3, 2.0, 1e-4
+    cm, ck = 1 + dt * alpha, dt * beta + dt * dt
+    free = model.loading.free.ravel() != 0.0
+    A = (sp.diags(cm * np.repeat(model.mass, 3)) + ck * rest_stiffness(model)).tocsr()[free][:, free]
+    r = rng.standard_normal((mesh.n_vertices, 3)) * model.loading.free
+    z = np.full_like(r, np.nan)
+    _factor_solve(_factorise(model, cm, ck), r, z)
+    want = spla.spsolve(A.tocsc(), r.ravel()[free])
+    assert np.linalg.norm(z.ravel()[free] - want) / np.linalg.norm(want) < 1e-12
+    assert np.all(z.ravel()[~free] == 0.0)
+    if name == "linear-tm":  # the rest stiffness of linear-tm is its own: -K0 u is its force
+        u = rng.standard_normal(r.shape)
+        f = -(rest_stiffness(model) @ u.ravel())
+        assert np.linalg.norm(model.internal_force(u).ravel() - f) < 1e-12 * np.linalg.norm(f)
+
+
+def test_factored_implicit_euler_on_nearly_incompressible_statics():
+    """nu = 0.4999 under gravity: the mass-preconditioned CG needs more than 5000 iterations a step at
+    dt = 10 ms and stops; factored, each step of a linear model is one CG iteration, and the static
+    solve reaches K u = f (a direct solve) to its round-off floor (condition number ~1e8)."""
+    import scipy.sparse.linalg as spla
+
+    from realtime.integrators import solve_static_implicit
+
+    soft = Material(5e5, 0.4999, 1000.0, law="linear")
+    mesh, model = clamped_beam(soft)
+    fext = model.mass[:, None] * np.array([0.0, 0.0, -9.81])
+    model = build_model(
+        "linear-tm", mesh.points, mesh.tets, soft, Loading(free=model.loading.free, external_force=fext)
+    )
+    K = model.extra["tensors"].matrix()
+    free = model.loading.free.ravel() != 0.0
+    static = np.zeros(3 * mesh.n_vertices)
+    static[free] = spla.spsolve(K[free][:, free].tocsc(), fext.ravel()[free])
+    integ = ImplicitEuler(tol=1e-10)
+    assert integ.preconditioner_for(model) == "factored"
+    res = solve_static_implicit(model, 0.01, rtol=1e-10, integrator=integ)
+    assert integ.worst_iterations <= 2  # an exact preconditioner: one iteration, two at round-off
+    assert np.linalg.norm(res.state.u.ravel() - static) / np.linalg.norm(static) < 1e-6
+    weak = ImplicitEuler(tol=1e-10, preconditioner="mass")
+    weak.step(model, State.at_rest(mesh.n_vertices), 0.01, 1)
+    assert weak.worst_iterations >= 1000
 
 
 def test_implicit_euler_is_first_order():
