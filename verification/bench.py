@@ -78,31 +78,19 @@ def _time_round_robin(cases: list[dict], repeats: int) -> None:
         c.update(step_us=float(np.median(t)), step_us_min=float(t[0]), step_us_max=float(t[-1]))
 
 
-def _step_case(integ, model, state, dt, n):
-    """n steps from the same start every call (the copy costs about a microsecond against n steps), so
-    that every round times the same configuration: left to run on, the liver sags under gravity and
-    a hybrid model's non-linear part would grow from call to call."""
+def _step_case(integ, model, state, dt, n, calls=1):
+    """``calls`` step calls of n steps each, from the same start every time (the copy costs about a
+    microsecond), so that every round times the same configuration: left to run on, the liver sags
+    under gravity and a hybrid model's non-linear part would grow from call to call. n = 1 with many
+    calls is a haptic loop: the cost of a whole call, Python and numba's dispatch included."""
     u0, v0 = state.u.copy(), state.v.copy()
 
     def fn():
         np.copyto(state.u, u0)
         np.copyto(state.v, v0)
         state.acc = None
-        integ.step(model, state, dt, n)
-
-    return fn
-
-
-def _haptic_case(integ, model, state, dt, calls):
-    """``calls`` separate step(n = 1) calls, as a haptic loop makes them: the cost of one call, Python
-    and numba's dispatch included, from the same start every time."""
-    u0, v0 = state.u.copy(), state.v.copy()
-
-    def fn():
-        np.copyto(state.u, u0)
-        np.copyto(state.v, v0)
         for _ in range(calls):
-            integ.step(model, state, dt, 1)
+            integ.step(model, state, dt, n)
 
     return fn
 
@@ -166,7 +154,7 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                         **cases[-1],
                         "name": f"{label}, one step a call (haptic loop)",
                         "n": n,
-                        "fn": _haptic_case(SymplecticEuler(), model, State(u=u.copy(), v=np.zeros_like(u)), dt, n),
+                        "fn": _step_case(SymplecticEuler(), model, State(u=u.copy(), v=np.zeros_like(u)), dt, 1, n),
                     }
                 )
             if model_name == "hybrid-tm":

@@ -23,6 +23,14 @@ def _print_json(obj) -> None:
     print(json.dumps(obj, indent=1, default=_default))
 
 
+def _emit(args, out: dict, text) -> None:
+    """The command's result: ``out`` as JSON with --json, else ``text(out)``."""
+    if args.json:
+        _print_json(out)
+    else:
+        print(text(out))
+
+
 def _default(x):
     import numpy as np
 
@@ -186,10 +194,7 @@ def cmd_sweep(args) -> int:
         from .results import atomic_write_text
 
         atomic_write_text(args.csv, sweep_csv(out))
-    if args.json:
-        _print_json(out)
-    else:
-        print(format_sweep(out))
+    _emit(args, out, format_sweep)
     return 0
 
 
@@ -203,10 +208,7 @@ def cmd_converge(args) -> int:
         out = converge_time(scene, models=args.models or ("linear-tm",))
     else:
         out = converge_space(scene, models=args.models or ("linear-tm", "stvk-tm"), levels=args.levels)
-    if args.json:
-        _print_json(out)
-    else:
-        print(format_converge(out))
+    _emit(args, out, format_converge)
     return 0
 
 
@@ -214,10 +216,7 @@ def cmd_stability(args) -> int:
     from .studies import format_stability, stability
 
     out = stability(load_scene(args.scene), models=args.models, tol=args.tol, use_cache=not args.no_cache)
-    if args.json:
-        _print_json(out)
-    else:
-        print(format_stability(out))
+    _emit(args, out, format_stability)
     return 0
 
 
@@ -254,11 +253,9 @@ def cmd_gate(args) -> int:
     rows = run_gates(path, quick=args.quick, use_cache=not (args.no_cache or args.update_baselines))
     if args.update_baselines:
         update_baselines(path, rows)
-    if args.json:
-        _print_json({"config": str(path), "gates": rows, "passed": all(r["passed"] for r in rows)})
-    else:
-        print(format_gates(rows))
-    return 0 if all(r["passed"] for r in rows) else 1
+    out = {"config": str(path), "gates": rows, "passed": all(r["passed"] for r in rows)}
+    _emit(args, out, lambda o: format_gates(o["gates"]))
+    return 0 if out["passed"] else 1
 
 
 def cmd_bench(args) -> int:
@@ -269,10 +266,7 @@ def cmd_bench(args) -> int:
         from .results import atomic_write_text
 
         atomic_write_text(args.out, json.dumps(out, indent=1, default=_default))
-    if args.json:
-        _print_json(out)
-    else:
-        print(format_table(out))
+    _emit(args, out, format_table)
     return 0
 
 

@@ -59,10 +59,15 @@ def git_commit() -> str:
         return "unknown"
 
 
+def digest(fields: dict) -> str:
+    """A cache key: 24 hex digits of the SHA-256 of ``fields`` as sorted JSON."""
+    return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:24]
+
+
 def reference_key(scene: Scene, degree: int, refine: int, estimate: bool, newton=(1, 1e-4)) -> str:
     from reference.fem import LU_OPTIONS
 
-    text = json.dumps(
+    return digest(
         {
             "scene": scene.sha256(),
             "degree": degree,
@@ -71,10 +76,8 @@ def reference_key(scene: Scene, degree: int, refine: int, estimate: bool, newton
             "newton": list(newton),
             "solver": LU_OPTIONS,
             "version": REFERENCE_VERSION,
-        },
-        sort_keys=True,
+        }
     )
-    return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
 def reference_result(

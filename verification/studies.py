@@ -10,7 +10,6 @@ collectively, first) and rank 0 gathers and prints the table.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import sys
@@ -22,7 +21,7 @@ from realtime import MODELS
 from realtime.models import QUASI_STATIC
 
 from .results import atomic_write_text
-from .runner import REFERENCE_DEFAULTS, cache_dir, compare, reference_result
+from .runner import REFERENCE_DEFAULTS, cache_dir, compare, digest, reference_result
 from .scene import Scene
 
 #: Time steps a sweep tries by default, as fractions of each model's critical step.
@@ -72,7 +71,7 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
 
 
 def _run_key(scene: Scene, model: str, integrator: str, dt: float | None, fraction: float | None, ref_opts) -> str:
-    text = json.dumps(
+    return digest(
         {
             "scene": scene.sha256(),
             "model": model,
@@ -80,10 +79,8 @@ def _run_key(scene: Scene, model: str, integrator: str, dt: float | None, fracti
             "dt": dt,
             "fraction": fraction,
             "reference": ref_opts,
-        },
-        sort_keys=True,
+        }
     )
-    return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
 def cached_compare(
@@ -278,9 +275,15 @@ def largest_stable_fraction(
 
     from .runner import model_for
 
-    key = hashlib.sha256(json.dumps([scene.sha256(), model_name, integrator, steps, iterations]).encode()).hexdigest()[
-        :24
-    ]
+    key = digest(
+        {
+            "scene": scene.sha256(),
+            "model": model_name,
+            "integrator": integrator,
+            "steps": steps,
+            "iterations": iterations,
+        }
+    )
     path = cache_dir() / "runs" / f"{scene.name}-stable-{key}.json"
     if use_cache and path.exists():
         return json.loads(path.read_text())
