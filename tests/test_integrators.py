@@ -237,10 +237,11 @@ def test_factored_implicit_euler_on_nearly_incompressible_statics():
     assert integ.preconditioner_for(model) == "factored"
     res = solve_static_implicit(model, 0.01, rtol=1e-10, integrator=integ)
     assert integ.worst_iterations <= 2  # an exact preconditioner: one iteration, two at round-off
-    assert np.linalg.norm(res.state.u.ravel() - static) / np.linalg.norm(static) < 1e-6
+    # the round-off floor: condition number ~1e8 times eps (measured 1.2e-10)
+    assert np.linalg.norm(res.state.u.ravel() - static) / np.linalg.norm(static) < 1e-8
     weak = ImplicitEuler(tol=1e-10, preconditioner="mass")
     weak.step(model, State.at_rest(mesh.n_vertices), 0.01, 1)
-    assert weak.worst_iterations >= 1000
+    assert weak.worst_iterations == weak.maxit  # stopped, unconverged
 
 
 def test_implicit_euler_is_first_order():
