@@ -211,6 +211,17 @@ def test_gate_baselines_carry_provenance():
         assert b["value"] <= g["bound"]
 
 
+def test_run_cache_key_names_the_code_that_made_the_run(monkeypatch):
+    """A cached run from other engine code must not be reused: the code's digest is in the key."""
+    from verification import studies
+
+    scene = load_scene("cantilever")
+    key = studies._run_key(scene, "linear-tm", "symplectic-euler", None, 0.9, {})
+    assert studies._run_key(scene, "linear-tm", "symplectic-euler", None, 0.9, {}) == key
+    monkeypatch.setattr(studies, "engine_digest", lambda: "other code")
+    assert studies._run_key(scene, "linear-tm", "symplectic-euler", None, 0.9, {}) != key
+
+
 def test_reference_cache_is_keyed_and_reused():
     scene = load_scene("cantilever-pull")
     a = reference_result(scene, degree=1, refine=0, estimate=False)

@@ -10,10 +10,13 @@ collectively, first) and rank 0 gathers and prints the table.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 import json
 import math
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -70,9 +73,25 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
     return front
 
 
+@functools.cache
+def engine_digest() -> str:
+    """Digest of the code that makes a run's row: the real-time engine (realtime/*.py) and the runner,
+    loading and metrics modules. Part of every run's cache key, so that a cached run is never one
+    that older code made (the run cache once had no such guard, and a gate baseline was stamped
+    with a commit whose code had not produced it)."""
+    import realtime
+
+    here = Path(__file__).parent
+    files = sorted(Path(realtime.__file__).parent.glob("*.py")) + [
+        here / name for name in ("runner.py", "loading.py", "metrics.py")
+    ]
+    return digest({f"{f.parent.name}/{f.name}": hashlib.sha256(f.read_bytes()).hexdigest() for f in files})
+
+
 def _run_key(scene: Scene, model: str, integrator: str, dt: float | None, fraction: float | None, ref_opts) -> str:
     return digest(
         {
+            "engine": engine_digest(),
             "scene": scene.sha256(),
             "model": model,
             "integrator": integrator,
@@ -277,6 +296,7 @@ def largest_stable_fraction(
 
     key = digest(
         {
+            "engine": engine_digest(),
             "scene": scene.sha256(),
             "model": model_name,
             "integrator": integrator,
