@@ -10,6 +10,11 @@ import pytest
 logging.getLogger().setLevel(logging.WARNING)  # FFCx's JIT logs its compiler calls at INFO
 
 
+def pytest_collection_modifyitems(config, items):
+    """Tests marked run_last go after all the others (they inspect what the whole session loaded)."""
+    items.sort(key=lambda item: item.get_closest_marker("run_last") is not None)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def private_cache(tmp_path_factory):
     mp = pytest.MonkeyPatch()

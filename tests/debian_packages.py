@@ -1,0 +1,122 @@
+"""Which Debian packages the Python modules of a process came from, and whether the Makefile installs them.
+
+A fresh Debian 12 machine has only what ``make`` installs. A module loaded from outside the project's
+venv (Debian's ``/usr/lib/python3*``, or ``/usr/local``) must therefore belong to a Debian package that
+the Makefile's ``APT_PACKAGES`` installs, directly or as a dependency; otherwise ``make test`` passes
+on a developer's machine and fails on a new one (meshio's XDMF writer importing h5py was such a case).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+MAKEFILE = Path(__file__).resolve().parents[1] / "Makefile"
+
+#: Debian packages whose modules a dependency imports only if they are there: package -> (the module,
+#: the importer that must still import without it, why). A test imports each importer with the module
+#: blocked, so an entry here cannot hide a real dependency.
+OPTIONAL = {
+    "python3-yaml": ("yaml", "numba", "numba reads a .numba_config.yaml only when PyYAML imports"),
+}
+
+
+def makefile_packages(makefile: Path = MAKEFILE) -> list[str]:
+    """The Debian packages of the Makefile's ``APT_PACKAGES :=`` line."""
+    m = re.search(r"^APT_PACKAGES\s*:?=\s*(.*)$", Path(makefile).read_text(), flags=re.MULTILINE)
+    if m is None:
+        raise ValueError(f"{makefile}: no APT_PACKAGES line")
+    return m.group(1).split()
+
+
+def _installed() -> tuple[dict[str, list[list[str]]], dict[str, set[str]]]:
+    """Installed packages -> their dependencies (a list of alternatives each), and virtual names ->
+    the installed packages that provide them."""
+    fmt = r"${Package}\t${Status}\t${Pre-Depends}, ${Depends}\t${Provides}\n"
+    out = subprocess.run(["dpkg-query", "-W", "-f", fmt], capture_output=True, text=True, check=True).stdout
+    depends, provides = {}, defaultdict(set)
+    for line in out.splitlines():
+        name, status, deps, prov = (line.split("\t") + ["", "", ""])[:4]
+        if not status.endswith("installed") or "not-installed" in status or "config-files" in status:
+            continue
+        groups = []
+        for group in deps.split(","):
+            alts = [_bare(a) for a in group.split("|") if _bare(a)]
+            if alts:
+                groups.append(alts)
+        depends[name] = groups
+        for p in prov.split(","):
+            if _bare(p):
+                provides[_bare(p)].add(name)
+    return depends, provides
+
+
+def _bare(spec: str) -> str:
+    """``libfoo1 (>= 2.0):any`` -> ``libfoo1``."""
+    return re.sub(r"\(.*?\)|\[.*?\]|<.*?>", "", spec).strip().split(":")[0]
+
+
+def dependency_closure(packages: list[str]) -> set[str]:
+    """The installed packages that ``packages`` pull in through Depends and Pre-Depends (every installed
+    alternative of an ``a | b`` dependency counts, as does every installed provider of a virtual name)."""
+    depends, provides = _installed()
+    seen, todo = set(), list(packages)
+    while todo:
+        p = todo.pop()
+        for name in {p} | provides.get(p, set()):
+            if name in seen or name not in depends:
+                continue
+            seen.add(name)
+            for alts in depends[name]:
+                todo.extend(alts)
+    return seen
+
+
+def outside_venv_files(modules: dict | None = None) -> dict[str, list[str]]:
+    """One file per top-level module loaded from outside ``sys.prefix`` (the venv) and outside the
+    project: file -> the module names it stands for."""
+    modules = sys.modules if modules is None else modules
+    project = os.path.abspath(MAKEFILE.parent)
+    venv = os.path.abspath(sys.prefix)
+    files: dict[str, list[str]] = {}
+    for name, mod in list(modules.items()):
+        f = getattr(mod, "__file__", None)
+        if not isinstance(f, str):
+            continue
+        path = os.path.abspath(f)  # not resolved: dpkg knows the path as installed, links included
+        if path.startswith(venv + "/") or path.startswith(project + "/") or not path.startswith("/usr/"):
+            continue
+        files.setdefault(path, []).append(name)
+    return files
+
+
+def owners(files: list[str]) -> dict[str, str | None]:
+    """file -> the Debian package that owns it (``dpkg -S``), None for a file no package owns."""
+    result: dict[str, str | None] = dict.fromkeys(files)
+    for i in range(0, len(files), 200):
+        chunk = files[i : i + 200]
+        out = subprocess.run(["dpkg", "-S", *chunk], capture_output=True, text=True).stdout
+        for line in out.splitlines():
+            if line.startswith("diversion") or ": " not in line:
+                continue
+            pkgs, path = line.split(": ", 1)
+            if path in result:
+                result[path] = pkgs.split(",")[0].strip().split(":")[0]
+    return result
+
+
+def missing_packages(makefile: Path = MAKEFILE, modules: dict | None = None) -> dict[str, list[str]]:
+    """Debian packages (or ``<no package>: FILE``) that loaded modules came from and that the Makefile
+    neither installs nor pulls in: package -> the modules."""
+    closure = dependency_closure(makefile_packages(makefile))
+    files = outside_venv_files(modules)
+    missing: dict[str, list[str]] = defaultdict(list)
+    for path, pkg in owners(sorted(files)).items():
+        key = f"<no package>: {path}" if pkg is None else pkg
+        if pkg is None or (pkg not in closure and pkg not in OPTIONAL):
+            missing[key].extend(files[path])
+    return {k: sorted(v) for k, v in missing.items()}

@@ -1,0 +1,58 @@
+"""Nothing missing on a fresh machine: every module the test session loaded from outside the venv belongs
+to a Debian package that the Makefile installs (directly or as a dependency).
+
+``test_every_loaded_module_is_installed_by_the_makefile`` runs last (conftest moves it there), so it
+sees ``sys.modules`` as the whole session left it, lazy imports (meshio's h5py) included.
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+
+import pytest
+
+from .debian_packages import MAKEFILE, OPTIONAL, makefile_packages, missing_packages
+
+pytestmark = pytest.mark.skipif(
+    shutil.which("dpkg") is None or sys.prefix == sys.base_prefix or not sys.base_prefix.startswith("/usr"),
+    reason="needs Debian's dpkg and the project's venv over Debian's /usr/bin/python3",
+)
+
+
+@pytest.mark.run_last
+def test_every_loaded_module_is_installed_by_the_makefile():
+    missing = missing_packages()
+    assert not missing, "loaded from Debian packages that the Makefile does not install: " + "; ".join(
+        f"{pkg} ({', '.join(mods[:4])})" for pkg, mods in missing.items()
+    )
+
+
+def test_the_check_names_a_package_dropped_from_the_makefile(tmp_path):
+    """The defect that reached a fresh machine once: meshio's XDMF writer needs python3-h5py. Without
+    it in APT_PACKAGES the check must name it."""
+    import h5py  # noqa: F401  (what meshio's XDMF writer imports lazily)
+
+    packages = makefile_packages()
+    assert "python3-h5py" in packages
+    text = MAKEFILE.read_text().replace(" python3-h5py", "")
+    assert "python3-h5py" not in makefile_packages_of(text, tmp_path)
+    missing = missing_packages(tmp_path / "Makefile")
+    assert any(pkg.startswith("python3-h5py") for pkg in missing), missing
+    assert any("h5py" in mod for pkg, mods in missing.items() for mod in mods)
+
+
+@pytest.mark.parametrize("package", sorted(OPTIONAL))
+def test_optional_packages_are_really_optional(package):
+    """What the check lets pass as optional must not be needed: its importer imports with it blocked."""
+    import subprocess
+
+    module, importer, _ = OPTIONAL[package]
+    code = f"import sys; sys.modules[{module!r}] = None; import {importer}"
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-2000:]
+
+
+def makefile_packages_of(text: str, tmp_path) -> list[str]:
+    (tmp_path / "Makefile").write_text(text)
+    return makefile_packages(tmp_path / "Makefile")
