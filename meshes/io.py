@@ -1,4 +1,4 @@
-"""Reading and writing tetrahedral meshes through meshio (.msh, .vtu, .xdmf, and what else it reads)."""
+"""Reading and writing tetrahedral meshes: gmsh format 1 by our own reader, the rest through meshio."""
 
 from __future__ import annotations
 
@@ -7,60 +7,268 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
+
+from realtime.geometry import signed_volumes
 
 from .tetmesh import InvalidMeshError, TetMesh
 
+#: Vertices closer than this fraction of the bounding-box diagonal are one vertex: far above the
+#: round-off of coordinates printed with 16 digits, far below any element a mesher makes.
+DUPLICATE_TOL = 1e-10
+#: gmsh element types of the legacy format 1 (and of 2.x): 2 triangle, 4 tetrahedron, 11 quadratic tetrahedron.
+_GMSH1_TYPES = {2: "triangle", 4: "tetra", 11: "tetra10"}
 
-def read_mesh(path: str | os.PathLike) -> TetMesh:
-    """Read a tetrahedral mesh; lower-dimensional cells are dropped, unused vertices removed.
 
-    gmsh physical groups become tags: of tetrahedra (cell tags) and of the vertices of tagged
-    triangles (vertex tags). A file with no linear tetrahedra (hexahedra, quadratic tetrahedra,
-    a surface mesh) is an InvalidMeshError naming the file and the cell types it has.
+class _Cells:
+    """What a reader hands on: points (N, 3), tetrahedra (M, 4) as the file numbers them (0-based),
+    surface triangles (F, 3) with their tags, tetrahedron tags, group names, other cell types."""
+
+    def __init__(self, points, tets, tet_tags=None, tris=None, tri_tags=None, names=None, others=()):
+        self.points = np.asarray(points, dtype=np.float64)
+        self.tets = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
+        self.tet_tags = None if tet_tags is None else np.asarray(tet_tags, dtype=np.int64)
+        self.tris = np.zeros((0, 3), np.int64) if tris is None else np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+        self.tri_tags = None if tri_tags is None else np.asarray(tri_tags, dtype=np.int64)
+        self.names = names or {}
+        self.others = sorted(set(others))
+
+
+def _is_gmsh1(path: Path) -> bool:
+    if path.suffix.lower() != ".msh":
+        return False
+    with open(path, "rb") as fh:
+        for line in fh:
+            if line.strip():
+                return line.strip() == b"$NOD"
+    return False
+
+
+def _read_gmsh1(path: Path) -> _Cells:
+    """gmsh's legacy format 1 ($NOD/$ELM, SOFA's classic meshes), which meshio cannot read.
+
+    $NOD: a count, then ``label x y z`` per node (labels arbitrary); $ELM: a count, then ``number type
+    physical elementary n-nodes node-labels...`` per element.
     """
+
+    def fail(msg):
+        raise InvalidMeshError(f"{path}: gmsh format 1: {msg}")
+
+    lines = iter(enumerate(path.read_text(errors="replace").splitlines(), start=1))
+    labels, coords, tets, tet_tags, tris, tri_tags, others = [], [], [], [], [], [], []
+
+    def section(header, n_fields, row):
+        for _, line in lines:
+            if line.strip() == header:
+                break
+        else:
+            fail(f"no {header} section")
+        lineno, count = next(lines, (0, ""))
+        try:
+            n = int(count.split()[0])
+        except (ValueError, IndexError):
+            fail(f"line {lineno}: expected the number of entries after {header}, got {count!r}")
+        for _ in range(n):
+            lineno, line = next(lines, (None, None))
+            if line is None:
+                fail(f"{header} announces {n} entries but the file ends")
+            parts = line.split()
+            try:
+                row(parts)
+            except (ValueError, IndexError):
+                fail(f"line {lineno}: cannot read {line.strip()!r}")
+
+    def node(parts):
+        labels.append(int(parts[0]))
+        coords.append([float(x) for x in parts[1:4]])
+
+    def element(parts):
+        kind, phys, n = int(parts[1]), int(parts[2]), int(parts[4])
+        nodes = [int(x) for x in parts[5 : 5 + n]]
+        if len(nodes) != n:
+            raise ValueError
+        if kind == 4:
+            tets.append(nodes)
+            tet_tags.append(phys)
+        elif kind == 2:
+            tris.append(nodes)
+            tri_tags.append(phys)
+        else:
+            others.append(_GMSH1_TYPES.get(kind, f"gmsh type {kind}"))
+
+    section("$NOD", 4, node)
+    section("$ELM", 5, element)
+    labels = np.asarray(labels, dtype=np.int64)
+    if len(np.unique(labels)) != len(labels):
+        fail("a node label appears twice")
+    order = np.argsort(labels)
+    sorted_labels = labels[order]
+
+    def index(conn, what):
+        conn = np.asarray(conn, dtype=np.int64)
+        if conn.size == 0:
+            return conn
+        pos = np.clip(np.searchsorted(sorted_labels, conn), 0, len(labels) - 1)
+        if np.any(sorted_labels[pos] != conn):
+            bad = conn[sorted_labels[pos] != conn][0]
+            fail(f"a {what} refers to node {bad}, which $NOD does not define")
+        return order[pos]
+
+    return _Cells(
+        np.asarray(coords, dtype=np.float64).reshape(-1, 3),
+        index(tets, "tetrahedron"),
+        tet_tags,
+        index(tris, "triangle"),
+        tri_tags,
+        others=others,
+    )
+
+
+def _read_meshio(path: Path) -> _Cells:
     import meshio
 
+    m = meshio.read(path)
+    tets, tet_tags, tris, tri_tags = [], [], [], []
+    phys = m.cell_data.get("gmsh:physical") or m.cell_data.get("medit:ref")
+    for i, cells in enumerate(m.cells):
+        tags = np.asarray(phys[i]).ravel() if phys is not None else np.zeros(len(cells.data), np.int64)
+        if cells.type == "tetra":
+            tets.append(cells.data)
+            tet_tags.append(tags)
+        elif cells.type == "triangle":
+            tris.append(cells.data)
+            tri_tags.append(tags)
+    names = {int(pairs[0]): name for name, pairs in (getattr(m, "field_data", None) or {}).items()}
+    points = np.asarray(m.points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] not in (2, 3):
+        raise InvalidMeshError(f"{path}: points have shape {points.shape}, need (N, 3)")
+    if points.shape[1] == 2:
+        raise InvalidMeshError(f"{path}: points are 2-dimensional, need 3")
+    cat = lambda a, k: np.concatenate(a) if a else np.zeros((0, k) if k else 0, np.int64)  # noqa: E731
+    return _Cells(
+        points,
+        cat(tets, 4),
+        cat(tet_tags, 0) if phys is not None else None,
+        cat(tris, 3),
+        cat(tri_tags, 0) if phys is not None else None,
+        names,
+        [c.type for c in m.cells if c.type not in ("tetra", "triangle")],
+    )
+
+
+def read_mesh(path: str | os.PathLike, scale: float = 1.0) -> TetMesh:
+    """Read a linear tetrahedral mesh: gmsh .msh (format 1, 2.2 and 4.x), .vtu/.vtk, .xdmf, medit .mesh
+    and what else meshio reads. Coordinates are multiplied by ``scale`` (0.001 for a file in mm).
+
+    What real files contain is repaired and said in ``mesh.notes``: duplicate vertices merged,
+    unreferenced vertices dropped, duplicate tetrahedra dropped, tetrahedra of the other orientation
+    turned, several disconnected parts counted (``mesh.parts()``). What cannot be repaired is an
+    InvalidMeshError naming the file and the element: a degenerate tetrahedron (with its quality
+    figures), no tetrahedra (naming the cell types there are), a syntax error (with its line).
+    gmsh physical groups become tags: of tetrahedra (cell tags) and of the vertices of tagged triangles
+    (vertex tags).
+    """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such mesh file")
+    if not (isinstance(scale, (int, float)) and np.isfinite(scale) and scale > 0):
+        raise InvalidMeshError(f"{path}: scale = {scale!r} must be a positive number")
     try:
-        m = meshio.read(path)
-    except Exception as exc:  # meshio raises many types for unreadable input
-        raise InvalidMeshError(f"{path}: meshio cannot read it ({exc})") from exc
-    blocks = [(i, c) for i, c in enumerate(m.cells) if c.type == "tetra"]
-    if not blocks:
-        kinds = sorted({c.type for c in m.cells})
-        raise InvalidMeshError(f"{path}: not a linear tetrahedral mesh (cell types: {kinds})")
-    tets = np.concatenate([c.data for _, c in blocks]).astype(np.int64)
+        cells = _read_gmsh1(path) if _is_gmsh1(path) else _read_meshio(path)
+    except InvalidMeshError:
+        raise
+    except (Exception, SystemExit) as exc:  # meshio raises many types, SystemExit among them
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise InvalidMeshError(f"{path}: cannot read it as a mesh ({reason})") from None
+    if len(cells.tets) == 0:
+        raise InvalidMeshError(
+            f"{path}: not a linear tetrahedral mesh (cell types: {cells.others or ['none']}"
+            + (", triangle" if len(cells.tris) else "")
+            + ")"
+        )
+    return _clean(path, cells, float(scale))
+
+
+def _clean(path: Path, c: _Cells, scale: float) -> TetMesh:
+    """Repairs of a file's raw arrays (see read_mesh), each said in a note."""
+    notes = []
+    points = c.points * scale
+    if not np.all(np.isfinite(points)):
+        bad = int(np.argwhere(~np.isfinite(points))[0, 0])
+        raise InvalidMeshError(f"{path}: vertex {bad} has a non-finite coordinate {c.points[bad].tolist()}")
+    tets, tris = c.tets, c.tris
+    if tets.min() < 0 or tets.max() >= len(points):
+        bad = int(np.argwhere((tets < 0) | (tets >= len(points)))[0, 0])
+        raise InvalidMeshError(f"{path}: tetrahedron {bad} {tets[bad].tolist()} refers to a missing vertex")
+    # duplicate vertices: one representative (the lowest index) for each cluster of coincident points
     used = np.unique(tets)
-    compact = np.full(len(m.points), -1, dtype=np.int64)
+    diag = float(np.linalg.norm(np.ptp(points[used], axis=0))) or 1.0
+    pairs = cKDTree(points[used]).query_pairs(DUPLICATE_TOL * diag, output_type="ndarray")
+    rep = np.arange(len(points))
+    if len(pairs):
+        a, b = used[pairs[:, 0]], used[pairs[:, 1]]
+        for i, j in sorted(zip(np.minimum(a, b), np.maximum(a, b), strict=True), reverse=True):
+            rep[j] = rep[i]
+        for _ in range(3):  # chains of three or more coincident points
+            rep = rep[rep]
+        notes.append(f"merged {int(np.sum(rep != np.arange(len(points))))} duplicate vertices")
+        tets, tris = rep[tets], rep[tris] if len(tris) else tris
+    # duplicate tetrahedra (the same four vertices twice)
+    keys = np.sort(tets, axis=1)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    tet_tags = c.tet_tags
+    if len(first) < len(tets):
+        keep = np.sort(first)
+        notes.append(f"dropped {len(tets) - len(keep)} duplicate tetrahedra")
+        tets = tets[keep]
+        tet_tags = None if tet_tags is None else tet_tags[keep]
+    # unreferenced vertices
+    used = np.unique(tets)
+    if len(used) < len(points):
+        dropped = len(points) - len(used) - int(np.sum(rep != np.arange(len(points))))
+        if dropped > 0:
+            notes.append(f"dropped {dropped} vertices that no tetrahedron uses")
+    compact = np.full(len(points), -1, dtype=np.int64)
     compact[used] = np.arange(len(used))
-    points = np.asarray(m.points, dtype=np.float64)[used]
-    if points.shape[1] != 3:
-        raise InvalidMeshError(f"{path}: points are {points.shape[1]}-dimensional, need 3")
-    names = {}
-    for name, pairs in getattr(m, "field_data", {}).items():
-        names[int(pairs[0])] = name
+    points, tets = points[used], compact[tets]
+    # orientation: each tetrahedron turned positive on its own (a rest mesh has no inverted elements,
+    # only a vertex order); degenerate ones are left for check_tets to name
+    vol = signed_volumes(points, tets)
+    negative = vol < 0.0
+    if negative.any():
+        tets = tets.copy()
+        tets[negative] = tets[negative][:, [0, 1, 3, 2]]
+        mixed = "" if negative.all() else f" of {len(tets)} (the file mixes both orientations)"
+        notes.append(f"turned {int(negative.sum())} tetrahedra{mixed} to positive orientation")
     vertex_tags, cell_tags = {}, {}
-    phys = m.cell_data.get("gmsh:physical")
-    if phys is not None:
-        offset = 0
-        for i, cells in enumerate(m.cells):
-            tags = np.asarray(phys[i])
-            for t in np.unique(tags):
-                name = names.get(int(t), str(int(t)))
-                sel = cells.data[tags == t]
-                if cells.type == "tetra":
-                    idx = offset + np.flatnonzero(tags == t)
-                    cell_tags[name] = np.concatenate([cell_tags.get(name, []), idx]).astype(np.int64)
-                elif cells.type == "triangle":
-                    v = compact[np.unique(sel)]
-                    vertex_tags[name] = np.unique(np.concatenate([vertex_tags.get(name, []), v[v >= 0]])).astype(
-                        np.int64
-                    )
-            if cells.type == "tetra":
-                offset += len(cells.data)
-    return TetMesh.from_arrays(points, compact[tets], source=str(path), vertex_tags=vertex_tags, cell_tags=cell_tags)
+    if tet_tags is not None:
+        for t in np.unique(tet_tags):
+            cell_tags[c.names.get(int(t), str(int(t)))] = np.flatnonzero(tet_tags == t).astype(np.int64)
+    if c.tri_tags is not None and len(tris):
+        for t in np.unique(c.tri_tags):
+            v = compact[np.unique(tris[c.tri_tags == t])]
+            vertex_tags[c.names.get(int(t), str(int(t)))] = np.unique(v[v >= 0]).astype(np.int64)
+    mesh = TetMesh(points, tets, source=str(path), vertex_tags=vertex_tags, cell_tags=cell_tags, notes=tuple(notes))
+    n_parts, _ = mesh.parts()
+    if n_parts > 1:
+        object.__setattr__(mesh, "notes", mesh.notes + (f"{n_parts} disconnected parts",))
+    return mesh
+
+
+def atomic_write(path: str | os.PathLike, write) -> Path:
+    """Call ``write(tmp)`` with a temporary path beside ``path`` (same suffix), then rename it to
+    ``path``: a reader never sees a half-written file, and a failure leaves none behind."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=path.suffix, dir=path.parent, prefix=".tmp-")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
 
 
 def write_mesh(mesh: TetMesh, path: str | os.PathLike, point_data: dict | None = None) -> Path:
@@ -70,22 +278,17 @@ def write_mesh(mesh: TetMesh, path: str | os.PathLike, point_data: dict | None =
     """
     import meshio
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     data = {f"tag:{k}": np.isin(np.arange(mesh.n_vertices), v).astype(np.int32) for k, v in mesh.vertex_tags.items()}
     data.update(point_data or {})
     m = meshio.Mesh(mesh.points, [("tetra", mesh.tets)], point_data=data)
-    fd, tmp = tempfile.mkstemp(suffix=path.suffix, dir=path.parent, prefix=".tmp-")
-    os.close(fd)
-    try:
-        if path.suffix == ".msh":
+    suffix = Path(path).suffix
+
+    def write(tmp):
+        if suffix == ".msh":
             meshio.write(tmp, m, file_format="gmsh22", binary=False)
-        elif path.suffix == ".xdmf":  # inline XML: one self-contained file survives the rename
+        elif suffix == ".xdmf":  # inline XML: one self-contained file survives the rename
             meshio.xdmf.write(tmp, m, data_format="XML")
         else:
             meshio.write(tmp, m)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+
+    return atomic_write(path, write)

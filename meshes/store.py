@@ -9,14 +9,13 @@ so a gmsh upgrade that changes a mesh is caught instead of silently moving every
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .generators import generate
-from .tetmesh import TetMesh
+from .io import atomic_write
+from .tetmesh import InvalidMeshError, TetMesh
 
 DATA = Path(__file__).parent / "data"
 MANIFEST = DATA / "manifest.json"
@@ -47,14 +46,7 @@ def save_npz(mesh: TetMesh, path: Path) -> None:
     arrays = {"points": mesh.points, "tets": mesh.tets}
     arrays.update({f"vtag:{k}": v for k, v in mesh.vertex_tags.items()})
     arrays.update({f"ctag:{k}": v for k, v in mesh.cell_tags.items()})
-    fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent, prefix=".tmp-")
-    os.close(fd)
-    try:
-        np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    atomic_write(path, lambda tmp: np.savez_compressed(tmp, **arrays))
 
 
 def load_npz(path: Path, source: str = "") -> TetMesh:
@@ -72,7 +64,10 @@ def get_mesh(generator: str, params: dict) -> TetMesh:
         path = DATA / entry["file"]
         mesh = load_npz(path, source=f"{path.name} ({generator} {params})")
         if mesh.sha256() != entry["sha256"]:
-            raise RuntimeError(f"{path}: hash {mesh.sha256()} differs from the manifest's {entry['sha256']}")
+            raise InvalidMeshError(
+                f"{path}: stored mesh hash {mesh.sha256()[:12]}... differs from the manifest's "
+                f"{entry['sha256'][:12]}...; the file was changed: restore it or run python -m meshes.store"
+            )
         return mesh
     return generate(generator, **params)
 

@@ -30,6 +30,8 @@ class TetMesh:
         vertex_tags: name -> (K,) int64 vertex indices (gmsh physical groups of faces and volumes).
         cell_tags: name -> (K,) int64 tetrahedron indices.
         source: where the mesh came from (a file path or a generator description).
+        notes: what reading the mesh repaired (merged duplicate vertices, turned tetrahedra...), one
+            sentence each.
     """
 
     points: np.ndarray
@@ -37,6 +39,7 @@ class TetMesh:
     vertex_tags: dict = field(default_factory=dict)
     cell_tags: dict = field(default_factory=dict)
     source: str = ""
+    notes: tuple = ()
 
     def __post_init__(self):
         pts = np.ascontiguousarray(self.points, dtype=np.float64)
@@ -78,6 +81,18 @@ class TetMesh:
     @property
     def edges(self) -> np.ndarray:
         return unique_edges(self.tets)
+
+    def parts(self) -> tuple[int, np.ndarray]:
+        """Connected parts (tetrahedra sharing a vertex are connected): their number and the part of
+        each vertex, (N,) int64 in 0..parts-1, numbered by their lowest vertex."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        e = self.edges
+        n = self.n_vertices
+        graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+        count, labels = connected_components(graph, directed=False)
+        return int(count), labels.astype(np.int64)
 
     def volumes(self) -> np.ndarray:
         """(M,) float64, m^3."""

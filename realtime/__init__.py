@@ -3,6 +3,7 @@
 Imports only numpy, scipy and numba, so that it can be embedded in a simulator on its own.
 """
 
+from .errors import InputError, LoadingError
 from .integrators import (
     INTEGRATORS,
     CentralDifference,
@@ -27,7 +28,9 @@ __all__ = [
     "CentralDifference",
     "DivergenceError",
     "ImplicitEuler",
+    "InputError",
     "Loading",
+    "LoadingError",
     "Material",
     "MaterialError",
     "Model",

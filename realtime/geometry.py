@@ -10,13 +10,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import InputError
+
 #: A tetrahedron whose volume is below this fraction of (mean edge length)^3 / (6 sqrt 2) is
 #: degenerate: a regular tetrahedron's volume is L^3 / (6 sqrt 2), and 1e-8 of that is far below any
 #: element a mesher produces on purpose yet far above round-off (~1e-16).
 DEGENERATE_RATIO = 1e-8
 
 
-class InvalidMeshError(ValueError):
+class InvalidMeshError(InputError):
     """A mesh that cannot be simulated; the message names the element and the value."""
 
 
@@ -66,9 +68,11 @@ def check_tets(points: np.ndarray, tets: np.ndarray, where: str = "mesh") -> np.
     degenerate = np.abs(vol) <= DEGENERATE_RATIO * scale
     if np.any(degenerate):
         bad = int(np.argmax(degenerate))
+        more = int(degenerate.sum()) - 1
         raise InvalidMeshError(
             f"{where}: tetrahedron {bad} {tets[bad].tolist()} is degenerate "
-            f"(volume {vol[bad]:.3e} m^3 for edges of {mean_edge[bad]:.3e} m)"
+            f"(volume {vol[bad]:.3e} m^3 for edges of {mean_edge[bad]:.3e} m: {abs(vol[bad]) / scale[bad]:.1e} "
+            f"of a regular tetrahedron's, below {DEGENERATE_RATIO:g})" + (f"; {more} more like it" if more else "")
         )
     if np.any(vol < 0.0):
         bad = int(np.argmax(vol < 0.0))

@@ -31,6 +31,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .errors import InputError
 from .geometry import min_altitudes
 from .model import Model, State, _tool_value
 from .tensor_mass import TensorMass, assemble_blocks
@@ -550,7 +551,7 @@ class ImplicitEuler(Integrator):
     ):
         super().__init__(alpha=alpha, beta=beta)
         if preconditioner not in PRECONDITIONERS:
-            raise ValueError(f"preconditioner = {preconditioner!r}: must be one of {', '.join(PRECONDITIONERS)}")
+            raise InputError(f"preconditioner = {preconditioner!r}: must be one of {', '.join(PRECONDITIONERS)}")
         self.tol, self.maxit, self.iterations, self.worst_iterations = tol, maxit, 0, 0
         self.preconditioner = preconditioner
         self._factor = None  # (model, (dt, alpha, beta), factor tuple)
@@ -600,7 +601,7 @@ def make_integrator(name: str, alpha: float = 0.0, beta: float = 0.0) -> Integra
     try:
         cls = INTEGRATORS[name]
     except KeyError:
-        raise ValueError(f"integrator = {name!r}: must be one of {', '.join(INTEGRATORS)}") from None
+        raise InputError(f"integrator = {name!r}: must be one of {', '.join(INTEGRATORS)}") from None
     return cls(alpha=alpha, beta=beta)
 
 

@@ -36,10 +36,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import InputError
+
 LAWS = ("linear", "stvk")
 
 
-class MaterialError(ValueError):
+class MaterialError(InputError):
     """An elastic constant outside its physical range; the message names it and its value."""
 
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numba as nb
 import numpy as np
 
+from .errors import LoadingError
 from .geometry import check_tets, lumped_volumes
 from .material import Material
 
@@ -76,8 +77,48 @@ class Loading:
     def __post_init__(self):
         if self.tool_ramp_shape is None:  # linear unless said otherwise
             object.__setattr__(self, "tool_ramp_shape", np.zeros(len(self.tool_ramp), dtype=np.int64))
-        if len(self.tool_ramp_shape) != len(self.tool_ramp):
-            raise ValueError(f"Loading: {len(self.tool_ramp)} tool ramps but {len(self.tool_ramp_shape)} ramp shapes")
+
+    def check(self, n_vertices: int) -> None:
+        """Raise LoadingError unless every array has its documented shape and dtype, finite values and
+        indices in range for a mesh of ``n_vertices`` (the kernels do no bounds checks: a bad index
+        would write outside an array)."""
+        n_points = len(np.asarray(self.tool_vertex).reshape(-1))
+        n_tools = len(np.asarray(self.tool_kind).reshape(-1))
+        shapes = {
+            "free": ((n_vertices, 3), np.float64),
+            "external_force": ((n_vertices, 3), np.float64),
+            "tool_vertex": ((n_points,), np.int64),
+            "tool_mask": ((n_points, 3), np.float64),
+            "tool_id": ((n_points,), np.int64),
+            "tool_kind": ((n_tools,), np.int64),
+            "tool_vector": ((n_tools, 3), np.float64),
+            "tool_axis": ((n_tools, 3), np.float64),
+            "tool_center": ((n_tools, 3), np.float64),
+            "tool_angle": ((n_tools,), np.float64),
+            "tool_ramp": ((n_tools,), np.float64),
+            "tool_ramp_shape": ((n_tools,), np.int64),
+        }
+        for name, (shape, dtype) in shapes.items():
+            a = getattr(self, name)
+            if not isinstance(a, np.ndarray) or a.shape != shape or a.dtype != dtype:
+                got = f"{a.shape} {a.dtype}" if isinstance(a, np.ndarray) else type(a).__name__
+                raise LoadingError(f"Loading.{name}: must be a {shape} {np.dtype(dtype)} array, got {got}")
+            if dtype == np.float64 and not np.all(np.isfinite(a)):
+                bad = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
+                raise LoadingError(f"Loading.{name}{list(bad)}: must be finite, got {a[bad]}")
+        for name, upper in (
+            ("tool_vertex", n_vertices),
+            ("tool_id", n_tools),
+            ("tool_kind", 2),
+            ("tool_ramp_shape", len(RAMP_SHAPES)),
+        ):
+            a = getattr(self, name)
+            if len(a) and (a.min() < 0 or a.max() >= upper):
+                bad = int(np.argmax((a < 0) | (a >= upper)))
+                raise LoadingError(f"Loading.{name}[{bad}] = {a[bad]}: must lie in 0..{upper - 1}")
+        if len(self.tool_ramp) and self.tool_ramp.min() < 0.0:
+            bad = int(np.argmin(self.tool_ramp))
+            raise LoadingError(f"Loading.tool_ramp[{bad}] = {self.tool_ramp[bad]}: must be >= 0 s")
 
     @staticmethod
     def free_body(n_vertices: int) -> Loading:

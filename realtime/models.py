@@ -10,6 +10,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from .errors import InputError
 from .geometry import signed_volumes, unique_edges
 from .material import Material
 from .model import Loading, Model, lumped_masses, prepare_mesh
@@ -63,7 +64,7 @@ def cut(model: Model, which) -> Model:
     """
     tm = model.extra.get("tensors")
     if model.name != "linear-tm" or tm is None:
-        raise ValueError(f"cut: {model.name} does not support cutting (linear-tm does)")
+        raise InputError(f"cut: {model.name} does not support cutting (linear-tm does)")
     which = np.unique(np.asarray(which, dtype=np.int64))
     tm.remove(which)
     removed = tm.tets[which]
@@ -81,6 +82,8 @@ def cut(model: Model, which) -> Model:
 
 
 def _model(name, points, tets, material, loading, force, energy, data, linear, **extra) -> Model:
+    if loading is not None:
+        loading.check(len(points))
     return Model(
         name=name,
         points=points,
@@ -111,7 +114,7 @@ def build_corotational_tm(points, tets, material: Material, loading: Loading | N
     Isotropic only: for an anisotropic law the rotated-frame force is not the gradient of an energy.
     """
     if material.fiber is not None:
-        raise ValueError(
+        raise InputError(
             "corotational-tm: isotropic materials only (the rotated-frame force of an anisotropic "
             "law is not the gradient of an energy); use stvk-tm for fibres"
         )
@@ -138,7 +141,7 @@ def build_hybrid_tm(
         e = unique_edges(tets)
         threshold = 0.1 * float(np.linalg.norm(points[e[:, 0]] - points[e[:, 1]], axis=1).mean())
     if not threshold >= 0.0:
-        raise ValueError(f"hybrid-tm: threshold = {threshold!r} must be >= 0 m")
+        raise InputError(f"hybrid-tm: threshold = {threshold!r} must be >= 0 m")
     btets, geo = block_data(points, tets)
     data = (
         tm.kernel_data(),
@@ -236,5 +239,5 @@ def build_model(name: str, points, tets, material: Material, loading: Loading | 
     try:
         builder = MODELS[name]
     except KeyError:
-        raise ValueError(f"model = {name!r}: must be one of {', '.join(MODELS)}") from None
+        raise InputError(f"model = {name!r}: must be one of {', '.join(MODELS)}") from None
     return builder(np.asarray(points), np.asarray(tets), material, loading, **options)

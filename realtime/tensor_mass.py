@@ -22,6 +22,7 @@ import numba as nb
 import numpy as np
 import scipy.sparse as sp
 
+from .errors import InputError
 from .geometry import shape_gradients, unique_edges
 from .laws import linear_elasticity_tensor
 from .material import Material
@@ -103,7 +104,7 @@ class TensorMass:
         alive = self.alive
         if np.any(~alive[which]):
             bad = int(which[~alive[which]][0])
-            raise ValueError(f"tetrahedron {bad} was already removed")
+            raise InputError(f"cut: tetrahedron {bad} was already removed")
         self._scatter(which, -1.0)
         alive[which] = False
 

@@ -10,6 +10,7 @@ Jacobian), named in ``solver_options`` and so in every result's metadata.
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass
 
@@ -25,14 +26,11 @@ from petsc4py import PETSc
 from meshes.tetmesh import TetMesh
 from realtime.material import Material
 
+from .errors import ReferenceSolveError
 from .materials import LAWS, volume_penalty_energy
 from .problem import Force, Problem, Traction
 
 LU_OPTIONS = {"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}
-
-
-class ReferenceSolveError(RuntimeError):
-    """The reference could not solve (Newton failed at a load fraction, a singular system...)."""
 
 
 def newton_solver(comm, problem, rtol: float, max_it: int, petsc_options: dict) -> NewtonSolver:
@@ -213,13 +211,20 @@ class ElasticityProblem:
         return {"solver": "linear", "petsc_options": opts, "iterations": 1}
 
     def solve_newton(
-        self, steps: int = 1, rtol: float = 1e-10, max_it: int = 25, min_increment: float = 1e-4, petsc_options=None
+        self,
+        steps: int = 1,
+        rtol: float = 1e-10,
+        max_it: int = 25,
+        min_increment: float = 1e-4,
+        petsc_options=None,
+        time_limit: float = 600.0,
     ) -> dict:
         """Newton with load stepping and step halving on failure (the load fraction goes 0 -> 1).
 
         Convergence: the norm of the Newton increment below rtol times the norm of the solution.
-        Raises ReferenceSolveError naming the load fraction at which the increment became smaller
-        than ``min_increment``.
+        Raises ReferenceSolveError naming the load fraction reached and what to change when the
+        increment became smaller than ``min_increment`` or the solve took more than ``time_limit``
+        seconds. Each load step's Newton iterations go to stderr.
         """
         opts = dict(LU_OPTIONS if petsc_options is None else petsc_options)
         du = ufl.TrialFunction(self.V)
@@ -236,20 +241,26 @@ class ElasticityProblem:
             self.set_tool_fraction(target)
             try:
                 its, ok = solver.solve(self.u)
-            except RuntimeError:
+            except RuntimeError:  # dolfinx raises when Newton reaches max_it (error_on_nonconvergence)
                 its, ok = max_it, False
+            elapsed = time.perf_counter() - t0
             if ok and np.all(np.isfinite(self.u.x.array)):
                 history.append({"load": target, "iterations": int(its)})
+                self._log(f"reference: load {target:.4g}: {int(its)} Newton iterations ({elapsed:.1f} s)")
                 done = target
                 inc = min(2.0 * inc, 1.0)
-            else:
-                self.u.x.array[:] = saved
-                inc *= 0.5
-                if inc < min_increment:
-                    raise ReferenceSolveError(
-                        f"Newton did not converge at load fraction {target:.4g} (from {done:.4g}) "
-                        f"with increments down to {inc:.2e}"
-                    )
+                continue
+            self.u.x.array[:] = saved
+            inc *= 0.5
+            self._log(f"reference: load {target:.4g}: Newton failed, load increment halved to {inc:.3g}")
+            if inc < min_increment or elapsed > time_limit:
+                why = f"increments down to {inc:.1e}" if inc < min_increment else f"{elapsed:.0f} s, the limit"
+                raise ReferenceSolveError(
+                    f"reference: Newton did not converge beyond load fraction {done:.4g} ({why}; law = "
+                    f"{self.material.law}, P{self.degree}, refine {self.refine}, {self.n_dofs} dofs): the load may "
+                    f"be too large for this mesh and law, or elements invert; try a smaller load, a finer mesh, "
+                    f"law = linear, or more load steps (--load-steps {max(4 * steps, 10)})"
+                )
         self.timings["solve_s"] = time.perf_counter() - t0
         return {
             "solver": "newton",
@@ -391,9 +402,16 @@ class ElasticityProblem:
                 iterations += 1
             else:
                 u.x.array[:] = u_old.x.array  # predictor: the last state
-                its, ok = solver.solve(u)
-                if not ok:
-                    raise ReferenceSolveError(f"Newmark: Newton did not converge at t = {t:.4g} s")
+                try:
+                    its, ok = solver.solve(u)
+                except RuntimeError:  # dolfinx raises when Newton reaches max_it
+                    its, ok = 25, False
+                if not ok or not np.all(np.isfinite(u.x.array)):
+                    raise ReferenceSolveError(
+                        f"reference: Newmark's Newton did not converge at t = {t:.4g} s (step {step} of "
+                        f"{n_steps}, dt = {dt:.3g} s): a smaller output_every (it sets dt), a smaller load or "
+                        "a finer mesh may help"
+                    )
                 iterations += int(its)
             a_new = c1 * (u.x.array - u_old.x.array) - c2 * v_old.x.array - c3 * a_old.x.array
             v_old.x.array[:] = v_old.x.array + dt * ((1.0 - gamma) * a_old.x.array + gamma * a_new)
@@ -435,6 +453,11 @@ class ElasticityProblem:
         """Move every tool to where its ramp puts it at time t (s)."""
         for tool, c, g in self._tool_functions:
             g.interpolate(lambda x, tool=tool, c=c: tool.value(x.T, t)[:, c])
+
+    def _log(self, msg: str) -> None:
+        """Progress to stderr, from rank 0 only."""
+        if self.comm.rank == 0:
+            print(msg, file=sys.stderr, flush=True)
 
     # ---- post-processing (MPI-safe) ----
 
@@ -565,7 +588,10 @@ def manufactured_errors(law: str, degree: int, n: int, material: Material, comm=
     u.x.array[:] = g.x.array  # start from the interpolant: Newton converges in a few steps
     problem = NonlinearProblem(residual, u, [bc], ufl.derivative(residual, u, ufl.TrialFunction(V)))
     solver = newton_solver(comm, problem, 1e-12, 25, LU_OPTIONS)
-    its, ok = solver.solve(u)
+    try:
+        its, ok = solver.solve(u)
+    except RuntimeError:  # dolfinx raises when Newton reaches max_it
+        ok = False
     if not ok:
         raise ReferenceSolveError(f"manufactured solution: Newton failed ({law}, P{degree}, n = {n})")
     dx = ufl.dx(metadata={"quadrature_degree": 2 * degree + 6})

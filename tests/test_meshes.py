@@ -1,6 +1,7 @@
 """meshes: generators, stored meshes and their hashes, I/O, validation, quality, regions."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -38,6 +39,150 @@ def test_io_round_trip(tmp_path, ext):
     back = read_mesh(write_mesh(m, tmp_path / f"beam.{ext}"))
     assert np.array_equal(back.points, m.points) and np.array_equal(back.tets, m.tets)
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp")]
+
+
+@pytest.mark.parametrize(
+    "name, fmt",
+    [
+        ("beam22.msh", "gmsh22"),
+        ("beam41.msh", "gmsh"),
+        ("beam.vtk", "vtk"),
+        ("beam.vtu", "vtu"),
+        ("beam.xdmf", "xdmf"),
+        ("beam.mesh", "medit"),
+    ],
+)
+def test_every_format_a_user_has_is_read(tmp_path, name, fmt):
+    """gmsh 2.2 and 4.1, legacy VTK, VTU, XDMF (HDF5 data) and medit, as other tools write them."""
+    import meshio
+
+    m = stored_mesh("beam")
+    meshio.write(tmp_path / name, meshio.Mesh(m.points, [("tetra", m.tets)]), file_format=fmt)
+    back = read_mesh(tmp_path / name)
+    assert np.allclose(back.points, m.points, rtol=0, atol=1e-15) and np.array_equal(back.tets, m.tets)
+    assert back.notes == ()
+
+
+SOFA_LIVER = Path(__file__).parents[1] / "verification" / "scenes" / "data" / "sofa-liver2.msh"
+
+
+def test_gmsh_format_1_real_mesh():
+    """SOFA's liver2.msh ($NOD/$ELM), which meshio cannot read (it raised SystemExit)."""
+    m = read_mesh(SOFA_LIVER)
+    assert (m.n_vertices, m.n_tets) == (507, 1493)
+    assert m.parts()[0] == 1 and m.notes == ()
+    assert m.volumes().min() > 0
+    scaled = read_mesh(SOFA_LIVER, scale=0.1)
+    assert np.allclose(scaled.points, 0.1 * m.points, rtol=1e-15)
+    assert scaled.quality()["total_volume_m3"] == pytest.approx(1e-3 * m.quality()["total_volume_m3"], rel=1e-12)
+
+
+def _gmsh1(path, points, tets, labels=None):
+    """Write a gmsh format 1 file (node labels arbitrary, as in SOFA's files)."""
+    labels = np.arange(1, len(points) + 1) * 7 if labels is None else labels
+    lines = ["$NOD", str(len(points))]
+    lines += [f"{lab} {x!r} {y!r} {z!r}" for lab, (x, y, z) in zip(labels, points, strict=True)]
+    lines += ["$ENDNOD", "$ELM", str(len(tets))]
+    lines += [f"{i + 1} 4 1 1 4 " + " ".join(str(labels[v]) for v in t) for i, t in enumerate(tets)]
+    lines += ["$ENDELM"]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_what_real_files_contain_is_repaired_and_said(tmp_path):
+    """Duplicate vertices, an unreferenced vertex, a duplicate tetrahedron and both orientations in one
+    file: the repaired mesh is the clean one, and each repair is named."""
+    clean = structured_box([0.02, 0.01, 0.01], [2, 1, 1])
+    n = clean.n_vertices
+    points = np.vstack([clean.points, clean.points[:3], [[5.0, 5.0, 5.0]]])  # 3 copies, 1 stray vertex
+    tets = clean.tets.copy()
+    tets[0] = [n, n + 1, n + 2, tets[0][3]] if set(tets[0][:3]) == {0, 1, 2} else tets[0]
+    tets[1::2] = tets[1::2][:, [0, 1, 3, 2]]  # every other tetrahedron the other way round
+    tets = np.vstack([tets, tets[4:5]])  # one twice
+    m = read_mesh(_gmsh1(tmp_path / "messy.msh", points, tets))
+    notes = " | ".join(m.notes)
+    assert "duplicate tetrahedra" in notes and "turned" in notes and "both orientations" in notes
+    assert "no tetrahedron uses" in notes
+    assert (m.n_vertices, m.n_tets) == (n, clean.n_tets)
+    assert np.all(m.volumes() > 0) and m.quality()["total_volume_m3"] == pytest.approx(2e-6, rel=1e-12)
+
+
+def test_coincident_vertices_are_merged(tmp_path):
+    """Two halves of a box meshed apart, their shared face's vertices written twice: one body."""
+    clean = structured_box([0.02, 0.01, 0.01], [2, 1, 1])
+    right = clean.points[:, 0] > 0.015
+    face = np.isclose(clean.points[:, 0], 0.01)
+    copy = np.flatnonzero(face)
+    points = np.vstack([clean.points, clean.points[copy]])
+    remap = np.arange(clean.n_vertices)
+    remap[copy] = clean.n_vertices + np.arange(len(copy))
+    tets = clean.tets.copy()
+    in_right = right[tets].any(axis=1)
+    tets[in_right] = remap[tets[in_right]]
+    m = read_mesh(_gmsh1(tmp_path / "halves.msh", points, tets))
+    assert f"merged {len(copy)} duplicate vertices" in m.notes
+    assert m.parts()[0] == 1 and m.n_vertices == clean.n_vertices
+
+
+def test_disconnected_parts_are_counted_and_a_free_one_is_an_error(tmp_path):
+    from verification.scene import SceneError, load_scene
+
+    a = structured_box([0.01, 0.01, 0.01], 1)
+    points = np.vstack([a.points, a.points + [0.05, 0.0, 0.0]])
+    tets = np.vstack([a.tets, a.tets + a.n_vertices])
+    mesh_file = _gmsh1(tmp_path / "two.msh", points, tets)
+    m = read_mesh(mesh_file)
+    assert m.parts()[0] == 2 and "2 disconnected parts" in m.notes
+    (tmp_path / "two.toml").write_text(
+        f'[mesh]\ngenerator = "file"\nfile = "{mesh_file.name}"\n'
+        '[material]\nlaw = "linear"\nyoung = 1e4\npoisson = 0.3\ndensity = 1000.0\n'
+        "[[fixed]]\nbox = [[-1e-9, -1, -1], [1e-9, 1, 1]]\n"
+        '[[load]]\nkind = "gravity"\nvalue = [0, 0, -9.81]\n'
+    )
+    with pytest.raises(
+        SceneError, match=r"two\.toml: mesh\.file: part 2 of the mesh's 2 disconnected parts \(8 vertices"
+    ):
+        _ = load_scene(tmp_path / "two.toml").mesh
+
+
+def test_degenerate_tetrahedron_in_a_file_is_named_with_its_quality(tmp_path):
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1e-12]], float)
+    with pytest.raises(InvalidMeshError, match=r"flat\.msh: tetrahedron 1 .* degenerate .* of a regular tetrahedron's"):
+        read_mesh(_gmsh1(tmp_path / "flat.msh", pts, np.array([[0, 1, 2, 3], [0, 1, 2, 4]])))
+
+
+@pytest.mark.parametrize(
+    "text, needle",
+    [
+        ("$NOD\n2\n1 0 0 0\n", r"\$NOD announces 2 entries but the file ends"),
+        ("$NOD\n1\n1 0 zero 0\n$ENDNOD\n$ELM\n0\n$ENDELM\n", r"line 3: cannot read"),
+        (
+            "$NOD\n1\n1 0 0 0\n$ENDNOD\n$ELM\n1\n1 4 1 1 4 1 2 3 4\n$ENDELM\n",
+            r"a tetrahedron refers to node 2, which \$NOD",
+        ),
+        ("$NOD\n1\n1 0 0 0\n$ENDNOD\n", r"no \$ELM section"),
+    ],
+)
+def test_broken_gmsh_format_1_files(tmp_path, text, needle):
+    (tmp_path / "bad.msh").write_text(text)
+    with pytest.raises(InvalidMeshError, match=r"bad\.msh: gmsh format 1: " + needle):
+        read_mesh(tmp_path / "bad.msh")
+
+
+def test_every_reader_exception_is_an_input_error(tmp_path, monkeypatch):
+    """meshio raises SystemExit for some files, and many other types: each becomes one InvalidMeshError."""
+    import meshio
+
+    (tmp_path / "x.vtu").write_text("not xml at all")
+    with pytest.raises(InvalidMeshError, match=r"x\.vtu: cannot read it as a mesh"):
+        read_mesh(tmp_path / "x.vtu")
+
+    def exits(*args, **kwargs):
+        raise SystemExit("unknown file format")
+
+    monkeypatch.setattr(meshio, "read", exits)
+    with pytest.raises(InvalidMeshError, match=r"x\.vtu: cannot read it as a mesh \(unknown file format\)"):
+        read_mesh(tmp_path / "x.vtu")
 
 
 def test_non_tetrahedral_file_is_an_error(tmp_path):

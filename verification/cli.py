@@ -1,8 +1,10 @@
 """The ``tissuebench`` command (DESIGN.md section 5).
 
-Exit status: 0 on success, 1 when a run fails (divergence, a solver failure), 2 for bad input (a scene
-file, a mesh, an option), with a one-line message on stderr. With --json, stdout carries one JSON
-object and nothing else.
+Exit status: 0 on success; 1 when a model's run blows up (divergence: the step, dt and the critical
+one are named); 2 for input the tool cannot use (a scene file, a mesh, an option, a gates file, or a
+problem the reference or the model cannot bring to equilibrium as stated), with one line on stderr that
+names the file, the key or the element and the value. Any other exception is a bug and keeps its
+traceback. With --json, stdout carries one JSON object and nothing else.
 """
 
 from __future__ import annotations
@@ -13,10 +15,10 @@ import logging
 import sys
 from pathlib import Path
 
-from meshes import InvalidMeshError
-from realtime import INTEGRATORS, MODELS, DivergenceError, MaterialError
+from realtime import INTEGRATORS, MODELS, DivergenceError, InputError, NotConvergedError
+from reference.errors import ReferenceSolveError
 
-from .scene import SceneError, builtin_scenes, load_scene
+from .scene import builtin_scenes, load_scene
 
 
 def _print_json(obj) -> None:
@@ -68,7 +70,12 @@ def cmd_reference(args) -> int:
 
     scene = load_scene(args.scene)
     res = reference_result(
-        scene, degree=args.degree, refine=args.refine, estimate=not args.no_estimate, use_cache=not args.no_cache
+        scene,
+        degree=args.degree,
+        refine=args.refine,
+        estimate=not args.no_estimate,
+        use_cache=not args.no_cache,
+        newton_steps=args.load_steps,
     )
     from mpi4py import MPI
 
@@ -116,9 +123,12 @@ def cmd_run(args) -> int:
     if args.json:
         _print_json({**summary, "meta": m})
     else:
+        # quasi-static models have no time step, dynamic runs no settling
+        step = "quasi-static update" if m["dt"] is None else f"dt = {m['dt']:.3g} s"
+        crit = f" (critical {m['dt_crit']:.3g} s)" if m.get("dt_crit") is not None else ""
+        settle = f"settled in {m['static']['steps']} steps, " if scene.time.mode == "static" else ""
         print(
-            f"{scene.name} / {args.model}: dt = {m['dt']:.3g} s (critical {m['dt_crit']:.3g} s), "
-            f"{m['step_us']:.1f} us/step, settled in {m['static']['steps']} steps, "
+            f"{scene.name} / {args.model}: {step}{crit}, {m['step_us']:.1f} us/step, {settle}"
             f"max |u| = {summary['max_displacement']:.4g} m" + (f", written to {args.out}" if args.out else "")
         )
     return 0
@@ -270,10 +280,47 @@ def cmd_bench(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors on one line (the usage is in --help) and exit status 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def _positive(text: str) -> float:
+    """A finite number > 0, for options such as --dt and --tol."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (value > 0.0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number > 0")
+    return value
+
+
+def _whole(lo: int, hi: int | None = None):
+    """An argparse type: a whole number in lo..hi."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if value < lo or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(
+                f"{text!r} must be {lo} or more" if hi is None else f"{text!r} must be {lo} to {hi}"
+            )
+        return value
+
+    return parse
+
+
+_count = _whole(1)
+_level = _whole(0, 4)  # each refinement has 8 times the cells
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="tissuebench", description="What real-time soft-tissue models give up for their speed."
-    )
+    p = _Parser(prog="tissuebench", description="What real-time soft-tissue models give up for their speed.")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("scenes", help="list built-in scenes")
@@ -283,7 +330,13 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("reference", help="solve a scene's ground truth with dolfinx")
     s.add_argument("scene")
     s.add_argument("--degree", type=int, choices=(1, 2), default=2)
-    s.add_argument("--refine", type=int, default=0)
+    s.add_argument("--refine", type=_level, default=0)
+    s.add_argument(
+        "--load-steps",
+        type=_count,
+        default=1,
+        help="first load increment 1/N of a non-linear static solve (more for a hard problem; default 1)",
+    )
     s.add_argument("--out", help="write the result file (.npz)")
     s.add_argument("--no-estimate", action="store_true", help="skip the refined solve behind ref_err_estimate")
     s.add_argument("--no-cache", action="store_true")
@@ -297,14 +350,14 @@ def build_parser() -> argparse.ArgumentParser:
         s = sub.add_parser(name, help=helptext)
         s.add_argument("scene")
         s.add_argument("--model", required=True, choices=sorted(MODELS))
-        s.add_argument("--dt", type=float, help="time step, s (default 0.9 x the critical one)")
+        s.add_argument("--dt", type=_positive, help="time step, s (default 0.9 x the critical one)")
         s.add_argument("--integrator", default="symplectic-euler", choices=sorted(INTEGRATORS))
         s.add_argument("--json", action="store_true")
         if name == "run":
             s.add_argument("--out", help="write the result file (.npz)")
         else:
             s.add_argument("--degree", type=int, choices=(1, 2), default=2, help="reference degree")
-            s.add_argument("--refine", type=int, default=0, help="reference refinement level")
+            s.add_argument("--refine", type=_level, default=0, help="reference refinement level")
         s.set_defaults(func=func)
 
     s = sub.add_parser("report", help="HTML report with plots and data")
@@ -317,7 +370,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", help="report directory (default reports/NAME)")
     s.add_argument(
         "--fractions",
-        type=float,
+        type=_positive,
         nargs="+",
         default=[0.25, 0.5, 0.9, 1.1],
         help="time steps as fractions of each model's critical step",
@@ -327,8 +380,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("sweep", help="error against step time for models x time steps, with the Pareto front")
     s.add_argument("scene")
     s.add_argument("--models", nargs="+", choices=sorted(MODELS))
-    s.add_argument("--fractions", type=float, nargs="+", help="time steps as fractions of the critical one")
-    s.add_argument("--dts", type=float, nargs="+", help="time steps in seconds")
+    s.add_argument("--fractions", type=_positive, nargs="+", help="time steps as fractions of the critical one")
+    s.add_argument("--dts", type=_positive, nargs="+", help="time steps in seconds")
     s.add_argument("--integrator", default="symplectic-euler", choices=sorted(INTEGRATORS))
     s.add_argument("--no-largest-stable", action="store_true", help="skip the search for the largest stable step")
     s.add_argument("--csv", help="also write the table as CSV")
@@ -340,7 +393,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scene")
     s.add_argument("--in", dest="in_", choices=("space", "time"), default="space")
     s.add_argument("--models", nargs="+", choices=sorted(MODELS))
-    s.add_argument("--levels", type=int, default=3, help="mesh levels h, h/2, ... (space)")
+    s.add_argument("--levels", type=_count, default=3, help="mesh levels h, h/2, ... (space)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_converge)
 
@@ -349,15 +402,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument("scene")
     s.add_argument("--models", nargs="+", choices=sorted(MODELS))
-    s.add_argument("--tol", type=float, default=0.1, help="rel_l2 above which a model is called inaccurate")
+    s.add_argument("--tol", type=_positive, default=0.1, help="rel_l2 above which a model is called inaccurate")
     s.add_argument("--no-cache", action="store_true")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_stability)
 
     s = sub.add_parser("advise", help="the cheapest model, integrator and dt meeting a tolerance at a rate")
     s.add_argument("scene")
-    s.add_argument("--tol", type=float, required=True, help="largest acceptable error (relative)")
-    s.add_argument("--rate", type=float, required=True, help="update rate the model must sustain, Hz")
+    s.add_argument("--tol", type=_positive, required=True, help="largest acceptable error (relative)")
+    s.add_argument("--rate", type=_positive, required=True, help="update rate the model must sustain, Hz")
     s.add_argument("--metric", default="rel_l2", choices=("rel_l2", "surface_rel_l2", "reaction_rel_err"))
     s.add_argument("--no-cache", action="store_true")
     s.add_argument("--json", action="store_true")
@@ -377,7 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("bench", help="performance benchmark: microseconds per step of every model")
     s.add_argument("--meshes", nargs="+", default=["liver", "liver-x10"], help="stored meshes to run on")
-    s.add_argument("--repeats", type=int, default=15)
+    s.add_argument("--repeats", type=_count, default=15)
     s.add_argument("--out", help="also write the JSON to this file")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_bench)
@@ -387,17 +440,26 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     logging.getLogger().setLevel(logging.WARNING)  # FFCx's JIT logs its compiler calls at INFO
     args = build_parser().parse_args(argv)
+    where = f"{args.scene}: " if isinstance(getattr(args, "scene", None), str) else ""
     try:
         return args.func(args)
-    except (SceneError, InvalidMeshError, MaterialError, FileNotFoundError) as exc:
-        print(f"tissuebench: {exc}", file=sys.stderr)
-        return 2
+    except InputError as exc:  # the project's own input errors name the file, key or element themselves
+        return _fail(f"tissuebench: {_one_line(exc)}", 2)
+    except FileNotFoundError as exc:
+        return _fail(f"tissuebench: {exc.filename or ''}: {exc.strerror or _one_line(exc)}", 2)
+    except (ReferenceSolveError, NotConvergedError) as exc:  # the problem as stated has no equilibrium we reach
+        return _fail(f"tissuebench: {where}{_one_line(exc)}", 2)
     except DivergenceError as exc:
-        print(f"tissuebench: {exc}", file=sys.stderr)
-        return 1
-    except (NotImplementedError, ValueError) as exc:
-        print(f"tissuebench: {exc}", file=sys.stderr)
-        return 2
+        return _fail(f"tissuebench: {where}{_one_line(exc)}", 1)
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+def _fail(message: str, status: int) -> int:
+    print(message, file=sys.stderr)
+    return status
 
 
 if __name__ == "__main__":

@@ -9,9 +9,12 @@ a baseline a measurement).
 
 from __future__ import annotations
 
+import math
 import time
 import tomllib
 from pathlib import Path
+
+from realtime import INTEGRATORS, MODELS
 
 from .results import atomic_write_text
 from .runner import REFERENCE_DEFAULTS, git_commit
@@ -38,8 +41,22 @@ def load_gates(path: Path) -> list[dict]:
         for k in ("scene", "model", "metric", "bound"):
             if k not in g:
                 raise SceneError(f"{path}: gate[{i}].{k}: missing key")
-        if g["metric"] not in METRICS:
-            raise SceneError(f"{path}: gate[{i}].metric: {g['metric']!r} is not one of {', '.join(METRICS)}")
+        where = f"{path}: gate[{i}]"
+        for k, allowed in (
+            ("metric", METRICS),
+            ("model", tuple(MODELS)),
+            ("integrator", tuple(INTEGRATORS)),
+        ):
+            if k in g and g[k] not in allowed:
+                raise SceneError(f"{where}.{k}: {g[k]!r} is not one of {', '.join(allowed)}")
+        for k in ("bound", "fraction"):
+            v = g.get(k, 1.0)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise SceneError(f"{where}.{k}: must be a finite number > 0, got {v!r}")
+        for k, kind in (("scene", str), ("note", str), ("quick", bool), ("baseline", dict)):
+            if k in g and not isinstance(g[k], kind):
+                raise SceneError(f"{where}.{k}: must be a {kind.__name__}, got {g[k]!r}")
+        load_scene(g["scene"])  # a scene that does not exist or does not load fails here, before any run
     return gates
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from meshes import TetMesh
+from realtime.errors import InputError
 from realtime.geometry import face_areas
 from realtime.model import RAMP_SHAPES, TOOL_ROTATION, TOOL_TRANSLATION, Loading, lumped_masses
 from reference.problem import Displacement, Fixed, Force, Gravity, Problem, Traction, component_mask
@@ -41,7 +42,7 @@ def build_loading(mesh: TetMesh, density: float, problem: Problem) -> Loading:
         elif isinstance(ld, (Force, Traction)):
             faces = region_faces(mesh, ld.region)
             if len(faces) == 0:
-                raise ValueError(
+                raise InputError(
                     f"{type(ld).__name__.lower()} load {ld.region.describe()}: no boundary face in the region"
                 )
             area = face_areas(mesh.points, faces)

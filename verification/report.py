@@ -29,7 +29,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
 from .results import atomic_write_text  # noqa: E402
 from .runner import REFERENCE_DEFAULTS, git_commit, log, reference_result, run_model, versions  # noqa: E402
-from .scene import load_scene  # noqa: E402
+from .scene import SceneError, load_scene  # noqa: E402
 from .studies import (  # noqa: E402
     advise,
     converge_manufactured,
@@ -266,7 +266,7 @@ def scene_section(name: str, fractions: list[float]) -> tuple[str, dict]:
 <h3>Mesh</h3>
 <p>{q["n_vertices"]} vertices, {q["n_tets"]} tetrahedra, sha256 <code>{mesh.sha256()[:16]}</code>; dihedral angles
 {q["min_dihedral_deg"]:.1f} to {q["max_dihedral_deg"]:.1f} degrees, aspect ratio up to {q["max_aspect_ratio"]:.2f},
-edges {q["min_edge_m"] * 1e3:.2f} to {q["max_edge_m"] * 1e3:.2f} mm.</p>
+edges {q["min_edge_m"] * 1e3:.2f} to {q["max_edge_m"] * 1e3:.2f} mm.{_repairs(mesh)}</p>
 <h3>Reference</h3>
 <p>dolfinx, law <b>{ref.meta["law"]}</b>, P{ref.meta["degree"]} at refinement {ref.meta["refine"]},
 LU by {html.escape(str((ref.meta.get("petsc_options") or {}).get("pc_factor_mat_solver_type", "?")))};
@@ -291,6 +291,11 @@ Solved at commit {html.escape(str(ref.meta.get("commit")))}, {html.escape(str(re
         "sweep": sw,
         "advice": adv,
     }
+
+
+def _repairs(mesh) -> str:
+    """What reading the mesh file repaired, as a sentence (empty for a clean mesh)."""
+    return f" Read from its file with repairs: {html.escape('; '.join(mesh.notes))}." if mesh.notes else ""
 
 
 def convergence_section() -> tuple[str, dict]:
@@ -373,8 +378,16 @@ def write_report(
     scenes = scenes or DEFAULT_SCENES
     default = scenes == DEFAULT_SCENES
     studies = default if studies is None else studies
-    name = "default" if default else "-".join(scenes)
+    # every scene is read before any compute, so a bad one fails at once; a scene given as a path is
+    # named by its scene name, never by its path
+    name = "default" if default else "-".join(load_scene(s).name for s in scenes)
     outdir = Path(out) if out else REPORTS / name
+    if outdir.exists() and not outdir.is_dir():
+        raise SceneError(f"{outdir}: the report directory is an existing file")
+    try:
+        outdir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SceneError(f"{outdir}: cannot create the report directory ({exc.strerror})") from None
     t0 = time.perf_counter()
     sections, data = [], {"scenes": []}
     for s in scenes:
@@ -393,7 +406,8 @@ def write_report(
         "wall_s": time.perf_counter() - t0,
     }
     data["meta"] = meta
-    nav = "".join(f"<a href='#{html.escape(s)}'>{html.escape(s)}</a> " for s in scenes)
+    names = [d["scene"] for d in data["scenes"]]
+    nav = "".join(f"<a href='#{html.escape(s)}'>{html.escape(s)}</a> " for s in names)
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>tissuebench report: {html.escape(name)}</title>
 <style>{CSS}</style></head><body>
 <h1>tissuebench report: {html.escape(name)}</h1>

@@ -19,6 +19,7 @@ import numpy as np
 
 from meshes import InvalidMeshError, TetMesh, get_mesh, read_mesh
 from meshes.regions import AllRegion, BoxRegion, Region, SphereRegion, TagRegion
+from realtime.errors import InputError
 from realtime.material import LAWS, Material, MaterialError
 from realtime.model import RAMP_SHAPES
 from reference.problem import COMPONENTS, Displacement, Fixed, Force, Gravity, Problem, Traction, component_mask
@@ -30,13 +31,15 @@ MESH_PARAMS = {
     "cylinder": {"radius": "length", "length": "length", "h": "length"},
     "tube": {"inner_radius": "length", "outer_radius": "length", "length": "length", "h": "length"},
     "liver": {"scale": "positive", "h": "length"},
-    "file": {"file": "str"},
+    "file": {"file": "str", "scale": "positive"},
 }
+#: Mesh keys that may be left out, with their default.
+MESH_OPTIONAL = {("file", "scale"): 1.0}
 LOAD_KINDS = ("gravity", "force", "traction", "displacement")
 MODES = ("static", "dynamic")
 
 
-class SceneError(ValueError):
+class SceneError(InputError):
     """A scene file that cannot be used; ``str()`` is the one-line message."""
 
 
@@ -258,7 +261,7 @@ def parse(path: Path, data: dict) -> Scene:
         elif kind == "str":
             spec[k] = mr.string(k)
         else:
-            spec[k] = mr.number(k, positive=True)
+            spec[k] = mr.number(k, MESH_OPTIONAL.get((gen, k), ...), positive=True)
     mr.finish(("generator",) + tuple(MESH_PARAMS[gen]))
 
     mat = _Reader(path, top.get("material"), "material")
@@ -300,6 +303,14 @@ def parse(path: Path, data: dict) -> Scene:
     )
     damping.finish(("mass", "stiffness"))
     tr.finish(("mode", "end", "output_every", "damping"))
+    if mode == "dynamic":
+        n_out = tspec.end / tspec.output_every
+        if abs(n_out - round(n_out)) > 1e-9 * max(n_out, 1.0) or round(n_out) < 1:
+            tr.fail(
+                "end",
+                f"{tspec.end!r} s is not a whole multiple of output_every = {tspec.output_every!r} s "
+                f"({n_out:.6g} outputs): both sides are compared at the output times 0, output_every, ..., end",
+            )
     manufactured = None
     if top.has("manufactured"):
         mr2 = _Reader(path, top.get("manufactured"), "manufactured")
@@ -357,28 +368,45 @@ def build_mesh(spec: dict, scene_path: Path) -> TetMesh:
         if not f.is_absolute():
             f = scene_path.parent / f
         try:
-            return read_mesh(f)
+            return read_mesh(f, scale=spec.get("scale", 1.0))
         except (InvalidMeshError, FileNotFoundError) as exc:
             raise SceneError(f"{scene_path}: mesh.file: {exc}") from None
     params = {k: v for k, v in spec.items() if k != "generator"}
     try:
         return get_mesh(gen, params)
-    except (InvalidMeshError, ValueError) as exc:
+    except InvalidMeshError as exc:
         raise SceneError(f"{scene_path}: mesh: {exc}") from None
+    except ValueError as exc:  # the generators' own checks of their parameters (tube radii)
+        raise SceneError(f"{scene_path}: mesh: {exc}") from None
+    except Exception as exc:  # gmsh raises bare Exceptions when it cannot mesh the geometry
+        raise SceneError(f"{scene_path}: mesh: gmsh cannot mesh {gen} {params} ({exc})") from None
 
 
 def check_regions(scene: Scene, mesh: TetMesh) -> None:
     """Every region must hold a vertex; no component of a vertex may be both fixed and driven by a
-    tool (a roller on y beside a tool pulling x is fine)."""
+    tool (a roller on y beside a tool pulling x is fine); on a static scene every disconnected part of
+    the mesh must be held by a fixed region or a tool (a free part has no equilibrium)."""
     fixed = np.zeros((mesh.n_vertices, 3), dtype=bool)
+    held = np.zeros(mesh.n_vertices, dtype=bool)
     for i, fx in enumerate(scene.problem.fixed):
         idx = _vertices(scene, mesh, fx.region, f"fixed[{i}]")
         fixed[idx] |= component_mask(fx.components).astype(bool)
+        held[idx] = True
     for i, ld in enumerate(scene.problem.loads):
         if isinstance(ld, Gravity):
             continue
         idx = _vertices(scene, mesh, ld.region, f"load[{i}]")
+        if isinstance(ld, (Force, Traction)):
+            inside = np.zeros(mesh.n_vertices, dtype=bool)
+            inside[idx] = True
+            if not np.all(inside[mesh.boundary], axis=1).any():
+                raise SceneError(
+                    f"{scene.path}: load[{i}]: the region {ld.region.describe()} holds {len(idx)} vertices but "
+                    f"no boundary triangle with all three of its vertices inside, so the {ld.__class__.__name__.lower()} "
+                    "has no surface to act on; enlarge the region"
+                )
         if isinstance(ld, Displacement):
+            held[idx] = True
             clash = fixed[idx] & component_mask(ld.components).astype(bool)
             if clash.any():
                 k = int(np.argmax(clash.any(axis=1)))
@@ -386,6 +414,17 @@ def check_regions(scene: Scene, mesh: TetMesh) -> None:
                 raise SceneError(
                     f"{scene.path}: load[{i}]: the displacement region drives component {c} of vertex {v} "
                     f"{mesh.points[v].tolist()}, which a fixed region holds; make them disjoint"
+                )
+    n_parts, part = mesh.parts()
+    if n_parts > 1 and scene.time.mode == "static" and not scene.manufactured:
+        for k in range(n_parts):
+            if not held[part == k].any():
+                pts = mesh.points[part == k]
+                raise SceneError(
+                    f"{scene.path}: mesh.file: part {k + 1} of the mesh's {n_parts} disconnected parts "
+                    f"({len(pts)} vertices, from {np.round(pts.min(axis=0), 6).tolist()} to "
+                    f"{np.round(pts.max(axis=0), 6).tolist()}) touches no fixed region and no tool: "
+                    "it has no static equilibrium"
                 )
 
 

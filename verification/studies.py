@@ -25,7 +25,7 @@ from realtime.models import QUASI_STATIC
 
 from .results import atomic_write_text
 from .runner import REFERENCE_DEFAULTS, cache_dir, compare, digest, reference_result
-from .scene import Scene
+from .scene import Scene, SceneError
 
 #: Time steps a sweep tries by default, as fractions of each model's critical step.
 DEFAULT_FRACTIONS = (0.25, 0.5, 0.9)
@@ -169,7 +169,7 @@ def sweep(
         fractions = list(DEFAULT_FRACTIONS)
     unknown = [m for m in models if m not in MODELS]
     if unknown:
-        raise ValueError(f"model = {unknown[0]!r}: must be one of {', '.join(MODELS)}")
+        raise SceneError(f"model = {unknown[0]!r}: must be one of {', '.join(MODELS)}")
     rank, size = (comm.rank, comm.size) if comm is not None else (0, 1)
     ref = reference_result(scene, **REFERENCE_DEFAULTS)  # collective under MPI; cached afterwards
     plan = sweep_plan(models, fractions, dts, integrator)
@@ -483,7 +483,7 @@ def stability(scene: Scene, models=None, tol: float = 0.1, use_cache: bool = Tru
     follow (buckling, StVK softening) it gives the model's own fate: settled (with its inverted
     elements), diverged or not settled."""
     if scene.time.mode != "static":
-        raise ValueError(f"{scene.path}: stability studies a static scene (time.mode = static)")
+        raise SceneError(f"{scene.path}: stability studies a static scene (time.mode = static)")
     models = list(models or MODELS)
     explicit = [m for m in models if m not in QUASI_STATIC]
     cases = []
@@ -603,6 +603,11 @@ def advise(scene: Scene, tol: float, rate: float, metric: str = "rel_l2", use_ca
     """The cheapest (model, integrator, dt) whose ``metric`` is at most ``tol`` and whose step runs at
     ``rate`` Hz or more on this machine, with the runner-up (the next feasible model) and why the
     cheaper ones failed. Candidates are the rows of ``sweep`` (all models, default steps)."""
+    if metric == "reaction_rel_err" and not scene.problem.tools:
+        raise SceneError(
+            f"{scene.path}: --metric reaction_rel_err measures the tool's force, and this scene has no "
+            "displacement load (tool); use rel_l2 or surface_rel_l2"
+        )
     res = sweep(scene, use_cache=use_cache, comm=comm)
     if not res:
         return {}
@@ -719,9 +724,9 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
     from reference.driver import solve_static as reference_static
 
     if scene.time.mode != "static":
-        raise ValueError(f"{scene.path}: converge --in space studies static scenes")
+        raise SceneError(f"{scene.path}: converge --in space studies static scenes")
     if scene.mesh_spec["generator"] == "file":
-        raise ValueError(f"{scene.path}: converge --in space regenerates the mesh: needs a generator, not a file")
+        raise SceneError(f"{scene.path}: converge --in space regenerates the mesh: needs a generator, not a file")
     from meshes import generate
 
     params = {k: v for k, v in scene.mesh_spec.items() if k != "generator"}
@@ -768,7 +773,7 @@ def converge_time(scene: Scene, models=("linear-tm",), integrators=("symplectic-
     from .runner import run_model
 
     if scene.time.mode != "dynamic":
-        raise ValueError(f"{scene.path}: converge --in time needs a dynamic scene (time.mode = dynamic)")
+        raise SceneError(f"{scene.path}: converge --in time needs a dynamic scene (time.mode = dynamic)")
     out = {"scene": scene.name, "kind": "time", "series": []}
     for m in models:
         for integ in integrators:
