@@ -659,8 +659,9 @@ def solve_static(
     while taken < max_steps:
         integ.alpha = alpha
         good = state.copy()
+        n = min(chunk, max_steps - taken)  # the budget is a number of steps, not of chunks
         try:
-            integ.step(model, state, dt, chunk, dt_crit=dt_crit)
+            integ.step(model, state, dt, n, dt_crit=dt_crit)
         except DivergenceError:
             if not adaptive or model.linear:
                 raise
@@ -673,7 +674,7 @@ def solve_static(
             dt = safety * dt_crit
             state.v[:] = 0.0
             continue
-        taken += chunk
+        taken += n
         f = model.internal_force(state.u)
         r = (f + lo.external_force) * free
         scale = max(fmag, float(np.linalg.norm(model.reaction(state.u))), 1e-300)

@@ -208,7 +208,9 @@ class ElasticityProblem:
         if reason < 0:
             raise ReferenceSolveError(f"linear solve failed: PETSc converged reason {reason}")
         self.timings["solve_s"] = time.perf_counter() - t0
-        return {"solver": "linear", "petsc_options": opts, "iterations": 1}
+        # recorded, not enforced: linear elasticity has no notion of inversion, but a user should see
+        # when its answer means elements turned inside out
+        return {"solver": "linear", "petsc_options": opts, "iterations": 1, "min_det_F": self.min_det_F()}
 
     def solve_newton(
         self,
@@ -244,19 +246,25 @@ class ElasticityProblem:
             except RuntimeError:  # dolfinx raises when Newton reaches max_it (error_on_nonconvergence)
                 its, ok = max_it, False
             elapsed = time.perf_counter() - t0
-            if ok and np.all(np.isfinite(self.u.x.array)):
-                history.append({"load": target, "iterations": int(its)})
+            ok = ok and bool(np.all(np.isfinite(self.u.x.array)))
+            # a root with inverted elements solves the equations but is no deformation of the body
+            # (StVK has one under strong compression): it counts as a failure
+            jmin = self.min_det_F() if ok else float("nan")
+            if ok and jmin > 0.0:
+                history.append({"load": target, "iterations": int(its), "min_det_F": jmin})
                 self._log(f"reference: load {target:.4g}: {int(its)} Newton iterations ({elapsed:.1f} s)")
                 done = target
                 inc = min(2.0 * inc, 1.0)
                 continue
             self.u.x.array[:] = saved
             inc *= 0.5
-            self._log(f"reference: load {target:.4g}: Newton failed, load increment halved to {inc:.3g}")
+            what = "Newton failed" if not ok else f"Newton found inverted elements (min det F = {jmin:.3g})"
+            self._log(f"reference: load {target:.4g}: {what}, load increment halved to {inc:.3g}")
             if inc < min_increment or elapsed > time_limit:
                 why = f"increments down to {inc:.1e}" if inc < min_increment else f"{elapsed:.0f} s, the limit"
                 raise ReferenceSolveError(
-                    f"reference: Newton did not converge beyond load fraction {done:.4g} ({why}; law = "
+                    f"reference: Newton found no equilibrium without inverted elements beyond load fraction "
+                    f"{done:.4g} ({why}; law = "
                     f"{self.material.law}, P{self.degree}, refine {self.refine}, {self.n_dofs} dofs): the load may "
                     f"be too large for this mesh and law, or elements invert; try a smaller load, a finer mesh, "
                     f"law = linear, or more load steps (--load-steps {max(4 * steps, 10)})"
@@ -268,6 +276,7 @@ class ElasticityProblem:
             "load_steps": history,
             "iterations": sum(h["iterations"] for h in history),
             "rtol": rtol,
+            "min_det_F": history[-1]["min_det_F"],
         }
 
     def solve(self, **kwargs) -> dict:
@@ -453,6 +462,15 @@ class ElasticityProblem:
         """Move every tool to where its ramp puts it at time t (s)."""
         for tool, c, g in self._tool_functions:
             g.interpolate(lambda x, tool=tool, c=c: tool.value(x.T, t)[:, c])
+
+    def min_det_F(self) -> float:
+        """The smallest det F = det(I + grad u) at the vertices and centroids of the cells (MPI-reduced).
+        For P1 it is exact (F is constant per cell); for P2, det F is a cubic and these five points sample it."""
+        points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.25, 0.25, 0.25]], dtype=np.float64)
+        expr = fem.Expression(ufl.det(ufl.Identity(3) + ufl.grad(self.u)), points)
+        n_local = self.domain.topology.index_map(3).size_local
+        local = expr.eval(np.arange(n_local, dtype=np.int32)).min() if n_local else np.inf
+        return float(self.comm.allreduce(float(local), op=MPI.MIN))
 
     def _log(self, msg: str) -> None:
         """Progress to stderr, from rank 0 only."""

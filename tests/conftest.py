@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 import pytest
 
-logging.getLogger().setLevel(logging.WARNING)  # FFCx's JIT logs its compiler calls at INFO
+from verification.cli import quiet_compilers
+
+quiet_compilers()  # FFCx's JIT logs its compiler calls at INFO
 
 
 def pytest_collection_modifyitems(config, items):

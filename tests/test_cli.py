@@ -64,3 +64,62 @@ def test_report_has_plots_and_data(tmp_path):
     assert data["scenes"][0]["advice"]["why"]
     assert "<th>Pareto</th>" in text and "<h3>Advisor</h3>" in text
     assert (tmp_path / "r" / "runs.csv").read_text().startswith("scene,model")
+
+
+def _read_pvd(pvd):
+    """(times, [meshio.Mesh per time]) of a ParaView collection, read as ParaView does: the XML, then each
+    listed .vtu."""
+    import xml.etree.ElementTree as ET
+
+    import meshio
+
+    root = ET.parse(pvd).getroot()
+    assert root.get("type") == "Collection"
+    sets = root.find("Collection").findall("DataSet")
+    return [float(d.get("timestep")) for d in sets], [meshio.read(pvd.parent / d.get("file")) for d in sets]
+
+
+def test_compare_vtk_writes_a_paraview_time_series(tmp_path, capsys):
+    """A dynamic scene: one .vtu per output time with both displacements and the error, listed with their
+    times in one .pvd; every value matches the run's own result files."""
+    from verification.scene import load_scene
+
+    scene = load_scene("cantilever-dynamic")
+    args = ["--degree", "1", "--json", "--vtk", str(tmp_path / "vtk")]
+    assert main(["compare", "cantilever-dynamic", "--model", "linear-tm", *args]) == 0
+    out = json.loads(capsys.readouterr().out)
+    times, grids = _read_pvd(tmp_path / "vtk" / "cantilever-dynamic-linear-tm.pvd")
+    n_out = round(scene.time.end / scene.time.output_every) + 1
+    assert times == pytest.approx(np.arange(n_out) * scene.time.output_every, rel=1e-12, abs=1e-15)
+    mesh = scene.mesh
+    for g in grids:
+        assert set(g.point_data) == {"reference_displacement", "model_displacement", "error", "error_magnitude"}
+        assert g.points.shape == (mesh.n_vertices, 3) and g.cells_dict["tetra"].shape == (mesh.n_tets, 4)
+        assert g.point_data["error"].shape == (mesh.n_vertices, 3)
+        assert g.point_data["error_magnitude"].shape == (mesh.n_vertices,)
+        assert np.allclose(
+            g.point_data["error"], g.point_data["model_displacement"] - g.point_data["reference_displacement"]
+        )
+    # the largest pointwise error of the series is the metric compare printed
+    assert max(g.point_data["error_magnitude"].max() for g in grids) == pytest.approx(out["max_err"], rel=1e-12)
+    assert not list((tmp_path / "vtk").glob(".tmp*"))
+
+
+def test_run_and_reference_vtk_to_a_pvd_path(tmp_path, capsys):
+    assert main(["run", "cantilever-pull", "--model", "linear-tm", "--vtk", str(tmp_path / "run.pvd")]) == 0
+    times, grids = _read_pvd(tmp_path / "run.pvd")
+    assert times == [0.0] and list(grids[0].point_data) == ["displacement"]
+    assert main(["reference", "cantilever-pull", "--degree", "1", "--no-estimate", "--vtk", str(tmp_path / "ref")]) == 0
+    times, grids = _read_pvd(tmp_path / "ref" / "cantilever-pull-reference.pvd")
+    assert grids[0].point_data["displacement"].shape == (len(grids[0].points), 3)
+
+
+@pytest.mark.slow
+def test_compare_on_a_real_sofa_liver(capsys):
+    """SOFA's liver2.msh (gmsh format 1) held at its back, under gravity and a tool: every metric."""
+    assert main(["compare", "sofa-liver", "--model", "linear-tm", "--degree", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["status"] == "ok" and out["n_vertices"] == 507 and out["n_tets"] == 1493
+    for k in METRICS:
+        assert out[k] is not None and np.isfinite(out[k]), k
+    assert 0 < out["rel_l2"] < 1 and out["reaction_rel_err"] > 0

@@ -65,6 +65,55 @@ def cmd_scenes(args) -> int:
     return 0
 
 
+def cmd_check(args) -> int:
+    """Read a scene as every command does (mesh, regions, loading, a model) and describe it, solving
+    nothing: the check to run before a long study."""
+    import realtime
+
+    from .loading import build_loading
+
+    scene = load_scene(args.scene)
+    mesh = scene.mesh
+    loading = build_loading(mesh, scene.material.density, scene.problem)
+    model = realtime.build_model("linear-tm", mesh.points, mesh.tets, scene.material, loading)
+    regions = []
+    for i, fx in enumerate(scene.problem.fixed):
+        regions.append(
+            {"table": f"fixed[{i}]", "region": fx.region.describe(), "vertices": len(fx.region.vertices(mesh))}
+        )
+    for i, ld in enumerate(scene.problem.loads):
+        if hasattr(ld, "region"):
+            regions.append(
+                {"table": f"load[{i}]", "region": ld.region.describe(), "vertices": len(ld.region.vertices(mesh))}
+            )
+    m = scene.material
+    out = {
+        "scene": scene.name,
+        "path": str(scene.path),
+        "mode": scene.time.mode,
+        "law": m.law,
+        "mesh": {**mesh.quality(), "sha256": mesh.sha256(), "parts": mesh.parts()[0], "notes": list(mesh.notes)},
+        "regions": regions,
+        "material": {"lambda_pa": m.lam, "mu_pa": m.mu, "wave_speed_m_s": m.wave_speed},
+        "dt_crit_element_s": realtime.element_critical_dt(model),
+    }
+
+    def text(o):
+        q = o["mesh"]
+        lines = [
+            f"{o['scene']} ({o['mode']}, {o['law']}): {q['n_vertices']} vertices, {q['n_tets']} tetrahedra, "
+            f"{q['parts']} part(s), dihedral angles {q['min_dihedral_deg']:.1f} to {q['max_dihedral_deg']:.1f} "
+            f"degrees, aspect ratio up to {q['max_aspect_ratio']:.2f}"
+        ]
+        lines += [f"  mesh repaired: {n}" for n in q["notes"]]
+        lines += [f"  {r['table']}: {r['region']} holds {r['vertices']} vertices" for r in o["regions"]]
+        lines.append(f"  element estimate of the explicit critical step: {o['dt_crit_element_s']:.3g} s")
+        return "\n".join(lines)
+
+    _emit(args, out, text)
+    return 0
+
+
 def cmd_reference(args) -> int:
     from .runner import reference_result
 
@@ -81,6 +130,12 @@ def cmd_reference(args) -> int:
 
     if args.out and MPI.COMM_WORLD.rank == 0:
         res.save(args.out)
+    if args.vtk and MPI.COMM_WORLD.rank == 0:
+        from .vtk import write_series
+
+        write_series(
+            args.vtk, f"{scene.name}-reference", res.points, res.tets, res.times, {"displacement": res.displacement}
+        )
     summary = {
         "scene": scene.name,
         "out": args.out,
@@ -105,9 +160,15 @@ def cmd_run(args) -> int:
     from .runner import run_model
 
     scene = load_scene(args.scene)
-    res = run_model(scene, args.model, dt=args.dt, integrator=args.integrator)
+    res = run_model(scene, args.model, dt=args.dt, integrator=args.integrator, max_steps=args.max_steps)
     if args.out:
         res.save(args.out)
+    if args.vtk:
+        from .vtk import write_series
+
+        write_series(
+            args.vtk, f"{scene.name}-{args.model}", res.points, res.tets, res.times, {"displacement": res.displacement}
+        )
     m = res.meta
     summary = {
         "scene": scene.name,
@@ -138,7 +199,16 @@ def cmd_compare(args) -> int:
     from .runner import compare
 
     scene = load_scene(args.scene)
-    out = compare(scene, args.model, dt=args.dt, integrator=args.integrator, degree=args.degree, refine=args.refine)
+    out = compare(
+        scene,
+        args.model,
+        dt=args.dt,
+        integrator=args.integrator,
+        degree=args.degree,
+        refine=args.refine,
+        max_steps=args.max_steps,
+        vtk=args.vtk,
+    )
     if args.json:
         _print_json(out)
     elif out["status"] != "ok":
@@ -280,6 +350,9 @@ def cmd_bench(args) -> int:
     return 0
 
 
+VTK_HELP = "also write the displacements (and, for compare, the error) at every output time for ParaView: DIR or F.pvd"
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with its errors on one line (the usage is in --help) and exit status 2."""
 
@@ -327,6 +400,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_scenes)
 
+    s = sub.add_parser("check", help="read a scene (mesh, regions, loading) and describe it, solving nothing")
+    s.add_argument("scene")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_check)
+
     s = sub.add_parser("reference", help="solve a scene's ground truth with dolfinx")
     s.add_argument("scene")
     s.add_argument("--degree", type=int, choices=(1, 2), default=2)
@@ -338,6 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="first load increment 1/N of a non-linear static solve (more for a hard problem; default 1)",
     )
     s.add_argument("--out", help="write the result file (.npz)")
+    s.add_argument("--vtk", help=VTK_HELP)
     s.add_argument("--no-estimate", action="store_true", help="skip the refined solve behind ref_err_estimate")
     s.add_argument("--no-cache", action="store_true")
     s.add_argument("--json", action="store_true")
@@ -352,6 +431,8 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--model", required=True, choices=sorted(MODELS))
         s.add_argument("--dt", type=_positive, help="time step, s (default 0.9 x the critical one)")
         s.add_argument("--integrator", default="symplectic-euler", choices=sorted(INTEGRATORS))
+        s.add_argument("--max-steps", type=_count, default=2_000_000, help="steps a static scene may take to settle")
+        s.add_argument("--vtk", help=VTK_HELP)
         s.add_argument("--json", action="store_true")
         if name == "run":
             s.add_argument("--out", help="write the result file (.npz)")
@@ -438,7 +519,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    logging.getLogger().setLevel(logging.WARNING)  # FFCx's JIT logs its compiler calls at INFO
+    quiet_compilers()
     args = build_parser().parse_args(argv)
     where = f"{args.scene}: " if isinstance(getattr(args, "scene", None), str) else ""
     try:
@@ -451,6 +532,18 @@ def main(argv=None) -> int:
         return _fail(f"tissuebench: {where}{_one_line(exc)}", 2)
     except DivergenceError as exc:
         return _fail(f"tissuebench: {where}{_one_line(exc)}", 1)
+
+
+def quiet_compilers() -> None:
+    """Keep FFCx's JIT compiler calls off stderr: cffi lowers the root logger's threshold to INFO while it
+    compiles, so a level is not enough; a filter on the root logger drops those records."""
+    root = logging.getLogger()
+    root.setLevel(logging.WARNING)
+    if not any(getattr(f, "tissuebench", False) for f in root.filters):
+        only_warnings = logging.Filter()
+        only_warnings.filter = lambda record: record.levelno >= logging.WARNING
+        only_warnings.tissuebench = True
+        root.addFilter(only_warnings)
 
 
 def _one_line(exc: BaseException) -> str:

@@ -367,6 +367,20 @@ th{background:#f0f2f5}td.bad,tr.bad td{color:#a00}img{max-width:760px;display:bl
 pre{background:#f6f8fa;padding:1em;font-size:12px}code{font-size:12px}p.advice{background:#eef6ee;padding:.6em}"""
 
 
+def report_dir(scenes: list[str], out: str | None = None) -> tuple[str, Path]:
+    """The report's name and directory, created now. Every scene is read first, so a bad one fails before
+    any compute; a scene given as a path is named by its scene name, never by its path."""
+    name = "default" if scenes == DEFAULT_SCENES else "-".join(load_scene(s).name for s in scenes)
+    outdir = Path(out) if out else REPORTS / name
+    if outdir.exists() and not outdir.is_dir():
+        raise SceneError(f"{outdir}: the report directory is an existing file")
+    try:
+        outdir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SceneError(f"{outdir}: cannot create the report directory ({exc.strerror})") from None
+    return name, outdir
+
+
 def write_report(
     scenes: list[str] | None = None,
     out: str | None = None,
@@ -378,16 +392,7 @@ def write_report(
     scenes = scenes or DEFAULT_SCENES
     default = scenes == DEFAULT_SCENES
     studies = default if studies is None else studies
-    # every scene is read before any compute, so a bad one fails at once; a scene given as a path is
-    # named by its scene name, never by its path
-    name = "default" if default else "-".join(load_scene(s).name for s in scenes)
-    outdir = Path(out) if out else REPORTS / name
-    if outdir.exists() and not outdir.is_dir():
-        raise SceneError(f"{outdir}: the report directory is an existing file")
-    try:
-        outdir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise SceneError(f"{outdir}: cannot create the report directory ({exc.strerror})") from None
+    name, outdir = report_dir(scenes, out)
     t0 = time.perf_counter()
     sections, data = [], {"scenes": []}
     for s in scenes:

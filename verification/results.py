@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from meshes.io import atomic_write
 
 
 @dataclass
@@ -33,12 +34,9 @@ class Result:
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write to ``path`` through a temporary file in the same directory and a rename."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent, prefix=".tmp-")
-        os.close(fd)
-        try:
-            np.savez_compressed(
+        return atomic_write(
+            path,
+            lambda tmp: np.savez_compressed(
                 tmp,
                 points=self.points,
                 tets=self.tets,
@@ -46,12 +44,8 @@ class Result:
                 displacement=self.displacement,
                 reaction=self.reaction,
                 meta=np.array(json.dumps(self.meta, default=_jsonable)),
-            )
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-        return path
+            ),
+        )
 
     @staticmethod
     def load(path: str | os.PathLike) -> Result:
@@ -73,14 +67,4 @@ def _jsonable(x):
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     """Write text through a temporary file and a rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text))

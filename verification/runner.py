@@ -431,11 +431,14 @@ def compare(
     integrator: str = "symplectic-euler",
     reference: Result | None = None,
     max_steps: int = 2_000_000,
+    vtk: str | None = None,
     **ref_options,
 ) -> dict:
     """Metrics of one model run against the scene's reference (DESIGN.md section 6).
 
     A diverging run gives {"status": "diverged", ...} with the step, dt and dt_crit instead of errors.
+    ``vtk`` (a directory or a .pvd path) also writes both displacements and the pointwise error at every
+    output time as one ParaView series.
     """
     ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
     # a quasi-static model has its own update whatever integrator was asked for
@@ -467,6 +470,22 @@ def compare(
         ref.reaction if has_tools else None,
         ref.meta.get("ref_err_estimate"),
     )
+    if vtk is not None:
+        from .vtk import write_series
+
+        write_series(
+            vtk,
+            f"{scene.name}-{model_name}",
+            mesh.points,
+            mesh.tets,
+            ref.times,
+            {
+                "reference_displacement": ref.displacement,
+                "model_displacement": res.displacement,
+                "error": res.displacement - ref.displacement,
+                "error_magnitude": np.linalg.norm(res.displacement - ref.displacement, axis=2),
+            },
+        )
     m = res.meta
     return {
         **base,

@@ -35,6 +35,8 @@ MESH_PARAMS = {
 }
 #: Mesh keys that may be left out, with their default.
 MESH_OPTIONAL = {("file", "scale"): 1.0}
+#: The most tetrahedra a generated mesh may have (estimated before gmsh runs): about 2 GB of P2 reference.
+MAX_TETS = 2_000_000
 LOAD_KINDS = ("gravity", "force", "traction", "displacement")
 MODES = ("static", "dynamic")
 
@@ -104,6 +106,15 @@ def resolve(name_or_path: str) -> Path:
     return scenes[name_or_path]
 
 
+def _is_vec3(v) -> bool:
+    """A list of three finite numbers (booleans are not numbers here)."""
+    return (
+        isinstance(v, list)
+        and len(v) == 3
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+    )
+
+
 class _Reader:
     """Typed access to a TOML table that records the keys it read, so leftovers are errors."""
 
@@ -142,12 +153,8 @@ class _Reader:
 
     def vec3(self, k, default=...):
         v = self.get(k, default)
-        if not (
-            isinstance(v, list)
-            and len(v) == 3
-            and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
-        ):
-            self.fail(k, f"must be a list of 3 numbers, got {v!r}")
+        if not _is_vec3(v):
+            self.fail(k, f"must be a list of 3 finite numbers, got {v!r}")
         return tuple(float(x) for x in v)
 
     def string(self, k, allowed=None, default=...):
@@ -175,8 +182,8 @@ def _region(r: _Reader) -> Region:
     kind = given[0]
     if kind == "box":
         v = r.get("box")
-        if not (isinstance(v, list) and len(v) == 2 and all(isinstance(c, list) and len(c) == 3 for c in v)):
-            r.fail("box", f"must be [[xmin, ymin, zmin], [xmax, ymax, zmax]], got {v!r}")
+        if not (isinstance(v, list) and len(v) == 2 and all(_is_vec3(c) for c in v)):
+            r.fail("box", f"must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] of finite numbers, got {v!r}")
         lo, hi = np.asarray(v[0], float), np.asarray(v[1], float)
         if np.any(lo > hi):
             r.fail("box", f"min corner {lo.tolist()} exceeds max corner {hi.tolist()}")
@@ -263,6 +270,12 @@ def parse(path: Path, data: dict) -> Scene:
         else:
             spec[k] = mr.number(k, MESH_OPTIONAL.get((gen, k), ...), positive=True)
     mr.finish(("generator",) + tuple(MESH_PARAMS[gen]))
+    if gen == "tube" and not spec["inner_radius"] < spec["outer_radius"]:
+        mr.fail("inner_radius", f"{spec['inner_radius']!r} must be below outer_radius = {spec['outer_radius']!r}")
+    if gen != "file":
+        n_tets = _volume(spec) / (spec["h"] ** 3 / (6.0 * math.sqrt(2.0)))
+        if n_tets > MAX_TETS:
+            mr.fail("h", f"{spec['h']!r} m would make about {n_tets:.1e} tetrahedra (the limit is {MAX_TETS:.0e})")
 
     mat = _Reader(path, top.get("material"), "material")
     fields = dict(
@@ -351,13 +364,27 @@ def parse(path: Path, data: dict) -> Scene:
     )
 
 
+def _volume(spec: dict) -> float:
+    """The volume, m^3, of a generator's body (the liver: 1.28 litres at scale 1)."""
+    gen = spec["generator"]
+    if gen == "box":
+        return float(np.prod(spec["size"]))
+    if gen == "cylinder":
+        return math.pi * spec["radius"] ** 2 * spec["length"]
+    if gen == "tube":
+        return math.pi * (spec["outer_radius"] ** 2 - spec["inner_radius"] ** 2) * spec["length"]
+    return 1.28e-3 * spec["scale"] ** 3
+
+
 def load_scene(name_or_path: str | Path) -> Scene:
     """Read and validate a scene by built-in name or path; raises SceneError."""
     path = resolve(str(name_or_path))
     try:
         data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SceneError(f"{path}: not valid TOML ({exc})") from None
+    except OSError as exc:
+        raise SceneError(f"{path}: cannot read it ({exc.strerror})") from None
     return parse(path, data)
 
 

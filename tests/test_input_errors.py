@@ -1,0 +1,326 @@
+"""Bad input gets exit status 2 and one line on stderr naming the file, key or element and the value, never a
+traceback; internal errors are not disguised as bad input. One test per defect found by trying the tool as a
+new user would, and a fuzz test over random mutations of the built-in scenes."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import tomllib
+
+import numpy as np
+import pytest
+
+from realtime import Loading, LoadingError, Material, build_model
+from verification import cli
+from verification.cli import main
+from verification.scene import SCENES_DIR, SceneError, builtin_scenes
+
+
+def run(args, capsys):
+    """main(args) -> (exit status, stdout, stderr); argparse's own exits included."""
+    try:
+        code = main(args)
+    except SystemExit as exc:
+        code = exc.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def assert_one_line(err: str, *needles: str) -> str:
+    """No traceback; exactly one error line, the last one (progress lines may precede it)."""
+    assert "Traceback" not in err, err
+    errors = [line for line in err.splitlines() if line.startswith("tissuebench")]
+    assert len(errors) == 1, err
+    assert err.rstrip().splitlines()[-1] == errors[0], err
+    for n in needles:
+        assert n in errors[0], errors[0]
+    return errors[0]
+
+
+def toml_value(v) -> str:
+    """A value as TOML (inline tables and arrays, so any nesting fits on one line)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf") if math.isinf(v) else repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    return "{ " + ", ".join(f"{json.dumps(k)} = {toml_value(x)}" for k, x in v.items()) + " }"
+
+
+def write_scene(path, data: dict):
+    path.write_text("".join(f"{json.dumps(k)} = {toml_value(v)}\n" for k, v in data.items()))
+    return path
+
+
+def builtin(name: str) -> dict:
+    data = tomllib.loads(builtin_scenes()[name].read_text())
+    if data["mesh"].get("generator") == "file":  # keep a relative mesh path valid from elsewhere
+        data["mesh"]["file"] = str(SCENES_DIR / data["mesh"]["file"])
+    return data
+
+
+# ---- one test per known defect ----
+
+
+def test_reference_that_cannot_converge_fails_with_one_line(tmp_path, capsys):
+    """A StVK bar pushed by a traction of 0.5 E: StVK's largest compressive nominal stress is 0.19 E
+    (at a stretch of 1/sqrt(3)), so there is no equilibrium and Newton must give up, saying where."""
+    scene = {
+        "mesh": {"generator": "box", "size": [0.04, 0.01, 0.01], "h": 0.01},
+        "material": {"law": "stvk", "young": 1e4, "poisson": 0.0, "density": 1000.0},
+        "fixed": [{"box": [[-1e-9, -1, -1], [1e-9, 1, 1]]}],
+        "load": [{"kind": "traction", "box": [[0.04 - 1e-9, -1, -1], [1, 1, 1]], "value": [-5e3, 0.0, 0.0]}],
+    }
+    path = write_scene(tmp_path / "crush.toml", scene)
+    code, _, err = run(["reference", str(path), "--degree", "1", "--no-estimate", "--no-cache"], capsys)
+    assert code == 2
+    line = assert_one_line(err, "crush.toml", "load fraction", "--load-steps")
+    # and where it stopped is the analytic limit point: P(stretch) = E/2 (stretch^3 - stretch) (nu = 0)
+    # is most compressive at stretch 1/sqrt(3), where it is E / (3 sqrt 3); reached within the smallest
+    # load increment (1e-4) times the Newton tolerance's slack
+    reached = float(line.split("beyond load fraction ")[1].split()[0])
+    assert reached * 0.5 == pytest.approx(1.0 / (3.0 * math.sqrt(3.0)), abs=2e-4)
+
+
+def test_model_that_does_not_settle_fails_with_one_line(capsys):
+    code, _, err = run(["run", "cantilever-pull", "--model", "linear-tm", "--max-steps", "50"], capsys)
+    assert code == 2
+    assert_one_line(err, "cantilever-pull", "50 steps")
+
+
+def test_stored_mesh_changed_on_disk_fails_with_one_line(tmp_path, monkeypatch, capsys):
+    import meshes.store as store
+
+    data = tmp_path / "data"
+    shutil.copytree(store.DATA, data)
+    with np.load(data / "beam.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["points"][5, 0] += 1e-4  # one vertex moved: the file no longer matches the manifest
+    np.savez_compressed(data / "beam.npz", **arrays)
+    monkeypatch.setattr(store, "DATA", data)
+    code, _, err = run(["check", "cantilever"], capsys)
+    assert code == 2
+    assert_one_line(err, "beam.npz", "hash", "python -m meshes.store")
+
+
+def test_run_precomputed_prints_its_line(capsys):
+    code, out, err = run(["run", "cantilever-pull", "--model", "precomputed"], capsys)
+    assert code == 0, err
+    assert "quasi-static update" in out and "us/step" in out
+
+
+def test_advise_on_the_tool_force_of_a_scene_without_a_tool(capsys):
+    code, _, err = run(
+        ["advise", "cantilever", "--tol", "0.05", "--rate", "1000", "--metric", "reaction_rel_err"], capsys
+    )
+    assert code == 2
+    assert_one_line(err, "cantilever.toml", "reaction_rel_err", "no displacement load")
+
+
+def test_dynamic_scene_whose_end_is_not_a_multiple_of_output_every(tmp_path, capsys):
+    data = builtin("cantilever-dynamic")
+    data["time"]["end"] = data["time"]["output_every"] * 10.5
+    code, _, err = run(["check", str(write_scene(tmp_path / "odd.toml", data))], capsys)
+    assert code == 2
+    assert_one_line(err, "odd.toml", "time.end", "whole multiple of output_every")
+
+
+def test_report_of_a_scene_path_goes_under_its_scene_name(tmp_path, monkeypatch):
+    import verification.report as report
+
+    monkeypatch.setattr(report, "REPORTS", tmp_path / "reports")
+    scene = tmp_path / "elsewhere" / "pull.toml"
+    scene.parent.mkdir()
+    shutil.copy(builtin_scenes()["cantilever-pull"], scene)
+    name, outdir = report.report_dir([str(scene.resolve())])
+    assert name == "cantilever-pull" and outdir == tmp_path / "reports" / "cantilever-pull" and outdir.is_dir()
+    (tmp_path / "file").write_text("")
+    with pytest.raises(SceneError, match="existing file"):  # before any compute
+        report.report_dir(["cantilever-pull"], out=str(tmp_path / "file"))
+
+
+@pytest.mark.parametrize(
+    "change, needle",
+    [
+        ({"bound": "tight"}, "gate[0].bound: must be a finite number > 0, got 'tight'"),
+        ({"model": "fem-magic"}, "gate[0].model: 'fem-magic' is not one of"),
+        ({"integrator": "rk4"}, "gate[0].integrator: 'rk4' is not one of"),
+        ({"fraction": -0.5}, "gate[0].fraction: must be a finite number > 0"),
+        ({"scene": "no-such-scene"}, "no-such-scene: not a built-in scene"),
+    ],
+)
+def test_gates_file_with_a_bad_value(tmp_path, capsys, change, needle):
+    gate = {"scene": "cantilever-pull", "model": "linear-tm", "metric": "rel_l2", "bound": 0.02, **change}
+    path = tmp_path / "gates.toml"
+    path.write_text("[[gate]]\n" + "".join(f"{k} = {toml_value(v)}\n" for k, v in gate.items()))
+    code, _, err = run(["gate", "--config", str(path)], capsys)
+    assert code == 2
+    assert_one_line(err, needle)
+
+
+def test_options_are_checked_on_one_line(capsys):
+    for args, needle in (
+        (["run", "cantilever", "--model", "fem-magic"], "invalid choice"),
+        (["run", "cantilever", "--model", "linear-tm", "--dt", "nan"], "finite number > 0"),
+        (["run", "cantilever", "--model", "linear-tm", "--dt=-1e-4"], "finite number > 0"),
+        (["reference", "cantilever", "--refine", "9"], "0 to 4"),
+    ):
+        code, _, err = run(args, capsys)
+        assert code == 2
+        assert_one_line(err, needle)
+
+
+def test_internal_errors_are_not_disguised_as_bad_input(monkeypatch):
+    """A ValueError from inside the code is a bug: it keeps its traceback instead of exiting 2."""
+
+    def broken(args):
+        raise ValueError("an internal bug")
+
+    monkeypatch.setattr(cli, "cmd_scenes", broken)
+    with pytest.raises(ValueError, match="an internal bug"):
+        main(["scenes"])
+
+
+# ---- the engine's API ----
+
+
+def _engine_inputs():
+    from meshes import structured_box
+
+    mesh = structured_box([0.03, 0.01, 0.01], [3, 1, 1])
+    n = mesh.n_vertices
+    loading = Loading(
+        free=np.ones((n, 3)),
+        external_force=np.zeros((n, 3)),
+        tool_vertex=np.array([0, 1], dtype=np.int64),
+        tool_mask=np.ones((2, 3)),
+        tool_id=np.zeros(2, dtype=np.int64),
+        tool_kind=np.zeros(1, dtype=np.int64),
+        tool_vector=np.zeros((1, 3)),
+        tool_axis=np.array([[0.0, 0.0, 1.0]]),
+        tool_center=np.zeros((1, 3)),
+        tool_angle=np.zeros(1),
+        tool_ramp=np.zeros(1),
+    )
+    return mesh, Material(young=1e4, poisson=0.3, density=1000.0), loading
+
+
+@pytest.mark.parametrize(
+    "field, value, needle",
+    [
+        ("tool_vertex", np.array([0, 10**6], dtype=np.int64), "Loading.tool_vertex[1] = 1000000: must lie in 0.."),
+        ("tool_vertex", np.array([0, -1], dtype=np.int64), "Loading.tool_vertex[1] = -1"),
+        ("tool_id", np.array([0, 3], dtype=np.int64), "Loading.tool_id[1] = 3: must lie in 0..0"),
+        ("tool_vertex", np.array([0, 1], dtype=np.int32), "Loading.tool_vertex: must be a (2,) int64 array"),
+        ("free", np.ones((5, 3)), "Loading.free: must be a (16, 3) float64 array, got (5, 3) float64"),
+        ("external_force", np.full((16, 3), np.nan), "Loading.external_force[0, 0]: must be finite"),
+        ("tool_ramp", np.array([-1.0]), "Loading.tool_ramp[0] = -1.0: must be >= 0 s"),
+    ],
+)
+@pytest.mark.parametrize("model", ["linear-tm", "stvk-tm", "precomputed"])
+def test_build_model_rejects_a_bad_loading(field, value, needle, model):
+    """Before this check an out-of-range tool vertex reached the numba kernels, which do no bounds
+    checks, and the first step wrote outside an array (a segfault)."""
+    import dataclasses
+
+    mesh, material, loading = _engine_inputs()
+    bad = dataclasses.replace(loading, **{field: value})
+    with pytest.raises(LoadingError) as info:
+        build_model(model, mesh.points, mesh.tets, material, bad)
+    assert needle in str(info.value)
+
+
+# ---- fuzz ----
+
+MUTATIONS = (
+    "delete",
+    "nan",
+    "inf",
+    "-inf",
+    "negative",
+    "zero",
+    "string",
+    "bool",
+    "list",
+    "table",
+    "huge",
+    "extra",
+    "short",
+)
+
+
+def _paths(node, prefix=()):
+    """Every key path into a scene's dict (tables, arrays and leaves)."""
+    items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
+    for k, v in items:
+        yield prefix + (k,)
+        yield from _paths(v, prefix + (k,))
+
+
+def _mutate(data: dict, rng) -> str:
+    """Apply one random mutation in place; return what it did."""
+    paths = list(_paths(data))
+    path = paths[rng.integers(len(paths))]
+    parent = data
+    for k in path[:-1]:
+        parent = parent[k]
+    key = path[-1]
+    kind = MUTATIONS[rng.integers(len(MUTATIONS))]
+    old = parent[key]
+    if kind == "delete":
+        if isinstance(parent, list):
+            parent.pop(key)
+        else:
+            del parent[key]
+    elif kind == "extra":
+        target = parent if isinstance(parent, dict) else data
+        target["bogus_key"] = 1
+    elif kind == "short" and isinstance(old, list):
+        parent[key] = old[:-1]
+    elif kind == "table" and isinstance(old, dict) and any(k in old for k in ("box", "sphere")):
+        # an empty region: far away from every mesh
+        parent[key] = {**{k: v for k, v in old.items() if k not in ("box", "sphere")}, "box": [[9, 9, 9], [10, 10, 10]]}
+    else:
+        parent[key] = {
+            "nan": math.nan,
+            "inf": math.inf,
+            "-inf": -math.inf,
+            "negative": -abs(old) if isinstance(old, (int, float)) and not isinstance(old, bool) else -1.0,
+            "zero": 0,
+            "string": "x",
+            "bool": True,
+            "list": [],
+            "table": {},
+            "huge": 1e30,
+            "short": [1.0],
+        }[kind]
+    return f"{kind} at {'.'.join(map(str, path))}"
+
+
+@pytest.mark.slow
+def test_fuzzed_scenes_exit_0_or_2_with_one_line(tmp_path, capsys):
+    """A few hundred random mutations of the built-in scenes (wrong types, NaN, inf, negative, missing and
+    extra keys, empty regions): `check` exits 0 or 2, with one line on 2 and never a traceback."""
+    rng = np.random.default_rng(20261122)
+    names = [n for n in builtin_scenes() if n != "manufactured"]
+    statuses = {0: 0, 2: 0}
+    for i in range(300):
+        data = builtin(names[i % len(names)])
+        did = [_mutate(data, rng) for _ in range(1 + int(rng.integers(2)))]
+        path = write_scene(tmp_path / f"fuzz{i}.toml", data)
+        try:
+            code, _, err = run(["check", str(path)], capsys)
+        except Exception as exc:  # noqa: BLE001 - any escape is the failure this test looks for
+            pytest.fail(f"{path.name} ({'; '.join(did)}): {type(exc).__name__}: {exc}")
+        assert code in (0, 2), (did, err)
+        if code == 2:
+            assert_one_line(err, path.name)
+        statuses[code] += 1
+    assert statuses[2] > 150  # most mutations are errors; a fuzz that only ever passes tests nothing
