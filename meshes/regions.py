@@ -134,3 +134,46 @@ def _inside_tets(points, tets, x, tol):
                 out[k] = True
                 break
     return out
+
+
+def spanned(mesh: TetMesh, selected: np.ndarray, x: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """Whether each point of x (K, 3) m lies on an entity of ``mesh`` spanned by selected vertices.
+
+    A point inside the mesh is carried by the smallest vertex, edge, face or tetrahedron that holds it
+    (the vertices where its barycentric coordinates exceed ``tol``); it is spanned when every vertex of
+    that carrier is selected. So a region that selects scene-mesh vertices constrains, on a P2 or a
+    refined mesh, exactly the nodes of the edges, faces and tetrahedra those vertices span: an edge's
+    midside node only if both its ends are selected, a refined face only if its parent's three vertices
+    are. ``selected`` is (S,) int vertex indices; points outside the mesh (beyond ``tol``) are an error.
+    """
+    x = np.ascontiguousarray(x, dtype=float).reshape(-1, 3)
+    chosen = np.zeros(mesh.n_vertices, dtype=bool)
+    chosen[np.asarray(selected, dtype=np.int64)] = True
+    out = np.zeros(len(x), dtype=bool)
+    if len(x) == 0:
+        return out
+    X = mesh.points[mesh.tets]
+    D = np.stack([X[:, 1] - X[:, 0], X[:, 2] - X[:, 0], X[:, 3] - X[:, 0]], axis=2)
+    Dinv = np.linalg.inv(D)
+    tree = cKDTree(X.mean(axis=1))
+    k = min(16, mesh.n_tets)
+    _, cand = tree.query(x, k=k)
+    cand = np.asarray(cand).reshape(len(x), k)
+    b = np.einsum("pcij,pcj->pci", Dinv[cand], x[:, None, :] - X[cand, 0])  # (K, k, 3)
+    bary = np.concatenate([1.0 - b.sum(axis=2, keepdims=True), b], axis=2)  # (K, k, 4)
+    inside = bary.min(axis=2) >= -tol
+    found = inside.any(axis=1)
+    for p in np.flatnonzero(~found):  # far from the nearest centroids (large elements): all candidates
+        bb = np.einsum("cij,cj->ci", Dinv, x[p] - X[:, 0])
+        full = np.concatenate([1.0 - bb.sum(axis=1, keepdims=True), bb], axis=1)
+        hit = np.flatnonzero(full.min(axis=1) >= -tol)
+        if len(hit) == 0:
+            raise ValueError(f"point {x[p].tolist()} lies outside the mesh")
+        carrier = mesh.tets[hit[0]][full[hit[0]] > tol]
+        out[p] = bool(chosen[carrier].all())
+    idx = np.flatnonzero(found)
+    first = np.argmax(inside[idx], axis=1)
+    tets = mesh.tets[cand[idx, first]]  # (F, 4)
+    weights = bary[idx, first]  # (F, 4)
+    out[idx] = np.all(chosen[tets] | (weights <= tol), axis=1)
+    return out

@@ -16,13 +16,20 @@ Conventions (Delingette & Ayache 2004, section 2; any continuum mechanics text):
 
 Transversely isotropic materials (Picinbono, Delingette & Ayache 2003) add to the isotropic energy
 density the terms ``dlambda/2 (a.E a)^2 + dmu (a.E^2 a)`` for a unit fibre direction ``a``. The scene
-gives ``young_fiber``, the Young's modulus measured in uniaxial stress along the fibre. For small
-strains the stiffness along ``a`` is then exactly ``E + dlambda`` (the lateral Poisson coupling is
-unchanged because dlambda only touches the ``aaaa`` component), so this module defines
+gives ``young_fiber``, the Young's modulus measured in uniaxial stress along the fibre, and
+``fiber_shear`` = dmu (default 0). In uniaxial stress along ``a`` the lateral strains are those of the
+isotropic material (-nu eps, since neither fibre term acts across the fibre when the strain is
+diagonal), and the stress along the fibre is
 
-    dlambda = young_fiber - young,   dmu = 0,
+    sigma = (E + dlambda + 2 dmu) eps
 
-which makes ``young_fiber`` mean what its name says. ``fiber_shear`` (dmu) can be given directly.
+(dlambda from the (a.E a)^2 term, 2 dmu from |E a|^2), so this module defines
+
+    dlambda = young_fiber - young - 2 fiber_shear,   dmu = fiber_shear,
+
+which makes ``young_fiber`` mean what its name says whatever ``fiber_shear`` is. The shear modulus in a
+plane that holds the fibre is then mu + dmu/2; across it, mu. Tests check each by the experiment that
+defines it (uniaxial stress, simple shear) on both the engine's laws and the reference's.
 
 The volume penalty (Picinbono 2003, "incompressibility constraint") is the energy-consistent term
 ``volume_penalty/2 (J - 1)^2`` per unit reference volume, J = det F, coefficient in Pa.
@@ -75,9 +82,10 @@ def p_wave_modulus(young: float, poisson: float) -> float:
     return young * (1.0 - poisson) / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
 
 
-def fiber_lambda(young: float, young_fiber: float) -> float:
-    """Picinbono's extra fibre coefficient dlambda = young_fiber - young, Pa (see module docstring)."""
-    return young_fiber - young
+def fiber_lambda(young: float, young_fiber: float, fiber_shear: float = 0.0) -> float:
+    """Picinbono's extra fibre coefficient dlambda = young_fiber - young - 2 fiber_shear, Pa (see the
+    module docstring: uniaxial stress along the fibre is then young_fiber times the strain)."""
+    return young_fiber - young - 2.0 * fiber_shear
 
 
 def check_elastic_constants(young: float, poisson: float, density: float | None = None) -> None:
@@ -131,8 +139,13 @@ class Material:
             if a.shape != (3,) or not norm > 0.0:
                 raise MaterialError(f"fiber = {self.fiber!r}: must be a non-zero 3-vector")
             object.__setattr__(self, "fiber", tuple(float(x) for x in a / norm))
-            if not (self.young_fiber > 0.0):
-                raise MaterialError(f"young_fiber = {self.young_fiber!r}: must be > 0 Pa")
+            if not (math.isfinite(self.young_fiber) and self.young_fiber > 0.0):
+                raise MaterialError(f"young_fiber = {self.young_fiber!r}: must be a positive number of Pa")
+            if not (math.isfinite(self.fiber_shear) and self.mu + 0.5 * self.fiber_shear > 0.0):
+                raise MaterialError(
+                    f"fiber_shear = {self.fiber_shear!r}: the shear modulus along the fibre, mu + fiber_shear/2, "
+                    f"must be > 0 (mu = {self.mu:.6g} Pa)"
+                )
 
     @property
     def lam(self) -> float:
@@ -147,7 +160,7 @@ class Material:
     @property
     def dlam(self) -> float:
         """Fibre coefficient dlambda, Pa (0 for an isotropic material)."""
-        return 0.0 if self.young_fiber is None else fiber_lambda(self.young, self.young_fiber)
+        return 0.0 if self.young_fiber is None else fiber_lambda(self.young, self.young_fiber, self.fiber_shear)
 
     @property
     def dmu(self) -> float:

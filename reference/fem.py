@@ -23,6 +23,7 @@ from dolfinx.nls.petsc import NewtonSolver
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from meshes.regions import spanned
 from meshes.tetmesh import TetMesh
 from realtime.material import Material
 
@@ -65,8 +66,11 @@ def dolfinx_mesh(mesh: TetMesh, comm=MPI.COMM_WORLD, refine: int = 0):
 
 
 def _marker(region, mesh: TetMesh):
-    """A dolfinx marker (x (3, K) -> bool (K,)) from a region, with the scene mesh for tags."""
-    return lambda x: region.contains(np.ascontiguousarray(x.T), mesh)
+    """A dolfinx marker (x (3, K) -> bool (K,)): the points on the scene mesh's entities spanned by the
+    region's vertices (meshes.regions.spanned), so that the reference constrains on its P2 or refined
+    mesh exactly what the scene mesh's selection spans, the set the real-time models constrain."""
+    selected = region.vertices(mesh)
+    return lambda x: spanned(mesh, selected, x.T)
 
 
 @dataclass
@@ -101,6 +105,7 @@ class ElasticityProblem:
         self.u = fem.Function(self.V, name="displacement")
         self.load_factor = fem.Constant(self.domain, PETSc.ScalarType(1.0))
         self._tool_functions = []
+        self.load_areas = []  # m^2, the loaded area of each force or traction load
         self.bcs = self._boundary_conditions()
         self.residual = self._residual_form()
         self.timings = {"setup_s": time.perf_counter() - t0}
@@ -136,8 +141,12 @@ class ElasticityProblem:
             fdim = 2
             self.domain.topology.create_connectivity(fdim, 3)
             facets, values = [], []
+            boundary = dmesh.exterior_facet_indices(self.domain.topology)
+            centres = dmesh.compute_midpoints(self.domain, fdim, boundary)
             for k, ld in enumerate(surface_loads, start=1):
-                f = dmesh.locate_entities_boundary(self.domain, fdim, _marker(ld.region, self.mesh))
+                # a boundary facet is loaded when its scene-mesh parent face has its three vertices in the
+                # region: the face the engine loads (a facet's centroid lies inside its parent face)
+                f = boundary[spanned(self.mesh, ld.region.vertices(self.mesh), centres)]
                 facets.append(f)
                 values.append(np.full(len(f), k, dtype=np.int32))
             facets = np.concatenate(facets)
@@ -146,6 +155,7 @@ class ElasticityProblem:
             ds = ufl.Measure("ds", domain=self.domain, subdomain_data=tags)
             for k, ld in enumerate(surface_loads, start=1):
                 area = self.comm.allreduce(fem.assemble_scalar(fem.form(self._constant(1.0) * ds(k))), op=MPI.SUM)
+                self.load_areas.append(area)
                 if area <= 0.0:
                     raise ReferenceSolveError(
                         f"{type(ld).__name__.lower()} load {ld.region.describe()}: no boundary face in the region"
@@ -172,6 +182,8 @@ class ElasticityProblem:
                     zero = fem.Function(Vc)
                     bcs.append(fem.dirichletbc(zero, dofs, self.V.sub(c)))
         self.tool_dofs = []
+        self._tool_points = []  # (tool, component, dofs in V, their rest points (K, 3))
+        nodes = self.V.tabulate_dof_coordinates()
         for tool in self.problem.tools:
             for c, name in enumerate("xyz"):
                 if name in tool.components:
@@ -179,7 +191,9 @@ class ElasticityProblem:
                     g = fem.Function(Vc)
                     self._tool_functions.append((tool, c, g))
                     bcs.append(fem.dirichletbc(g, dofs, self.V.sub(c)))
-                    self.tool_dofs.append((c, np.asarray(dofs[0])))
+                    d = np.asarray(dofs[0])
+                    self.tool_dofs.append((c, d))
+                    self._tool_points.append((tool, c, d, nodes[d // 3]))
         self.set_tool_fraction(1.0)
         return bcs
 
@@ -327,7 +341,10 @@ class ElasticityProblem:
         Linear law without penalty: the effective matrix M/(beta dt^2) + C gamma/(beta dt) + K is
         assembled and factored once. Otherwise Newton on the same residual at every step.
         Returns times (T,), displacements (T, K, 3) at ``points`` and reactions (T, 3), the first
-        output at t = 0.
+        output at t = 0; ``self.velocity`` and ``self.acceleration`` hold the final state. The tools'
+        dofs move with their exact velocity and acceleration (``Displacement.kinematics``). Reactions
+        are quasi-static, as the engine's are: the tools' force on the body's stiffness and loads,
+        without the inertia of the region they drive.
         """
         beta, gamma = newmark
         a_m, b_k = rayleigh
@@ -372,6 +389,10 @@ class ElasticityProblem:
         zero = fem.Function(V)
         rhs0 = -ufl.replace(self.residual, {self.u: zero})
         LinearProblem(mass_form, rhs0, bcs=self._homogeneous_bcs(), u=a_old, petsc_options=opts).solve()
+        for tool, c, d, x in self._tool_points:  # the tools' own motion at t = 0
+            _, vel, acc = tool.kinematics(x, 0.0)
+            v_old.x.array[d] = vel[:, c]
+            a_old.x.array[d] = acc[:, c]
         linear = self.material.law == "linear" and self.material.volume_penalty == 0.0
         du = ufl.TrialFunction(V)
         J = ufl.derivative(residual, u, du)
@@ -425,12 +446,19 @@ class ElasticityProblem:
             a_new = c1 * (u.x.array - u_old.x.array) - c2 * v_old.x.array - c3 * a_old.x.array
             v_old.x.array[:] = v_old.x.array + dt * ((1.0 - gamma) * a_old.x.array + gamma * a_new)
             a_old.x.array[:] = a_new
+            # a tool's region moves as the problem says, not as Newmark would infer from its positions
+            # (a linear ramp would read as velocities 2V, 0, 2V...): its exact velocity and acceleration
+            for tool, c, d, x in self._tool_points:
+                _, vel, acc = tool.kinematics(x, t)
+                v_old.x.array[d] = vel[:, c]
+                a_old.x.array[d] = acc[:, c]
             u_old.x.array[:] = u.x.array
             if step % every == 0 or step == n_steps:
                 times.append(t)
                 values.append(self.evaluate(points))
                 reactions.append(self.reaction())
         self.timings["solve_s"] = time.perf_counter() - t0
+        self.velocity, self.acceleration = v_old, a_old  # the state at the end, m/s and m/s^2
         info = {
             "solver": "newmark",
             "beta": beta,

@@ -21,8 +21,17 @@ from meshes import InvalidMeshError, TetMesh, get_mesh, read_mesh
 from meshes.regions import AllRegion, BoxRegion, Region, SphereRegion, TagRegion
 from realtime.errors import InputError
 from realtime.material import LAWS, Material, MaterialError
-from realtime.model import RAMP_SHAPES
-from reference.problem import COMPONENTS, Displacement, Fixed, Force, Gravity, Problem, Traction, component_mask
+from reference.problem import (
+    COMPONENTS,
+    RAMP_SHAPES,
+    Displacement,
+    Fixed,
+    Force,
+    Gravity,
+    Problem,
+    Traction,
+    component_mask,
+)
 
 SCENES_DIR = Path(__file__).parent / "scenes"
 
