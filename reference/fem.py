@@ -591,15 +591,21 @@ def _orthonormal(vecs):
     return vecs
 
 
-def manufactured_errors(law: str, degree: int, n: int, material: Material, comm=MPI.COMM_WORLD) -> dict:
-    """Solve -div P(u) = f on the unit cube (n^3 cubes of six tetrahedra) with u = u_exact on the
-    boundary, f = -div P(u_exact) derived in UFL, and return the L2 and H1-seminorm errors.
+def manufactured_errors(
+    law: str, degree: int, n: int, material: Material, comm=MPI.COMM_WORLD, refine: int = 0, points=None
+) -> dict:
+    """Solve -div P(u) = f on the unit cube (n^3 cubes of six tetrahedra, then ``refine`` uniform
+    refinements) with u = u_exact on the boundary, f = -div P(u_exact) derived in UFL, and return the L2
+    and H1-seminorm errors; with ``points`` (K, 3), also the solution and u_exact there ("values", "exact").
 
     u_exact = 0.05 (sin(pi x) sin(pi y) z, x y (1 - z) cos(pi z), sin(pi z) (x + y^2)) is smooth and
     large enough (5% strain) for the StVK terms to matter. Errors are integrated against the exact
     expression with quadrature of degree 2 degree + 6, so that the error of the error is negligible.
     """
     domain = dmesh.create_unit_cube(comm, n, n, n, dmesh.CellType.tetrahedron)
+    for _ in range(refine):
+        domain.topology.create_entities(1)
+        domain = dmesh.refine(domain)
     V = fem.VectorFunctionSpace(domain, ("Lagrange", degree))
     x = ufl.SpatialCoordinate(domain)
     pi = ufl.pi
@@ -644,10 +650,26 @@ def manufactured_errors(law: str, degree: int, n: int, material: Material, comm=
     e = u - ue
     l2 = np.sqrt(comm.allreduce(fem.assemble_scalar(fem.form(ufl.inner(e, e) * dx)), op=MPI.SUM))
     h1 = np.sqrt(comm.allreduce(fem.assemble_scalar(fem.form(ufl.inner(ufl.grad(e), ufl.grad(e)) * dx)), op=MPI.SUM))
-    return {
-        "h": 1.0 / n,
+    out = {
+        "h": 1.0 / (n * 2**refine),
         "l2": float(l2),
         "h1": float(h1),
         "dofs": V.dofmap.index_map.size_global * 3,
         "newton_iterations": int(its),
     }
+    if points is not None:
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        tree = geometry.BoundingBoxTree(domain, 3)
+        cells = geometry.compute_colliding_cells(domain, geometry.compute_collisions(tree, pts), pts)
+        first = np.array([cells.links(i)[0] for i in range(len(pts))], dtype=np.int32)
+        out["values"] = u.eval(pts, first)
+        X = pts.T
+        out["exact"] = 0.05 * np.stack(
+            [
+                np.sin(np.pi * X[0]) * np.sin(np.pi * X[1]) * X[2],
+                X[0] * X[1] * (1 - X[2]) * np.cos(np.pi * X[2]),
+                np.sin(np.pi * X[2]) * (X[0] + X[1] ** 2),
+            ],
+            axis=1,
+        )
+    return out

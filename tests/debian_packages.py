@@ -2,8 +2,9 @@
 
 A fresh Debian 12 machine has only what ``make`` installs. A module loaded from outside the project's
 venv (Debian's ``/usr/lib/python3*``, or ``/usr/local``) must therefore belong to a Debian package that
-the Makefile's ``APT_PACKAGES`` installs, directly or as a dependency; otherwise ``make test`` passes
-on a developer's machine and fails on a new one (meshio's XDMF writer importing h5py was such a case).
+the Makefile's ``APT_PACKAGES`` installs, directly or as a dependency, or to a Python distribution that
+pip installs for the project where Debian's copy is absent; otherwise ``make test`` passes on a
+developer's machine and fails on a new one (meshio's XDMF writer importing h5py was such a case).
 """
 
 from __future__ import annotations
@@ -94,29 +95,73 @@ def outside_venv_files(modules: dict | None = None) -> dict[str, list[str]]:
     return files
 
 
-def owners(files: list[str]) -> dict[str, str | None]:
-    """file -> the Debian package that owns it (``dpkg -S``), None for a file no package owns."""
-    result: dict[str, str | None] = dict.fromkeys(files)
+def _dpkg_owners(files: list[str]) -> dict[str, str]:
+    found = {}
     for i in range(0, len(files), 200):
-        chunk = files[i : i + 200]
-        out = subprocess.run(["dpkg", "-S", *chunk], capture_output=True, text=True).stdout
+        out = subprocess.run(["dpkg", "-S", *files[i : i + 200]], capture_output=True, text=True).stdout
         for line in out.splitlines():
             if line.startswith("diversion") or ": " not in line:
                 continue
             pkgs, path = line.split(": ", 1)
-            if path in result:
-                result[path] = pkgs.split(",")[0].strip().split(":")[0]
-    return result
+            found[path] = pkgs.split(",")[0].strip().split(":")[0]
+    return found
+
+
+def owners(files: list[str]) -> dict[str, str | None]:
+    """file -> the Debian package that owns it (``dpkg -S``), None for a file no package owns. A path
+    through a symbolic link dpkg does not know (dolfinx lives under the /usr/lib/petsc alternative) is
+    looked up again as its resolved path."""
+    found = _dpkg_owners(files)
+    unknown = [f for f in files if f not in found]
+    resolved = {f: os.path.realpath(f) for f in unknown}
+    again = _dpkg_owners(sorted(set(resolved.values())))
+    return {f: found.get(f) or again.get(resolved.get(f, "")) for f in files}
+
+
+def pip_supplied(project: str = "tissuebench") -> set[str]:
+    """Normalised names of the Python distributions pip installs for the project (its dependencies with
+    the dev extra, recursively). pip skips one that Debian already provides to the venv, but installs
+    it on a machine without it, so a module of one of these is no fresh-machine defect."""
+    from importlib import metadata
+
+    from packaging.requirements import Requirement
+
+    norm = lambda name: re.sub(r"[-_.]+", "-", name).lower()  # noqa: E731
+    seen, todo = set(), [(project, {"dev"})]
+    while todo:
+        name, extras = todo.pop()
+        if norm(name) in seen:
+            continue
+        seen.add(norm(name))
+        try:
+            requires = metadata.distribution(name).requires or []
+        except metadata.PackageNotFoundError:
+            continue
+        for text in requires:
+            req = Requirement(text)
+            if req.marker is None or any(req.marker.evaluate({"extra": e}) for e in extras or {""}):
+                todo.append((req.name, set(req.extras)))
+    return seen - {norm(project)}
+
+
+def distribution_of(module: str) -> set[str]:
+    """Normalised names of the distributions that provide a top-level module."""
+    from importlib import metadata
+
+    return {re.sub(r"[-_.]+", "-", d).lower() for d in metadata.packages_distributions().get(module, [])}
 
 
 def missing_packages(makefile: Path = MAKEFILE, modules: dict | None = None) -> dict[str, list[str]]:
     """Debian packages (or ``<no package>: FILE``) that loaded modules came from and that the Makefile
     neither installs nor pulls in: package -> the modules."""
     closure = dependency_closure(makefile_packages(makefile))
+    from_pip = pip_supplied()
     files = outside_venv_files(modules)
     missing: dict[str, list[str]] = defaultdict(list)
     for path, pkg in owners(sorted(files)).items():
-        key = f"<no package>: {path}" if pkg is None else pkg
-        if pkg is None or (pkg not in closure and pkg not in OPTIONAL):
-            missing[key].extend(files[path])
+        if pkg in closure or pkg in OPTIONAL:
+            continue
+        if any(distribution_of(m.split(".")[0]) & from_pip for m in files[path]):
+            continue  # pip installs it where Debian's copy is absent
+        missing[f"<no package>: {path}" if pkg is None else pkg].extend(files[path])
     return {k: sorted(v) for k, v in missing.items()}
