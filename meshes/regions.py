@@ -1,4 +1,4 @@
-"""Region selectors (DESIGN.md section 3): box, sphere, tag, all.
+"""Region selectors (docs/architecture.md section 3): box, sphere, tag, all.
 
 A region answers two questions: which vertices of a mesh it holds (``vertices``), and whether
 arbitrary points lie in it (``contains``), the second for the finer meshes and the P2 nodes of the

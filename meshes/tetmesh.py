@@ -146,7 +146,7 @@ class TetMesh:
             "min_altitude_m": float(min_altitudes(self.points, self.tets).min()),
         }
 
-    # ---- region selectors (DESIGN.md section 3) ----
+    # ---- region selectors (docs/architecture.md section 3) ----
 
     def select_box(self, lo, hi) -> np.ndarray:
         """Vertices with lo <= x <= hi componentwise, (K,) int64."""

@@ -1,4 +1,4 @@
-"""Contract tests every real-time model passes, and each model's own promise (DESIGN.md section 7)."""
+"""Contract tests every real-time model passes, and each model's own promise (docs/architecture.md section 7)."""
 
 import math
 
@@ -276,7 +276,7 @@ def test_precomputed_tool_force_equals_the_full_update():
 
 
 def test_stvk_element_loop_compiles_to_simd():
-    """stvk-tm's speed rests on LLVM vectorising the element loop across tetrahedra (DESIGN's
+    """stvk-tm's speed rests on LLVM vectorising the element loop across tetrahedra (the benchmark's target
     stvk-tm < 3 x linear-tm needs it: scalar code ran at 3.5 x). A signed index, or one more array in
     that loop, silently turns it back into scalar code; packed fused multiply-adds must be in the
     machine code. Compiled afresh: numba shows no assembly for cached code."""

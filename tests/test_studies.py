@@ -156,6 +156,10 @@ def test_stability_reports_nearly_incompressible_honestly(capsys):
     assert set(row["models"]) >= {"linear-tm", "stvk-tm", "linear-tm (implicit)", "stvk-tm (implicit)"}
     # the P1 models lock at nu = 0.4999: their error grows well beyond the nu = 0.45 baseline
     assert row["models"]["linear-tm"]["vs_baseline"] > 2.0
+    # the extremes run their references without the refined solve: every cell says so, with min det F
+    cell = row["models"]["linear-tm"]
+    assert cell["reference"] == "reference unverified" and cell["ref_err_estimate"] is None
+    assert cell["ref_min_det_F"] > 0
     assert any("nu = 0.4999" in line for line in out["summary"])
     assert out["limits"]["linear-tm"]["stable"] == pytest.approx(1.0, abs=0.25)
 

@@ -434,7 +434,7 @@ def compare(
     vtk: str | None = None,
     **ref_options,
 ) -> dict:
-    """Metrics of one model run against the scene's reference (DESIGN.md section 6).
+    """Metrics of one model run against the scene's reference (docs/architecture.md section 6).
 
     A diverging run gives {"status": "diverged", ...} with the step, dt and dt_crit instead of errors.
     ``vtk`` (a directory or a .pvd path) also writes both displacements and the pointwise error at every
@@ -506,6 +506,10 @@ def compare(
             "refine": ref.meta["refine"],
             "law": ref.meta["law"],
             "cache_key": ref.meta.get("cache_key"),
+            # what the reference's own error is known to be: its bar, or "unverified" without the estimate
+            "ref_err_estimate": ref.meta.get("ref_err_estimate"),
+            "verified": ref.meta.get("ref_err_estimate") is not None,
+            "min_det_F": ref.meta.get("min_det_F"),
         },
         "n_vertices": mesh.n_vertices,
         "n_tets": mesh.n_tets,

@@ -338,7 +338,7 @@ def largest_stable_fraction(
 
 
 # ---------------------------------------------------------------------------------------------
-# stability at the extremes (DESIGN.md section 7)
+# stability at the extremes (docs/architecture.md section 7)
 
 EXTREME_POISSON = (0.3, 0.45, 0.49, 0.4999)
 #: Steps a static relaxation may take in the stability study before the cell is "not settled".
@@ -439,9 +439,14 @@ def _cell(scene: Scene, model: str, integrator: str, tol: float, baseline: float
             "dt_crit": row["dt_crit"],
         }
     status = "ok" if row["rel_l2"] <= tol else "inaccurate"
+    ref = row.get("reference", {})
     out = {
         "status": status,
         "rel_l2": row["rel_l2"],
+        # the extremes are where a reference is least reliable: say what is known of it
+        "reference": "verified" if ref.get("verified") else "reference unverified",
+        "ref_err_estimate": ref.get("ref_err_estimate"),
+        "ref_min_det_F": ref.get("min_det_F"),
         "dt": row["dt"],
         "dt_crit": row["dt_crit"],
         "step_us": row["step_us"],
@@ -565,6 +570,7 @@ def format_stability(res: dict) -> str:
             extra = f" rel_l2 {c['rel_l2']:.3g}" if "rel_l2" in c else ""
             extra += f", dt_crit {c['dt_crit']:.3g} s" if c.get("dt_crit") else ""
             extra += f" ({c['vs_baseline']:.2g} x baseline)" if "vs_baseline" in c else ""
+            extra += ", reference unverified" if c.get("reference") == "reference unverified" else ""
             extra += f" {c['detail']}" if "detail" in c else ""
             out.append(f"    {m:<28} {c['status']:<16}{extra}")
     return "\n".join(out)
