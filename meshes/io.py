@@ -16,8 +16,8 @@ from .tetmesh import InvalidMeshError, TetMesh
 #: Vertices closer than this fraction of the bounding-box diagonal are one vertex: far above the
 #: round-off of coordinates printed with 16 digits, far below any element a mesher makes.
 DUPLICATE_TOL = 1e-10
-#: gmsh element types of the legacy format 1 (and of 2.x): 2 triangle, 4 tetrahedron, 11 quadratic tetrahedron.
-_GMSH1_TYPES = {2: "triangle", 4: "tetra", 11: "tetra10"}
+#: gmsh element types of the legacy format 1 (and of 2.x) that are neither triangles nor tetrahedra.
+_GMSH1_TYPES = {1: "line", 3: "quad", 5: "hexahedron", 6: "wedge", 7: "pyramid", 15: "vertex"}
 
 
 class _Cells:
@@ -87,9 +87,11 @@ def _read_gmsh1(path: Path) -> _Cells:
         nodes = [int(x) for x in parts[5 : 5 + n]]
         if len(nodes) != n:
             raise ValueError
-        if kind == 4:
-            tets.append(nodes)
+        if kind in (4, 11):  # a quadratic tetrahedron lists its four corners first
+            tets.append(nodes[:4])
             tet_tags.append(phys)
+            if kind == 11:
+                others.append("tetra10")
         elif kind == 2:
             tris.append(nodes)
             tri_tags.append(phys)
@@ -132,8 +134,8 @@ def _read_meshio(path: Path) -> _Cells:
     phys = m.cell_data.get("gmsh:physical") or m.cell_data.get("medit:ref")
     for i, cells in enumerate(m.cells):
         tags = np.asarray(phys[i]).ravel() if phys is not None else np.zeros(len(cells.data), np.int64)
-        if cells.type == "tetra":
-            tets.append(cells.data)
+        if cells.type in ("tetra", "tetra10"):  # a quadratic tetrahedron lists its four corners first
+            tets.append(cells.data[:, :4])
             tet_tags.append(tags)
         elif cells.type == "triangle":
             tris.append(cells.data)
@@ -154,6 +156,12 @@ def _read_meshio(path: Path) -> _Cells:
         names,
         [c.type for c in m.cells if c.type not in ("tetra", "triangle")],
     )
+
+
+def _quadratic_note(cells: _Cells) -> list[str]:
+    """The note for a file of quadratic tetrahedra, whose corners make the linear mesh."""
+    quadratic = "tetra10" in cells.others
+    return ["used the corner vertices of the quadratic tetrahedra (midside nodes dropped)"] if quadratic else []
 
 
 def read_mesh(path: str | os.PathLike, scale: float = 1.0) -> TetMesh:
@@ -191,7 +199,7 @@ def read_mesh(path: str | os.PathLike, scale: float = 1.0) -> TetMesh:
 
 def _clean(path: Path, c: _Cells, scale: float) -> TetMesh:
     """Repairs of a file's raw arrays (see read_mesh), each said in a note."""
-    notes = []
+    notes = _quadratic_note(c)
     points = c.points * scale
     if not np.all(np.isfinite(points)):
         bad = int(np.argwhere(~np.isfinite(points))[0, 0])

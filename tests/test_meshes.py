@@ -63,6 +63,22 @@ def test_every_format_a_user_has_is_read(tmp_path, name, fmt):
     assert back.notes == ()
 
 
+def test_quadratic_tetrahedra_give_their_corners(tmp_path):
+    """A second-order gmsh mesh: the linear mesh of its corners, said in a note."""
+    import meshio
+
+    m = structured_box([0.02, 0.01, 0.01], [2, 1, 1])
+    edges = m.edges
+    mid = {tuple(e): m.n_vertices + k for k, e in enumerate(edges)}
+    pairs = [(0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3)]  # gmsh's tetra10 order
+    t10 = np.array([list(t) + [mid[tuple(sorted((t[a], t[b])))] for a, b in pairs] for t in m.tets])
+    points = np.vstack([m.points, m.points[edges].mean(axis=1)])
+    meshio.write(tmp_path / "q.msh", meshio.Mesh(points, [("tetra10", t10)]), file_format="gmsh22")
+    back = read_mesh(tmp_path / "q.msh")
+    assert np.array_equal(back.points, m.points) and np.array_equal(back.tets, m.tets)
+    assert any("quadratic" in n for n in back.notes)
+
+
 SOFA_LIVER = Path(__file__).parents[1] / "verification" / "scenes" / "data" / "sofa-liver2.msh"
 
 

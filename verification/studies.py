@@ -214,7 +214,9 @@ def sweep(
         "scene": scene.name,
         "scene_sha256": scene.sha256(),
         "integrator": integrator,
-        "reference": {k: ref.meta.get(k) for k in ("law", "degree", "refine", "ref_err_estimate", "cache_key")},
+        "reference": {
+            k: ref.meta.get(k) for k in ("law", "degree", "refine", "ref_err_estimate", "min_det_F", "cache_key")
+        },
         "rows": rows,
         "pareto": [rows[i]["model"] + (f"@{rows[i]['dt']:.3g}s" if rows[i]["dt"] else "") for i in front],
         "computed": sum(not r.get("cached") for r in rows),
