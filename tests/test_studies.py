@@ -215,15 +215,48 @@ def test_gate_baselines_carry_provenance():
         assert b["value"] <= g["bound"]
 
 
-def test_run_cache_key_names_the_code_that_made_the_run(monkeypatch):
-    """A cached run from other engine code must not be reused: the code's digest is in the key."""
-    from verification import studies
+def test_cache_keys_change_with_every_input_they_cover(monkeypatch):
+    """A cached result is reused only for the same inputs: every field of the run and reference keys, the
+    code that makes them (a run's row also depends on studies.py, the region rule and the reference's
+    code), the machine for timings, and every parameter of a variant built in code."""
+    import dataclasses
 
-    scene = load_scene("cantilever")
-    key = studies._run_key(scene, "linear-tm", "symplectic-euler", None, 0.9, {})
-    assert studies._run_key(scene, "linear-tm", "symplectic-euler", None, 0.9, {}) == key
-    monkeypatch.setattr(studies, "engine_digest", lambda: "other code")
-    assert studies._run_key(scene, "linear-tm", "symplectic-euler", None, 0.9, {}) != key
+    from verification import runner, studies
+
+    scene = load_scene("cantilever-pull")
+    args = dict(scene=scene, model="linear-tm", integrator="symplectic-euler", dt=None, fraction=0.9, ref_opts={})
+    key = studies._run_key(**args)
+    assert studies._run_key(**args) == key
+    for field, value in (
+        ("model", "stvk-tm"),
+        ("integrator", "central-difference"),
+        ("dt", 1e-5),
+        ("fraction", 0.5),
+        ("ref_opts", {"degree": 1}),
+    ):
+        assert studies._run_key(**{**args, field: value}) != key, field
+    rkey = runner.reference_key(scene, 2, 0, True)
+    for change in ((1, 0, True), (2, 1, True), (2, 0, False)):
+        assert runner.reference_key(scene, *change) != rkey
+    assert runner.reference_key(scene, 2, 0, True, (4, 1e-2)) != rkey
+    # a variant built in code (another twist angle, another material) is another scene
+    tool = scene.problem.tools[0]
+    moved = dataclasses.replace(tool, translation=(0.0, 0.0, -0.02))
+    variant = dataclasses.replace(scene, problem=dataclasses.replace(scene.problem, loads=(moved,)))
+    assert variant.sha256() != scene.sha256() and runner.reference_key(variant, 2, 0, True) != rkey
+    assert scene.with_material(poisson=0.3).sha256() != scene.sha256()
+    # the code and the machine
+    real = runner.code_digest
+    monkeypatch.setattr(runner, "code_digest", lambda patterns: "other " + real(patterns))
+    assert runner.reference_key(scene, 2, 0, True) != rkey
+    monkeypatch.setattr(studies, "code_digest", lambda patterns: "other code")
+    assert studies._run_key(**args) != key
+    monkeypatch.undo()
+    monkeypatch.setattr(studies, "machine_id", lambda: {"cpu": "another machine"})
+    assert studies._run_key(**args) != key
+    assert {"reference/fem.py", "meshes/regions.py", "verification/studies.py"} <= {
+        str(f.relative_to(runner.ROOT)) for p in runner.RUN_CODE for f in runner.ROOT.glob(p)
+    }
 
 
 def test_reference_cache_is_keyed_and_reused():

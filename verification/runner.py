@@ -8,6 +8,7 @@ finds the solves it finished and goes on from there.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -64,6 +65,43 @@ def digest(fields: dict) -> str:
     return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:24]
 
 
+ROOT = Path(__file__).resolve().parents[1]
+#: The code a reference result depends on: its solvers, the region rule both sides share, the constants.
+REFERENCE_CODE = ("reference/*.py", "meshes/regions.py", "realtime/material.py")
+#: The code a run's row depends on: the engine, the runner, loading, metrics and studies, and the
+#: reference it is compared with.
+RUN_CODE = (
+    "realtime/*.py",
+    "verification/runner.py",
+    "verification/loading.py",
+    "verification/metrics.py",
+    "verification/studies.py",
+    *REFERENCE_CODE,
+)
+
+
+@functools.cache
+def code_digest(patterns: tuple[str, ...]) -> str:
+    """Digest of the source files matching ``patterns`` (relative to the project root): part of every
+    cache key, so that a cached result is never one that other code made."""
+    files = sorted({f for pattern in patterns for f in ROOT.glob(pattern)})
+    return digest({str(f.relative_to(ROOT)): hashlib.sha256(f.read_bytes()).hexdigest() for f in files})
+
+
+@functools.cache
+def machine_id() -> dict:
+    """What a timing depends on: the architecture, the processor's name and the number of cores."""
+    model = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"arch": platform.machine(), "cpu": model, "cores": os.cpu_count()}
+
+
 def reference_key(scene: Scene, degree: int, refine: int, estimate: bool, newton=(1, 1e-4)) -> str:
     from reference.fem import LU_OPTIONS
 
@@ -76,6 +114,7 @@ def reference_key(scene: Scene, degree: int, refine: int, estimate: bool, newton
             "newton": list(newton),
             "solver": LU_OPTIONS,
             "version": REFERENCE_VERSION,
+            "code": code_digest(REFERENCE_CODE),
         }
     )
 

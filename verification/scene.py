@@ -86,9 +86,12 @@ class Scene:
         return self._mesh
 
     def sha256(self) -> str:
-        """Hash of the scene's content (canonical JSON of the parsed TOML) and of its mesh."""
+        """Hash of the scene's content: the canonical JSON of its TOML, what was parsed from it (so that
+        a variant made with dataclasses.replace, a 90 or a 60 degree twist, has a hash of its own) and
+        its mesh."""
         text = json.dumps(self.raw, sort_keys=True, default=str)
-        return hashlib.sha256((text + self.mesh.sha256()).encode()).hexdigest()
+        parsed = repr((self.material, self.problem, self.time, self.manufactured))
+        return hashlib.sha256((text + parsed + self.mesh.sha256()).encode()).hexdigest()
 
     def with_material(self, **changes) -> Scene:
         """A copy with material fields changed (for studies over nu, E)."""

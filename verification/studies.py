@@ -10,13 +10,10 @@ collectively, first) and rank 0 gathers and prints the table.
 from __future__ import annotations
 
 import dataclasses
-import functools
-import hashlib
 import json
 import math
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -24,7 +21,16 @@ from realtime import MODELS
 from realtime.models import QUASI_STATIC
 
 from .results import atomic_write_text
-from .runner import REFERENCE_DEFAULTS, cache_dir, compare, digest, reference_result
+from .runner import (
+    REFERENCE_DEFAULTS,
+    RUN_CODE,
+    cache_dir,
+    code_digest,
+    compare,
+    digest,
+    machine_id,
+    reference_result,
+)
 from .scene import Scene, SceneError
 
 #: Time steps a sweep tries by default, as fractions of each model's critical step.
@@ -73,25 +79,11 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
     return front
 
 
-@functools.cache
-def engine_digest() -> str:
-    """Digest of the code that makes a run's row: the real-time engine (realtime/*.py) and the runner,
-    loading and metrics modules. Part of every run's cache key, so that a cached run is never one
-    that older code made (the run cache once had no such guard, and a gate baseline was stamped
-    with a commit whose code had not produced it)."""
-    import realtime
-
-    here = Path(__file__).parent
-    files = sorted(Path(realtime.__file__).parent.glob("*.py")) + [
-        here / name for name in ("runner.py", "loading.py", "metrics.py")
-    ]
-    return digest({f"{f.parent.name}/{f.name}": hashlib.sha256(f.read_bytes()).hexdigest() for f in files})
-
-
 def _run_key(scene: Scene, model: str, integrator: str, dt: float | None, fraction: float | None, ref_opts) -> str:
     return digest(
         {
-            "engine": engine_digest(),
+            "code": code_digest(RUN_CODE),
+            "machine": machine_id(),  # a row holds timings: another machine's are not this one's
             "scene": scene.sha256(),
             "model": model,
             "integrator": integrator,
@@ -298,7 +290,7 @@ def largest_stable_fraction(
 
     key = digest(
         {
-            "engine": engine_digest(),
+            "code": code_digest(RUN_CODE),
             "scene": scene.sha256(),
             "model": model_name,
             "integrator": integrator,
