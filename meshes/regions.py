@@ -65,6 +65,23 @@ class AllRegion(Region):
 
 
 @dataclass(frozen=True)
+class VertexRegion(Region):
+    """An explicit set of vertex indices of one mesh (a region carried onto a refined mesh by
+    ``spanned``); it has no geometry of its own."""
+
+    indices: tuple
+
+    def vertices(self, mesh):
+        return np.asarray(self.indices, dtype=np.int64)
+
+    def contains(self, x, mesh):
+        raise NotImplementedError("a VertexRegion selects vertices of its own mesh only")
+
+    def describe(self):
+        return f"{len(self.indices)} vertices"
+
+
+@dataclass(frozen=True)
 class TagRegion(Region):
     """A named group of the mesh. Face groups hold the points on their triangles; volume groups the
     points inside their tetrahedra (so a refined mesh or P2 nodes see the same region)."""

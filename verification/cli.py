@@ -330,7 +330,12 @@ def cmd_gate(args) -> int:
 
     path = Path(args.config) if args.config else DEFAULT_CONFIG
     # a baseline names the commit that measured it: never a run cached by older code
-    rows = run_gates(path, quick=args.quick, use_cache=not (args.no_cache or args.update_baselines))
+    rows = run_gates(
+        path,
+        quick=args.quick,
+        use_cache=not (args.no_cache or args.update_baselines),
+        baselines=not args.update_baselines,
+    )
     if args.update_baselines:
         update_baselines(path, rows)
     out = {"config": str(path), "gates": rows, "passed": all(r["passed"] for r in rows)}

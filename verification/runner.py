@@ -549,6 +549,8 @@ def compare(
             "ref_err_estimate": ref.meta.get("ref_err_estimate"),
             "verified": ref.meta.get("ref_err_estimate") is not None,
             "min_det_F": ref.meta.get("min_det_F"),
+            "returned_level": ref.meta.get("returned_level"),
+            "petsc_options": ref.meta.get("petsc_options"),
         },
         "n_vertices": mesh.n_vertices,
         "n_tets": mesh.n_tets,
