@@ -7,6 +7,8 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from realtime.geometry import signed_volumes
@@ -214,11 +216,13 @@ def _clean(path: Path, c: _Cells, scale: float) -> TetMesh:
     pairs = cKDTree(points[used]).query_pairs(DUPLICATE_TOL * diag, output_type="ndarray")
     rep = np.arange(len(points))
     if len(pairs):
-        a, b = used[pairs[:, 0]], used[pairs[:, 1]]
-        for i, j in sorted(zip(np.minimum(a, b), np.maximum(a, b), strict=True), reverse=True):
-            rep[j] = rep[i]
-        for _ in range(3):  # chains of three or more coincident points
-            rep = rep[rep]
+        # clusters of coincident points are the connected components of the coincidence pairs
+        n = len(points)
+        graph = coo_matrix((np.ones(len(pairs)), (used[pairs[:, 0]], used[pairs[:, 1]])), shape=(n, n))
+        _, label = connected_components(graph, directed=False)
+        lowest = np.full(label.max() + 1, n, dtype=np.int64)
+        np.minimum.at(lowest, label, np.arange(n))
+        rep = lowest[label]
         notes.append(f"merged {int(np.sum(rep != np.arange(len(points))))} duplicate vertices")
         tets, tris = rep[tets], rep[tris] if len(tris) else tris
     # duplicate tetrahedra (the same four vertices twice)

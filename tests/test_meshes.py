@@ -248,3 +248,16 @@ def test_regions_agree_between_vertices_and_points():
     face_mid = m.points[m.vertex_tags["xmax"][:2]].mean(axis=0)
     assert TagRegion("xmax").contains(face_mid[None], m)[0]
     assert not TagRegion("xmax").contains(np.array([[0.05, 0.01, 0.01]]), m)[0]
+
+
+def test_a_cluster_of_coincident_vertices_becomes_one(tmp_path):
+    """Twelve copies of one vertex, each used by another tetrahedron: one vertex."""
+    m = structured_box([0.01, 0.01, 0.01], 1)
+    centre = np.array([[0.005, 0.005, 0.005]])
+    faces = m.boundary
+    points = np.vstack([m.points, np.repeat(centre, len(faces), axis=0)])
+    tets = np.hstack([faces, (m.n_vertices + np.arange(len(faces)))[:, None]])
+    back = read_mesh(_gmsh1(tmp_path / "star.msh", points, tets))
+    assert back.n_vertices == m.n_vertices + 1 and back.n_tets == len(faces)
+    assert f"merged {len(faces) - 1} duplicate vertices" in back.notes
+    assert back.quality()["total_volume_m3"] == pytest.approx(1e-6, rel=1e-12)
