@@ -300,8 +300,12 @@ class ElasticityProblem:
         min_increment: float = 1e-4,
         petsc_options=None,
         time_limit: float = 600.0,
+        start_at_full_load: bool = False,
     ) -> dict:
         """Newton with load stepping and step halving on failure (the load fraction goes 0 -> 1).
+
+        ``start_at_full_load``: u already holds a good guess (a coarser level's solution): try the full
+        load from it first, and fall back to load stepping from rest if Newton fails there.
 
         Convergence: ``Newton``'s residual test (free residual below rtol times the force scale).
         Raises ReferenceSolveError naming the load fraction reached and what to change when the
@@ -314,6 +318,19 @@ class ElasticityProblem:
         t0 = time.perf_counter()
         done, inc = 0.0, 1.0 / steps
         history = []
+        if start_at_full_load:
+            self.load_factor.value = 1.0
+            self.set_tool_fraction(1.0)
+            res = solver.solve(rtol, max_it)
+            if res["converged"] and np.all(np.isfinite(self.u.x.array)) and self.min_det_F() > 0.0:
+                history.append(
+                    {"load": 1.0, "iterations": res["iterations"], "min_det_F": self.min_det_F(), "nested": True}
+                )
+                self._log(f"reference: full load from the coarser solution: {res['iterations']} Newton iterations")
+                done = 1.0
+            else:
+                self._log("reference: Newton from the coarser solution failed; load stepping from rest")
+                self.u.x.array[:] = 0.0
         while done < 1.0 - 1e-14:
             target = min(1.0, done + inc)
             saved = self.u.x.array.copy()
@@ -549,6 +566,14 @@ class ElasticityProblem:
         """Move every tool to where its ramp puts it at time t (s)."""
         for tool, c, g in self._tool_functions:
             g.interpolate(lambda x, tool=tool, c=c: tool.value(x.T, t)[:, c])
+
+    def start_from(self, coarse: ElasticityProblem) -> None:
+        """Set u to another problem's solution evaluated at this one's nodes (nested iteration: the
+        refined problem starts where the coarse one ended). Serial only; in parallel u stays zero."""
+        if self.comm.size != 1:
+            return
+        nodes = self.V.tabulate_dof_coordinates()
+        self.u.x.array[:] = coarse.evaluate(nodes).ravel()
 
     def min_det_F(self) -> float:
         """The smallest det F = det(I + grad u) at the vertices and centroids of the cells (MPI-reduced).
