@@ -251,7 +251,8 @@ def _clean(path: Path, c: _Cells, scale: float) -> TetMesh:
         tets = tets.copy()
         tets[negative] = tets[negative][:, [0, 1, 3, 2]]
         mixed = "" if negative.all() else f" of {len(tets)} (the file mixes both orientations)"
-        notes.append(f"turned {int(negative.sum())} tetrahedra{mixed} to positive orientation")
+        first = ", ".join(str(int(i)) for i in np.flatnonzero(negative)[:3])
+        notes.append(f"turned {int(negative.sum())} tetrahedra{mixed} to positive orientation (tetrahedron {first}...)")
     vertex_tags, cell_tags = {}, {}
     if tet_tags is not None:
         for t in np.unique(tet_tags):

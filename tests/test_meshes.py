@@ -118,6 +118,7 @@ def test_what_real_files_contain_is_repaired_and_said(tmp_path):
     m = read_mesh(_gmsh1(tmp_path / "messy.msh", points, tets))
     notes = " | ".join(m.notes)
     assert "duplicate tetrahedra" in notes and "turned" in notes and "both orientations" in notes
+    assert "(tetrahedron 1, 3, 5...)" in notes  # every other one was written the other way round
     assert "no tetrahedron uses" in notes
     assert (m.n_vertices, m.n_tets) == (n, clean.n_tets)
     assert np.all(m.volumes() > 0) and m.quality()["total_volume_m3"] == pytest.approx(2e-6, rel=1e-12)
