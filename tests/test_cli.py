@@ -29,6 +29,25 @@ def test_compare_json_prints_the_metrics(capsys):
         assert k in out
     assert 0 < out["rel_l2"] < 1 and out["step_us"] > 0
     assert out["ref_err_estimate"] > 0  # P2 at refinements 0 and 1 differ
+    # the cantilever's error is the mesh's: P1 locks in bending (the P1 solution itself is 28% off), and the
+    # linear model adds a few percent; the parts are distances, so the total lies between max and sum
+    b = out["error_budget"]
+    assert b["dominant"] == "mesh" and b["mesh"] > 0.2 and b["model"] < 0.1 and b["time"] is None
+    assert max(b["mesh"], b["model"]) - 1e-12 <= out["rel_l2"] <= b["mesh"] + b["model"] + 1e-12
+
+
+def test_error_budget_of_a_dynamic_run_has_a_time_part(capsys):
+    """cantilever-dynamic at 0.9 dt_crit: the time part is the model against itself at dt / 8; the model
+    part is then measured at dt / 8, so nothing is counted twice."""
+    assert main(["compare", "cantilever-dynamic", "--model", "linear-tm", "--degree", "1", "--json"]) == 0
+    b = json.loads(capsys.readouterr().out)["error_budget"]
+    # the P1 reference returns its refined solution, so the mesh part is exactly its spatial difference
+    from verification.runner import reference_result
+    from verification.scene import load_scene
+
+    ref = reference_result(load_scene("cantilever-dynamic"), degree=1, refine=0, estimate=True)
+    assert b["mesh"] == pytest.approx(ref.meta["ref_err_space"], rel=1e-12)
+    assert b["time"] > 0 and b["model"] > 0
 
 
 def test_run_and_reference_write_result_files(tmp_path, capsys):
@@ -63,6 +82,9 @@ def test_report_has_plots_and_data(tmp_path):
     assert {r["status"] for r in data["scenes"][0]["sweep"]["rows"]} == {"ok", "diverged"}
     assert data["scenes"][0]["advice"]["why"]
     assert "<th>Pareto</th>" in text and "<h3>Advisor</h3>" in text
+    assert "<h3>Error budget</h3>" in text and "whose error is it?" not in text  # the title is inside the plot
+    budget = data["scenes"][0]["budget"]
+    assert budget["rows"] and budget["verdict"].startswith("The P1 finite-element solution on this mesh is")
     assert (tmp_path / "r" / "runs.csv").read_text().startswith("scene,model")
 
 

@@ -229,6 +229,10 @@ def cmd_compare(args) -> int:
         ):
             v = out[k]
             print(f"  {k:<18} {'-' if v is None else f'{v:.4g}'}{acc if k == 'rel_l2' else ''}")
+        b = out.get("error_budget") or {}
+        if b.get("mesh") is not None:
+            parts = ", ".join(f"{p} {b[p]:.3g}" for p in ("mesh", "model", "time") if b.get(p) is not None)
+            print(f"  {'error_budget':<18} {parts}: the {b['dominant']}'s part dominates")
     return 0 if out["status"] == "ok" else 1
 
 

@@ -97,6 +97,58 @@ def plot_error_vs_speed(rows: list[dict], ref_est: float | None, title: str) -> 
     return _png(fig)
 
 
+def budget_rows(rows: list[dict]) -> list[dict]:
+    """One row per model with an error budget: its run at the largest step that stayed stable."""
+    best = {}
+    for r in rows:
+        if r["status"] == "ok" and r.get("error_budget") and r["error_budget"].get("mesh") is not None:
+            if r["model"] not in best or (r["dt"] or 0.0) > (best[r["model"]]["dt"] or 0.0):
+                best[r["model"]] = r
+    return [best[m] for m in sorted(best)]
+
+
+def plot_budget(rows: list[dict], title: str) -> str:
+    """Horizontal stacked bars: each model's error split into the mesh's, the model's and the time
+    step's parts (relative L2)."""
+    fig, ax = plt.subplots(figsize=(7.2, 0.45 * len(rows) + 1.4))
+    left = np.zeros(len(rows))
+    for part, colour in (("mesh", "#8c8c8c"), ("model", "#d95f02"), ("time", "#1b9e77")):
+        width = np.array([r["error_budget"].get(part) or 0.0 for r in rows])
+        ax.barh([r["model"] for r in rows], width, left=left, color=colour, label=part)
+        left += width
+    ax.set_xlabel("relative L2 displacement error, by part")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7, loc="lower right")
+    ax.grid(True, axis="x", alpha=0.3)
+    return _png(fig)
+
+
+def budget_verdict(rows: list[dict]) -> str:
+    """One sentence: which part of the error dominates, with the numbers that say so."""
+    if not rows:
+        return "No error budget: the P1 solution on this mesh could not be computed."
+    mesh = rows[0]["error_budget"]["mesh"]
+    models = [r["error_budget"]["model"] for r in rows]
+    times = [r["error_budget"]["time"] for r in rows if r["error_budget"].get("time") is not None]
+    dominant = [r["error_budget"]["dominant"] for r in rows]
+    lead = max(set(dominant), key=dominant.count)
+    text = (
+        f"The P1 finite-element solution on this mesh is {100 * mesh:.1f}% off the converged reference; the models "
+        f"differ from it by {100 * min(models):.2g}% to {100 * max(models):.2g}%"
+        + (f", their time steps cost {100 * min(times):.2g}% to {100 * max(times):.2g}%" if times else "")
+        + ". "
+    )
+    if lead == "mesh":
+        return text + (
+            f"The mesh dominates for {dominant.count('mesh')} of {len(rows)} models: a finer mesh, not another "
+            "model, is what lowers their error, and a model that looks better than finite elements here is "
+            "cancelling the mesh's error, not removing it."
+        )
+    if lead == "model":
+        return text + "The models' own shortcuts dominate: here the choice of model matters more than the mesh."
+    return text + "The time step dominates: a smaller step, or an implicit integrator, lowers the error most."
+
+
 def plot_deformation(mesh, u_ref: np.ndarray, u_model: np.ndarray, model: str, title: str) -> str:
     """Deformed boundary: reference (left, grey) and model (right, coloured by |u - u*| in mm)."""
     faces = mesh.boundary
@@ -248,6 +300,12 @@ def scene_section(name: str, fractions: list[float]) -> tuple[str, dict]:
         reactions[model] = res.reaction
     q = mesh.quality()
     plot = plot_error_vs_speed(rows, est, f"{scene.name}: error against speed")
+    budgets = budget_rows(rows)
+    budget_html = (
+        _img(plot_budget(budgets, f"{scene.name}: whose error is it?"), f"error budget of {scene.name}")
+        if budgets
+        else ""
+    ) + f"<p>{html.escape(budget_verdict(budgets))}</p>"
     extra = ""
     if scene.time.mode == "dynamic" and scene.problem.tools:
         extra = "<h3>The tool's force over time</h3>" + _img(
@@ -276,6 +334,11 @@ Solved at commit {html.escape(str(ref.meta.get("commit")))}, {html.escape(str(re
 <h3>Error against speed</h3>
 {_img(plot, f"error against step time for {scene.name}")}
 {_sweep_table(rows)}
+<h3>Error budget</h3>
+<p>Each model's error split into the mesh's part (the P1 finite-element solution of the same law on the same
+mesh against the converged reference), the model's part (the model against that P1 solution) and, on dynamic
+scenes, the time step's (the model against itself at an eighth of its step).</p>
+{budget_html}
 <h3>Advisor</h3>
 {_advice_html(adv)}
 {extra}
@@ -290,6 +353,10 @@ Solved at commit {html.escape(str(ref.meta.get("commit")))}, {html.escape(str(re
         "reference": ref.meta,
         "sweep": sw,
         "advice": adv,
+        "budget": {
+            "rows": [{"model": r["model"], "dt": r["dt"], **r["error_budget"]} for r in budgets],
+            "verdict": budget_verdict(budgets),
+        },
     }
 
 

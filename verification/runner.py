@@ -28,7 +28,7 @@ from realtime.models import QUASI_STATIC
 from realtime.quasistatic import QuasiStatic
 
 from .loading import build_loading
-from .metrics import compute
+from .metrics import compute, rel_l2
 from .results import Result
 from .scene import Scene
 
@@ -450,6 +450,41 @@ def _run_quasi_static(scene: Scene, model, build_s: float) -> Result:
     return Result(scene.mesh.points, scene.mesh.tets, np.zeros(1), u[None], reaction[None], meta)
 
 
+def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integrator: str, max_steps: int) -> dict:
+    """Which part of a model's error is whose (docs/architecture.md section 6), each a relative L2 error
+    over the scene's vertices and output times:
+
+    - ``mesh``: the P1 finite-element solution of the scene's law on the scene's mesh against the
+      converged reference: what any P1 model on this mesh pays (locking, a coarse mesh), whatever it is;
+    - ``model``: the model against that P1 solution: what the model's own shortcuts cost (linearity,
+      lumping, springs, condensation, an unsettled run);
+    - ``time`` (dynamic scenes, time-stepping models): the model at its step against the same model at
+      an eighth of it; the model part is then taken at the eighth, so the parts do not overlap.
+
+    ``dominant`` names the largest. The parts are distances between solutions, so the total is at most
+    their sum (the triangle inequality), not equal to it. A P1 reference that cannot solve leaves
+    ``mesh`` None with the reason.
+    """
+    from reference.errors import ReferenceSolveError
+
+    out = {"mesh": None, "model": None, "time": None}
+    try:
+        p1 = reference_result(scene, degree=1, refine=0, estimate=False)
+    except ReferenceSolveError as exc:
+        out["why"] = f"no P1 solution on this mesh: {exc}"
+        return out
+    out["mesh"] = rel_l2(p1.displacement, ref.displacement)
+    model_u = res.displacement
+    dt = res.meta.get("dt")
+    if scene.time.mode == "dynamic" and dt is not None and model_name not in QUASI_STATIC:
+        fine = run_model(scene, model_name, dt=dt / 8.0, integrator=integrator, max_steps=max_steps)
+        out["time"] = rel_l2(res.displacement, fine.displacement)
+        model_u = fine.displacement
+    out["model"] = rel_l2(model_u, p1.displacement)
+    out["dominant"] = max((k for k in ("mesh", "model", "time") if out[k] is not None), key=lambda k: out[k])
+    return out
+
+
 def versions() -> dict:
     import numba
     import scipy
@@ -471,13 +506,14 @@ def compare(
     reference: Result | None = None,
     max_steps: int = 2_000_000,
     vtk: str | None = None,
+    budget: bool = True,
     **ref_options,
 ) -> dict:
     """Metrics of one model run against the scene's reference (docs/architecture.md section 6).
 
     A diverging run gives {"status": "diverged", ...} with the step, dt and dt_crit instead of errors.
     ``vtk`` (a directory or a .pvd path) also writes both displacements and the pointwise error at every
-    output time as one ParaView series.
+    output time as one ParaView series. ``budget`` adds ``error_budget`` (see ``error_budget``).
     """
     ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
     # a quasi-static model has its own update whatever integrator was asked for
@@ -526,9 +562,11 @@ def compare(
             },
         )
     m = res.meta
+    parts = error_budget(scene, model_name, res, ref, integrator, max_steps) if budget else None
     return {
         **base,
         "status": "ok",
+        "error_budget": parts,
         "dt": m["dt"],
         "dt_crit": m["dt_crit"],
         "dt_crit_element": m.get("dt_crit_element"),

@@ -79,7 +79,9 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
     return front
 
 
-def _run_key(scene: Scene, model: str, integrator: str, dt: float | None, fraction: float | None, ref_opts) -> str:
+def _run_key(
+    scene: Scene, model: str, integrator: str, dt: float | None, fraction: float | None, ref_opts, budget: bool = True
+) -> str:
     return digest(
         {
             "code": code_digest(RUN_CODE),
@@ -90,6 +92,7 @@ def _run_key(scene: Scene, model: str, integrator: str, dt: float | None, fracti
             "dt": dt,
             "fraction": fraction,
             "reference": ref_opts,
+            "budget": budget,
         }
     )
 
@@ -104,16 +107,28 @@ def cached_compare(
     ref_opts=None,
     use_cache: bool = True,
     max_steps: int = 2_000_000,
+    budget: bool = True,
 ) -> dict:
     """``runner.compare`` through the run cache. The row says whether it came from the cache."""
     ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
-    path = cache_dir() / "runs" / f"{scene.name}-{_run_key(scene, model, integrator, dt, fraction, ref_opts)}.json"
+    path = (
+        cache_dir() / "runs" / f"{scene.name}-{_run_key(scene, model, integrator, dt, fraction, ref_opts, budget)}.json"
+    )
     if use_cache and path.exists():
         row = json.loads(path.read_text())
         row["cached"] = True
         return row
     ref = reference if reference is not None else reference_result(scene, **ref_opts)
-    row = compare(scene, model, dt=dt, dt_fraction=fraction, integrator=integrator, reference=ref, max_steps=max_steps)
+    row = compare(
+        scene,
+        model,
+        dt=dt,
+        dt_fraction=fraction,
+        integrator=integrator,
+        reference=ref,
+        max_steps=max_steps,
+        budget=budget,
+    )
     row["fraction"] = fraction
     if use_cache:
         atomic_write_text(path, json.dumps(row, default=_jsonable))
@@ -236,9 +251,12 @@ def sweep_csv(result: dict) -> str:
         "rate_hz",
         "pareto",
     ]
-    lines = [",".join(cols)]
+    parts = ("mesh", "model", "time")
+    lines = [",".join(cols + [f"budget_{p}" for p in parts])]
     for r in result["rows"]:
-        lines.append(",".join("" if r.get(c) is None else str(r.get(c)) for c in cols))
+        budget = r.get("error_budget") or {}
+        values = [r.get(c) for c in cols] + [budget.get(p) for p in parts]
+        lines.append(",".join("" if v is None else str(v) for v in values))
     return "\n".join(lines) + "\n"
 
 
@@ -419,6 +437,7 @@ def _cell(scene: Scene, model: str, integrator: str, tol: float, baseline: float
             ref_opts=STABILITY_REFERENCE,
             use_cache=use_cache,
             max_steps=STABILITY_BUDGET,
+            budget=False,  # the extremes ask what a model does, not whose error is whose
         )
     except ReferenceSolveError as exc:
         _FAILED_REFERENCES[scene.sha256()] = str(exc)
