@@ -109,13 +109,15 @@ def budget_rows(rows: list[dict]) -> list[dict]:
 
 def plot_budget(rows: list[dict], title: str) -> str:
     """Horizontal stacked bars: each model's error split into the mesh's, the model's and the time
-    step's parts (relative L2)."""
+    step's parts (relative L2), with the model's total error marked."""
     fig, ax = plt.subplots(figsize=(7.2, 0.45 * len(rows) + 1.4))
     left = np.zeros(len(rows))
     for part, colour in (("mesh", "#8c8c8c"), ("model", "#d95f02"), ("time", "#1b9e77")):
         width = np.array([r["error_budget"].get(part) or 0.0 for r in rows])
         ax.barh([r["model"] for r in rows], width, left=left, color=colour, label=part)
         left += width
+    # the parts are distances between solutions: the total can be below their sum (errors that cancel)
+    ax.plot([r["rel_l2"] for r in rows], range(len(rows)), "k|", markersize=22, mew=2, label="total error")
     ax.set_xlabel("relative L2 displacement error, by part")
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=7, loc="lower right")
