@@ -65,6 +65,13 @@ def cmd_scenes(args) -> int:
     return 0
 
 
+def _write_vtk(target: str, name: str, res) -> None:
+    """A result's displacements at every output time as a ParaView series (--vtk)."""
+    from .vtk import write_series
+
+    write_series(target, name, res.points, res.tets, res.times, {"displacement": res.displacement})
+
+
 def cmd_check(args) -> int:
     """Read a scene as every command does (mesh, regions, loading, a model) and describe it, solving
     nothing: the check to run before a long study."""
@@ -131,11 +138,7 @@ def cmd_reference(args) -> int:
     if args.out and MPI.COMM_WORLD.rank == 0:
         res.save(args.out)
     if args.vtk and MPI.COMM_WORLD.rank == 0:
-        from .vtk import write_series
-
-        write_series(
-            args.vtk, f"{scene.name}-reference", res.points, res.tets, res.times, {"displacement": res.displacement}
-        )
+        _write_vtk(args.vtk, f"{scene.name}-reference", res)
     summary = {
         "scene": scene.name,
         "out": args.out,
@@ -164,11 +167,7 @@ def cmd_run(args) -> int:
     if args.out:
         res.save(args.out)
     if args.vtk:
-        from .vtk import write_series
-
-        write_series(
-            args.vtk, f"{scene.name}-{args.model}", res.points, res.tets, res.times, {"displacement": res.displacement}
-        )
+        _write_vtk(args.vtk, f"{scene.name}-{args.model}", res)
     m = res.meta
     summary = {
         "scene": scene.name,
