@@ -262,3 +262,18 @@ def test_a_cluster_of_coincident_vertices_becomes_one(tmp_path):
     assert back.n_vertices == m.n_vertices + 1 and back.n_tets == len(faces)
     assert f"merged {len(faces) - 1} duplicate vertices" in back.notes
     assert back.quality()["total_volume_m3"] == pytest.approx(1e-6, rel=1e-12)
+
+
+def test_written_files_have_the_usual_permissions(tmp_path):
+    """Written through a temporary file, a result still gets the permissions of any new file (mkstemp's
+    owner-only mode made the reports unreadable to a web server)."""
+    import os
+
+    from meshes.io import atomic_write
+
+    umask = os.umask(0o022)
+    try:
+        path = atomic_write(tmp_path / "r.txt", lambda tmp: Path(tmp).write_text("x"))
+    finally:
+        os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o644
