@@ -12,6 +12,8 @@ import contextlib
 
 import numpy as np
 
+from realtime.errors import InputError
+
 from .tetmesh import TetMesh
 
 GENERATORS = ("box", "cylinder", "tube", "liver")
@@ -115,7 +117,7 @@ def cylinder(radius: float = 0.01, length: float = 0.1, h: float = 0.004) -> Tet
 def tube(inner_radius: float = 0.006, outer_radius: float = 0.01, length: float = 0.1, h: float = 0.003) -> TetMesh:
     """A hollow cylinder (a vessel, an intestine) along z. Faces bottom, top, outer, inner."""
     if not 0.0 < inner_radius < outer_radius:
-        raise ValueError(f"tube: need 0 < inner_radius < outer_radius, got {inner_radius}, {outer_radius}")
+        raise InputError(f"tube: need 0 < inner_radius < outer_radius, got {inner_radius}, {outer_radius}")
     with _gmsh_session("tube", h) as gmsh:
         outer = gmsh.model.occ.addCylinder(0, 0, 0, 0, 0, length, outer_radius)
         inner = gmsh.model.occ.addCylinder(0, 0, 0, 0, 0, length, inner_radius)
@@ -162,5 +164,5 @@ def generate(generator: str, **params) -> TetMesh:
     """Dispatch to a generator by name with its keyword parameters."""
     funcs = {"box": box, "cylinder": cylinder, "tube": tube, "liver": liver}
     if generator not in funcs:
-        raise ValueError(f"generator = {generator!r}: must be one of {', '.join(GENERATORS)} or file")
+        raise InputError(f"generator = {generator!r}: must be one of {', '.join(GENERATORS)} or file")
     return funcs[generator](**params)

@@ -413,11 +413,11 @@ def build_mesh(spec: dict, scene_path: Path) -> TetMesh:
     params = {k: v for k, v in spec.items() if k != "generator"}
     try:
         return get_mesh(gen, params)
-    except InvalidMeshError as exc:
+    except InputError as exc:  # the generators' checks of their parameters, an invalid mesh
         raise SceneError(f"{scene_path}: mesh: {exc}") from None
-    except ValueError as exc:  # the generators' own checks of their parameters (tube radii)
-        raise SceneError(f"{scene_path}: mesh: {exc}") from None
-    except Exception as exc:  # gmsh raises bare Exceptions when it cannot mesh the geometry
+    except Exception as exc:
+        if type(exc) is not Exception:  # gmsh raises exactly Exception when it cannot mesh; others are bugs
+            raise
         raise SceneError(f"{scene_path}: mesh: gmsh cannot mesh {gen} {params} ({exc})") from None
 
 
