@@ -23,8 +23,8 @@ RAMP_SHAPES = ("linear", "smooth")
 
 def ramp(t: float, duration: float, shape: str) -> tuple[float, float, float]:
     """The fraction of its travel a tool has made at time t (s), and its first and second time
-    derivatives (1/s, 1/s^2; from the right at t = 0 and from the left at t = duration, where the
-    travel holds), for a ramp of ``duration`` s (0: at once) of the given shape.
+    derivatives (1/s, 1/s^2; from the right at both ends: the motion starts at t = 0, and from
+    t = duration on the travel holds), for a ramp of ``duration`` s (0: at once) of the given shape.
 
     The reference defines this itself: it is part of the problem both solvers solve, and the ground
     truth borrows nothing from the engine it judges (a test compares the engine's numba copy).

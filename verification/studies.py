@@ -772,7 +772,8 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
     meshes = [scene.mesh]
     for _ in range(levels - 1):
         meshes.append(meshes[-1].refined())
-    h0 = float(np.mean(np.linalg.norm(np.diff(scene.mesh.points[scene.mesh.edges], axis=1)[:, 0], axis=1)))
+    e = scene.mesh.edges
+    h0 = float(np.linalg.norm(scene.mesh.points[e[:, 1]] - scene.mesh.points[e[:, 0]], axis=1).mean())  # mean edge
     hs = [h0 / 2**k for k in range(levels)]
     progress = Progress(1 + levels * (len(models) + 2), f"converge {scene.name}")
     fine = reference_static(
