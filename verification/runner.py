@@ -28,7 +28,7 @@ from realtime.models import QUASI_STATIC
 from realtime.quasistatic import QuasiStatic
 
 from .loading import build_loading
-from .metrics import compute, rel_l2
+from .metrics import compute
 from .results import Result
 from .scene import Scene
 
@@ -451,8 +451,8 @@ def _run_quasi_static(scene: Scene, model, build_s: float) -> Result:
 
 
 def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integrator: str, max_steps: int) -> dict:
-    """Which part of a model's error is whose (docs/architecture.md section 6), each a relative L2 error
-    over the scene's vertices and output times:
+    """Which part of a model's error is whose (docs/architecture.md section 6), each an L2 distance over
+    the scene's vertices and output times relative to the converged reference's norm, like ``rel_l2``:
 
     - ``mesh``: the P1 finite-element solution of the scene's law on the scene's mesh against the
       converged reference: what any P1 model on this mesh pays (locking, a coarse mesh), whatever it is;
@@ -461,9 +461,10 @@ def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integr
     - ``time`` (dynamic scenes, time-stepping models): the model at its step against the same model at
       an eighth of it; the model part is then taken at the eighth, so the parts do not overlap.
 
-    ``dominant`` names the largest. The parts are distances between solutions, so the total is at most
-    their sum (the triangle inequality), not equal to it. A P1 reference that cannot solve leaves
-    ``mesh`` None with the reason.
+    ``dominant`` names the largest. The parts are distances between solutions over one norm, so by the
+    triangle inequality |mesh - model| - time <= total <= mesh + model + time; a total far below the sum
+    is errors cancelling (mass-spring's missing Poisson effect against P1's locking). A P1 reference that
+    cannot solve leaves ``mesh`` None with the reason.
     """
     from reference.errors import ReferenceSolveError
 
@@ -473,14 +474,19 @@ def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integr
     except ReferenceSolveError as exc:
         out["why"] = f"no P1 solution on this mesh: {exc}"
         return out
-    out["mesh"] = rel_l2(p1.displacement, ref.displacement)
+    scale = max(float(np.linalg.norm(ref.displacement)), 1e-300)
+
+    def distance(a, b):
+        return float(np.linalg.norm(a - b)) / scale
+
+    out["mesh"] = distance(p1.displacement, ref.displacement)
     model_u = res.displacement
     dt = res.meta.get("dt")
     if scene.time.mode == "dynamic" and dt is not None and model_name not in QUASI_STATIC:
         fine = run_model(scene, model_name, dt=dt / 8.0, integrator=integrator, max_steps=max_steps)
-        out["time"] = rel_l2(res.displacement, fine.displacement)
+        out["time"] = distance(res.displacement, fine.displacement)
         model_u = fine.displacement
-    out["model"] = rel_l2(model_u, p1.displacement)
+    out["model"] = distance(model_u, p1.displacement)
     out["dominant"] = max((k for k in ("mesh", "model", "time") if out[k] is not None), key=lambda k: out[k])
     return out
 
