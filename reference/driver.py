@@ -117,8 +117,10 @@ def solve_dynamic(
     estimate: bool = True,
     substeps: int = 4,
     comm=MPI.COMM_WORLD,
+    points: np.ndarray | None = None,
 ) -> dict:
-    """Newmark trajectory from rest at the scene mesh's vertices, every ``output_every`` up to ``end``.
+    """Newmark trajectory from rest at ``points`` (K, 3) m (default the scene mesh's vertices), every
+    ``output_every`` up to ``end``.
 
     The time step is output_every / substeps. With the estimate, the returned trajectory is the one at
     refinement R + 1 (and dt), and ``ref_err_estimate`` = space + 2 time bounds its relative error when
@@ -135,7 +137,9 @@ def solve_dynamic(
     def run(level, step):
         t0 = time.perf_counter()
         ep = ElasticityProblem(mesh, material, problem, degree=degree, refine=level, comm=comm)
-        times, vals, reac, info = ep.solve_dynamic(step, end, output_every, mesh.points, rayleigh=rayleigh)
+        times, vals, reac, info = ep.solve_dynamic(
+            step, end, output_every, mesh.points if points is None else points, rayleigh=rayleigh
+        )
         info.update(level=level, n_dofs=ep.n_dofs, wall_s=time.perf_counter() - t0)
         return times, vals, reac, info
 

@@ -10,15 +10,12 @@ import time
 import numpy as np
 import pytest
 
+from verification.advise import LINEAR_MODELS, deformation_summary
 from verification.cli import main
 from verification.runner import cache_dir, reference_result
+from verification.runs import largest_stable_fraction
 from verification.scene import load_scene
-from verification.studies import (
-    LINEAR_MODELS,
-    deformation_summary,
-    largest_stable_fraction,
-    pareto_front,
-)
+from verification.sweep import pareto_front
 
 
 def brute_force_front(points):
@@ -212,6 +209,7 @@ def test_advise_large_rotation_recommends_a_rotation_invariant_model(capsys):
     assert out["model"] not in LINEAR_MODELS and out["model"] is not None
     assert out["why"].startswith("needs a rotation-invariant model")
     assert any(line.startswith("linear-tm") for line in out["cheaper_failed"])
+    assert out["refine"] == 0 and out["frame"]["holds"]
     assert out["deformation"]["max_rotation_deg"] > 30
 
 
@@ -268,16 +266,16 @@ def test_gate_baselines_carry_provenance():
 
 def test_cache_keys_change_with_every_input_they_cover(monkeypatch):
     """A cached result is reused only for the same inputs: every field of the run and reference keys, the
-    code that makes them (a run's row also depends on studies.py, the region rule and the reference's
+    code that makes them (a run's row also depends on runs.py, the region rule and the reference's
     code), the machine for timings, and every parameter of a variant built in code."""
     import dataclasses
 
-    from verification import runner, studies
+    from verification import runner, runs
 
     scene = load_scene("cantilever-pull")
     args = dict(scene=scene, model="linear-tm", integrator="symplectic-euler", dt=None, fraction=0.9, ref_opts={})
-    key = studies._run_key(**args)
-    assert studies._run_key(**args) == key
+    key = runs.run_key(**args)
+    assert runs.run_key(**args) == key
     for field, value in (
         ("model", "stvk-tm"),
         ("integrator", "central-difference"),
@@ -285,7 +283,7 @@ def test_cache_keys_change_with_every_input_they_cover(monkeypatch):
         ("fraction", 0.5),
         ("ref_opts", {"degree": 1}),
     ):
-        assert studies._run_key(**{**args, field: value}) != key, field
+        assert runs.run_key(**{**args, field: value}) != key, field
     rkey = runner.reference_key(scene, 2, 0, True)
     for change in ((1, 0, True), (2, 1, True), (2, 0, False)):
         assert runner.reference_key(scene, *change) != rkey
@@ -296,16 +294,21 @@ def test_cache_keys_change_with_every_input_they_cover(monkeypatch):
     variant = dataclasses.replace(scene, problem=dataclasses.replace(scene.problem, loads=(moved,)))
     assert variant.sha256() != scene.sha256() and runner.reference_key(variant, 2, 0, True) != rkey
     assert scene.with_material(poisson=0.3).sha256() != scene.sha256()
+    # a refined scene is another scene, and its truth (solved on the base mesh) is keyed apart from the
+    # P1 solution on its own mesh
+    fine = scene.refined(1)
+    assert fine.sha256() != scene.sha256() and fine.refined(1).sha256() != fine.sha256()
+    assert runner.reference_key(fine, 1, 0, False) != runner.reference_key(fine, 1, 0, False, own_mesh=True)
     # the code and the machine
     real = runner.code_digest
     monkeypatch.setattr(runner, "code_digest", lambda patterns: "other " + real(patterns))
     assert runner.reference_key(scene, 2, 0, True) != rkey
-    monkeypatch.setattr(studies, "code_digest", lambda patterns: "other code")
-    assert studies._run_key(**args) != key
+    monkeypatch.setattr(runs, "code_digest", lambda patterns: "other code")
+    assert runs.run_key(**args) != key
     monkeypatch.undo()
-    monkeypatch.setattr(studies, "machine_id", lambda: {"cpu": "another machine"})
-    assert studies._run_key(**args) != key
-    assert {"reference/fem.py", "meshes/regions.py", "verification/studies.py"} <= {
+    monkeypatch.setattr(runs, "machine_id", lambda: {"cpu": "another machine"})
+    assert runs.run_key(**args) != key
+    assert {"reference/fem.py", "meshes/regions.py", "verification/runs.py"} <= {
         str(f.relative_to(runner.ROOT)) for p in runner.RUN_CODE for f in runner.ROOT.glob(p)
     }
 

@@ -65,6 +65,11 @@ def cmd_scenes(args) -> int:
     return 0
 
 
+def _scene(args):
+    """The command's scene, cut ``--mesh-refine`` more times than its file says."""
+    return load_scene(args.scene, refine=getattr(args, "mesh_refine", 0))
+
+
 def _write_vtk(target: str, name: str, res) -> None:
     """A result's displacements at every output time as a ParaView series (--vtk)."""
     from .vtk import write_series
@@ -79,7 +84,7 @@ def cmd_check(args) -> int:
 
     from .loading import build_loading
 
-    scene = load_scene(args.scene)
+    scene = _scene(args)
     mesh = scene.mesh
     loading = build_loading(mesh, scene.material.density, scene.problem)
     model = realtime.build_model("linear-tm", mesh.points, mesh.tets, scene.material, loading)
@@ -124,7 +129,7 @@ def cmd_check(args) -> int:
 def cmd_reference(args) -> int:
     from .runner import reference_result
 
-    scene = load_scene(args.scene)
+    scene = _scene(args)
     res = reference_result(
         scene,
         degree=args.degree,
@@ -162,7 +167,7 @@ def cmd_reference(args) -> int:
 def cmd_run(args) -> int:
     from .runner import run_model
 
-    scene = load_scene(args.scene)
+    scene = _scene(args)
     res = run_model(scene, args.model, dt=args.dt, integrator=args.integrator, max_steps=args.max_steps)
     if args.out:
         res.save(args.out)
@@ -197,7 +202,7 @@ def cmd_run(args) -> int:
 def cmd_compare(args) -> int:
     from .runner import compare
 
-    scene = load_scene(args.scene)
+    scene = _scene(args)
     out = compare(
         scene,
         args.model,
@@ -208,6 +213,10 @@ def cmd_compare(args) -> int:
         max_steps=args.max_steps,
         vtk=args.vtk,
     )
+    if args.rate and out["status"] == "ok":
+        from .advise import frame_budget
+
+        out["frame"] = frame_budget(out, args.rate, scene.time.mode == "dynamic")
     if args.json:
         _print_json(out)
     elif out["status"] != "ok":
@@ -232,6 +241,9 @@ def cmd_compare(args) -> int:
         if b.get("mesh") is not None:
             parts = ", ".join(f"{p} {b[p]:.3g}" for p in ("mesh", "model", "time") if b.get(p) is not None)
             print(f"  {'error_budget':<18} {parts}: the {b['dominant']}'s part dominates")
+        if out.get("frame"):
+            f = out["frame"]
+            print(f"  {'frame':<18} {'holds' if f['holds'] else 'does not hold'} {args.rate:g} Hz: {f['why']}")
     return 0 if out["status"] == "ok" else 1
 
 
@@ -257,9 +269,9 @@ def _rank0(comm) -> bool:
 
 
 def cmd_sweep(args) -> int:
-    from .studies import format_sweep, sweep, sweep_csv
+    from .sweep import format_sweep, sweep, sweep_csv
 
-    scene = load_scene(args.scene)
+    scene = _scene(args)
     comm = _mpi_comm()
     out = sweep(
         scene,
@@ -282,9 +294,9 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_converge(args) -> int:
-    from .studies import converge_manufactured, converge_space, converge_time, format_converge
+    from .converge import converge_manufactured, converge_space, converge_time, format_converge
 
-    scene = load_scene(args.scene)
+    scene = _scene(args)
     if scene.manufactured:
         out = converge_manufactured(scene)
     elif args.in_ == "time":
@@ -296,35 +308,20 @@ def cmd_converge(args) -> int:
 
 
 def cmd_stability(args) -> int:
-    from .studies import format_stability, stability
+    from .stability import format_stability, stability
 
-    out = stability(load_scene(args.scene), models=args.models, tol=args.tol, use_cache=not args.no_cache)
+    out = stability(_scene(args), models=args.models, tol=args.tol, use_cache=not args.no_cache)
     _emit(args, out, format_stability)
     return 0
 
 
 def cmd_advise(args) -> int:
-    from .studies import advise
+    from .advise import advise, format_advice
 
     comm = _mpi_comm()
-    out = advise(
-        load_scene(args.scene), tol=args.tol, rate=args.rate, metric=args.metric, use_cache=not args.no_cache, comm=comm
-    )
-    if not _rank0(comm):
-        return 0
-    if args.json:
-        _print_json(out)
-    elif out["model"] is None:
-        print(out["why"])
-    else:
-        dt = "quasi-static" if out["dt"] is None else f"dt = {out['dt']:.3g} s"
-        print(f"{out['model']} ({out['integrator']}, {dt}): {args.metric} {out['value']:.3g}, {out['rate_hz']:.0f} Hz")
-        print(f"why: {out['why']}")
-        if out["runner_up"]:
-            r = out["runner_up"]
-            print(f"runner-up: {r['model']} ({args.metric} {r['value']:.3g}, {r['step_us']:.1f} us/step)")
-        for line in out["cheaper_failed"]:
-            print(f"  cheaper, rejected: {line}")
+    out = advise(_scene(args), tol=args.tol, rate=args.rate, metric=args.metric, use_cache=not args.no_cache, comm=comm)
+    if _rank0(comm):
+        _emit(args, out, format_advice)
     return 0
 
 
@@ -398,6 +395,7 @@ def _whole(lo: int, hi: int | None = None):
 
 _count = _whole(1)
 _level = _whole(0, 4)  # each refinement has 8 times the cells
+MESH_REFINE_HELP = "cut the scene's mesh uniformly K more times (h / 2^K; the reference stays the base mesh's)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -410,11 +408,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("check", help="read a scene (mesh, regions, loading) and describe it, solving nothing")
     s.add_argument("scene")
+    s.add_argument("--mesh-refine", type=_level, default=0, metavar="K", help=MESH_REFINE_HELP)
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_check)
 
     s = sub.add_parser("reference", help="solve a scene's ground truth with dolfinx")
     s.add_argument("scene")
+    s.add_argument("--mesh-refine", type=_level, default=0, metavar="K", help=MESH_REFINE_HELP)
     s.add_argument("--degree", type=int, choices=(1, 2), default=2)
     s.add_argument("--refine", type=_level, default=0)
     s.add_argument(
@@ -436,6 +436,7 @@ def build_parser() -> argparse.ArgumentParser:
     ):
         s = sub.add_parser(name, help=helptext)
         s.add_argument("scene")
+        s.add_argument("--mesh-refine", type=_level, default=0, metavar="K", help=MESH_REFINE_HELP)
         s.add_argument("--model", required=True, choices=sorted(MODELS))
         s.add_argument("--dt", type=_positive, help="time step, s (default 0.9 x the critical one)")
         s.add_argument("--integrator", default="symplectic-euler", choices=sorted(INTEGRATORS))
@@ -447,6 +448,9 @@ def build_parser() -> argparse.ArgumentParser:
         else:
             s.add_argument("--degree", type=int, choices=(1, 2), default=2, help="reference degree")
             s.add_argument("--refine", type=_level, default=0, help="reference refinement level")
+            s.add_argument(
+                "--rate", type=_positive, help="frame rate, Hz: say whether the run holds it (as advise decides)"
+            )
         s.set_defaults(func=func)
 
     s = sub.add_parser("report", help="HTML report with plots and data")
@@ -468,6 +472,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("sweep", help="error against step time for models x time steps, with the Pareto front")
     s.add_argument("scene")
+    s.add_argument("--mesh-refine", type=_level, default=0, metavar="K", help=MESH_REFINE_HELP)
     s.add_argument("--models", nargs="+", choices=sorted(MODELS))
     s.add_argument("--fractions", type=_positive, nargs="+", help="time steps as fractions of the critical one")
     s.add_argument("--dts", type=_positive, nargs="+", help="time steps in seconds")
@@ -498,6 +503,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("advise", help="the cheapest model, integrator and dt meeting a tolerance at a rate")
     s.add_argument("scene")
+    s.add_argument("--mesh-refine", type=_level, default=0, metavar="K", help=MESH_REFINE_HELP)
     s.add_argument("--tol", type=_positive, required=True, help="largest acceptable error (relative)")
     s.add_argument("--rate", type=_positive, required=True, help="update rate the model must sustain, Hz")
     s.add_argument("--metric", default="rel_l2", choices=("rel_l2", "surface_rel_l2", "reaction_rel_err"))

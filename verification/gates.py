@@ -22,8 +22,8 @@ from realtime import INTEGRATORS, MODELS
 
 from .results import atomic_write_text
 from .runner import git_commit
+from .runs import cached_compare
 from .scene import SceneError, load_scene
-from .studies import cached_compare
 
 DEFAULT_CONFIG = Path(__file__).parent / "gates.toml"
 METRICS = ("rel_l2", "surface_rel_l2", "max_err", "reaction_rel_err", "volume_err")

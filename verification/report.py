@@ -27,17 +27,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
+from .advise import advise, refined_times  # noqa: E402
+from .converge import converge_manufactured, converge_time  # noqa: E402
 from .results import atomic_write_text  # noqa: E402
 from .runner import REFERENCE_DEFAULTS, git_commit, log, reference_result, run_model, versions  # noqa: E402
 from .scene import SceneError, load_scene  # noqa: E402
-from .studies import (  # noqa: E402
-    advise,
-    converge_manufactured,
-    converge_time,
-    stability,
-    sweep,
-    sweep_csv,
-)
+from .stability import stability  # noqa: E402
+from .sweep import sweep, sweep_csv  # noqa: E402
 
 DEFAULT_SCENES = ["cantilever", "cantilever-pull", "cantilever-dynamic"]
 #: The advisor's question on every scene of the report: 5% error at a haptic 1 kHz.
@@ -253,21 +249,28 @@ def _sweep_table(rows: list[dict]) -> str:
 
 
 def _advice_html(a: dict) -> str:
+    """The advisor's answer: the pick (on the mesh it names), its frame budget, why, the command that
+    re-runs it, and every cheaper option with the reason it failed."""
+    rej = "".join(f"<li>{html.escape(x)}</li>" for x in a.get("cheaper_failed") or a.get("rejected") or [])
+    rej = f"<details><summary>cheaper options rejected</summary><ul>{rej}</ul></details>" if rej else ""
     if not a.get("model"):
         why = a["why"]  # it already says that no model meets the bound
-        return f"<p class='advice'>{html.escape(why[0].upper() + why[1:])}</p>"
+        return f"<p class='advice'>{html.escape(why[0].upper() + why[1:])}</p>" + rej
     dt = "quasi-static" if a["dt"] is None else f"dt = {a['dt']:.3g} s"
-    runner = a.get("runner_up")
-    ru = (
-        f" Runner-up: <b>{runner['model']}</b> (rel_l2 {runner['value']:.3g}, {runner['step_us']:.1f} us/step)."
-        if runner
+    m = a["mesh"]
+    mesh = (
+        f" on the mesh refined {refined_times(a['refine'])} ({m['n_vertices']} vertices, mean edge "
+        f"{m['mean_edge_m'] * 1e3:.3g} mm)"
+        if a["refine"]
         else ""
     )
-    rej = "".join(f"<li>{html.escape(x)}</li>" for x in a.get("cheaper_failed", []))
+    runner = a.get("runner_up")
+    ru = f" Runner-up: <b>{runner['model']}</b> (rel_l2 {runner['value']:.3g})." if runner else ""
     return (
         f"<p class='advice'>For rel_l2 &le; {ADVISE_TOL} at {ADVISE_RATE:.0f} Hz: <b>{a['model']}</b> "
-        f"({a['integrator']}, {dt}; rel_l2 {a['value']:.3g}, {a['rate_hz']:.0f} Hz). {html.escape(a['why'])}.{ru}</p>"
-        + (f"<details><summary>cheaper runs rejected</summary><ul>{rej}</ul></details>" if rej else "")
+        f"({a['integrator']}, {dt}){mesh}: rel_l2 {a['value']:.3g}; {html.escape(a['frame']['why'])}. "
+        f"{html.escape(a['why'][0].upper() + a['why'][1:])}.{ru} Check it: <code>{html.escape(a['command'])}</code></p>"
+        + rej
     )
 
 

@@ -75,7 +75,7 @@ RUN_CODE = (
     "verification/runner.py",
     "verification/loading.py",
     "verification/metrics.py",
-    "verification/studies.py",
+    "verification/runs.py",
     *REFERENCE_CODE,
 )
 
@@ -102,12 +102,15 @@ def machine_id() -> dict:
     return {"arch": platform.machine(), "cpu": model, "cores": os.cpu_count()}
 
 
-def reference_key(scene: Scene, degree: int, refine: int, estimate: bool, newton=(1, 1e-4)) -> str:
+def reference_key(
+    scene: Scene, degree: int, refine: int, estimate: bool, newton=(1, 1e-4), own_mesh: bool = False
+) -> str:
     from reference.fem import LU_OPTIONS
 
     return digest(
         {
             "scene": scene.sha256(),
+            "solved_on": "own mesh" if own_mesh or not scene.level else "base mesh",
             "degree": degree,
             "refine": refine,
             "estimate": estimate,
@@ -127,46 +130,56 @@ def reference_result(
     use_cache: bool = True,
     newton_steps: int = 1,
     min_increment: float = 1e-4,
+    own_mesh: bool = False,
 ) -> Result:
     """The scene's reference, from the cache or solved now (and then cached). ``newton_steps`` and
     ``min_increment`` set the non-linear static solve's first load increment (1 / newton_steps) and the
-    smallest increment it may halve to before it gives up."""
+    smallest increment it may halve to before it gives up.
+
+    On a refined scene (``Scene.refined``) the reference is solved on the base scene's mesh and
+    evaluated at the refined vertices: the truth does not depend on the mesh a model runs on, and the
+    base's solve (with its estimate) costs 8^level times less. ``own_mesh`` solves on the scene's own
+    mesh instead (the error budget's P1 solution on the model's mesh)."""
     from mpi4py import MPI
 
     from reference.driver import solve_dynamic as reference_dynamic
     from reference.driver import solve_static as reference_static
 
-    key = reference_key(scene, degree, refine, estimate, (newton_steps, min_increment))
+    key = reference_key(scene, degree, refine, estimate, (newton_steps, min_increment), own_mesh)
     path = cache_dir() / "reference" / f"{scene.name}-{key}.npz"
     if use_cache and path.exists():
         return Result.load(path)
     mesh = scene.mesh
-    log(f"reference: {scene.name} P{degree} refine {refine}{' + estimate' if estimate else ''} ...")
+    solved = scene if own_mesh or not scene.level else scene.base
+    where = f" on the base mesh at the {mesh.n_vertices} vertices of level {scene.level}" if solved is not scene else ""
+    log(f"reference: {scene.name} P{degree} refine {refine}{' + estimate' if estimate else ''}{where} ...")
     t0 = time.perf_counter()
     if scene.time.mode == "dynamic":
         ts = scene.time
         sol = reference_dynamic(
-            mesh,
+            solved.mesh,
             scene.material,
-            scene.problem,
+            solved.problem,
             ts.end,
             ts.output_every,
             rayleigh=(ts.damping_mass, ts.damping_stiffness),
             degree=degree,
             refine=refine,
             estimate=estimate,
+            points=mesh.points,
         )
         times, disp, reac = sol["times"], sol["displacement"], sol["reaction"]
     else:
         sol = reference_static(
-            mesh,
+            solved.mesh,
             scene.material,
-            scene.problem,
+            solved.problem,
             degree=degree,
             refine=refine,
             estimate=estimate,
             newton_steps=newton_steps,
             min_increment=min_increment,
+            points=mesh.points,
         )
         times, disp, reac = np.zeros(1), sol["displacement"][None], sol["reaction"][None]
     meta = sol["meta"]
@@ -174,6 +187,8 @@ def reference_result(
         scene=scene.name,
         scene_sha256=scene.sha256(),
         mesh_sha256=mesh.sha256(),
+        scene_level=scene.level,
+        solved_on_mesh_sha256=solved.mesh.sha256(),
         cache_key=key,
         wall_s=time.perf_counter() - t0,
         commit=git_commit(),
@@ -470,7 +485,7 @@ def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integr
 
     out = {"mesh": None, "model": None, "time": None}
     try:
-        p1 = reference_result(scene, degree=1, refine=0, estimate=False)
+        p1 = reference_result(scene, degree=1, refine=0, estimate=False, own_mesh=True)
     except ReferenceSolveError as exc:
         out["why"] = f"no P1 solution on this mesh: {exc}"
         return out

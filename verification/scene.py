@@ -46,6 +46,8 @@ MESH_PARAMS = {
 MESH_OPTIONAL = {("file", "scale"): 1.0}
 #: The most tetrahedra a generated mesh may have (estimated before gmsh runs): about 2 GB of P2 reference.
 MAX_TETS = 2_000_000
+#: The most uniform refinements a scene may ask for (each multiplies the tetrahedra by 8).
+MAX_REFINE = 4
 LOAD_KINDS = ("gravity", "force", "traction", "displacement")
 MODES = ("static", "dynamic")
 
@@ -77,6 +79,10 @@ class Scene:
     raw: dict = field(repr=False, default_factory=dict)
     _mesh: TetMesh | None = field(default=None, repr=False)
     manufactured: dict | None = None
+    #: Uniform refinements of the base scene's mesh this scene is on (``refined``); 0 for a scene file.
+    level: int = 0
+    #: The scene this one refines (its geometry and regions are the base's); None at level 0.
+    base: Scene | None = field(default=None, repr=False)
 
     @property
     def mesh(self) -> TetMesh:
@@ -90,8 +96,42 @@ class Scene:
         a variant made with dataclasses.replace, a 90 or a 60 degree twist, has a hash of its own) and
         its mesh."""
         text = json.dumps(self.raw, sort_keys=True, default=str)
-        parsed = repr((self.material, self.problem, self.time, self.manufactured))
+        parsed = repr((self.material, self.problem, self.time, self.manufactured, self.level))
         return hashlib.sha256((text + parsed + self.mesh.sha256()).encode()).hexdigest()
+
+    def refined(self, levels: int = 1) -> Scene:
+        """This scene on its mesh cut uniformly ``levels`` more times (``TetMesh.refined``: h halves at
+        each level, the coarser vertices come first), its regions carried by the rule the reference
+        applies to its own refined meshes (``meshes.regions.spanned``: a refined vertex belongs to a
+        region when the base vertices of its edge or face do), so that every level poses the base
+        scene's problem (docs/architecture.md section 3). The reference of a refined scene is the
+        base's, evaluated at the refined vertices."""
+        from meshes.regions import VertexRegion, spanned
+
+        if levels == 0:
+            return self
+        base = self.base or self
+        mesh = self.mesh
+        for _ in range(levels):
+            mesh = mesh.refined()
+
+        def carry(region):
+            return VertexRegion(tuple(np.flatnonzero(spanned(base.mesh, region.vertices(base.mesh), mesh.points))))
+
+        problem = dataclasses.replace(
+            base.problem,
+            fixed=tuple(dataclasses.replace(f, region=carry(f.region)) for f in base.problem.fixed),
+            loads=tuple(
+                dataclasses.replace(ld, region=carry(ld.region)) if hasattr(ld, "region") else ld
+                for ld in base.problem.loads
+            ),
+        )
+        level = self.level + levels
+        raw = json.loads(json.dumps(base.raw, default=str))
+        raw.setdefault("mesh", {})["refine"] = level
+        return dataclasses.replace(
+            base, material=self.material, problem=problem, raw=raw, _mesh=mesh, level=level, base=base
+        )
 
     def with_material(self, **changes) -> Scene:
         """A copy with material fields changed (for studies over nu, E)."""
@@ -281,7 +321,10 @@ def parse(path: Path, data: dict) -> Scene:
             spec[k] = mr.string(k)
         else:
             spec[k] = mr.number(k, MESH_OPTIONAL.get((gen, k), ...), positive=True)
-    mr.finish(("generator",) + tuple(MESH_PARAMS[gen]))
+    refine = mr.get("refine", 0)
+    if not (isinstance(refine, int) and not isinstance(refine, bool) and 0 <= refine <= MAX_REFINE):
+        mr.fail("refine", f"must be a whole number from 0 to {MAX_REFINE} (uniform refinements), got {refine!r}")
+    mr.finish(("generator", "refine") + tuple(MESH_PARAMS[gen]))
     if gen == "tube" and not spec["inner_radius"] < spec["outer_radius"]:
         mr.fail("inner_radius", f"{spec['inner_radius']!r} must be below outer_radius = {spec['outer_radius']!r}")
     if gen != "file":
@@ -388,8 +431,11 @@ def _volume(spec: dict) -> float:
     return 1.28e-3 * spec["scale"] ** 3
 
 
-def load_scene(name_or_path: str | Path) -> Scene:
-    """Read and validate a scene by built-in name or path; raises SceneError."""
+def load_scene(name_or_path: str | Path, refine: int = 0) -> Scene:
+    """Read and validate a scene by built-in name or path; raises SceneError. ``refine`` cuts its mesh
+    uniformly that many more times than its ``[mesh] refine`` says (``Scene.refined``)."""
+    if not (isinstance(refine, int) and 0 <= refine <= MAX_REFINE):
+        raise SceneError(f"refine = {refine!r}: must be a whole number from 0 to {MAX_REFINE}")
     path = resolve(str(name_or_path))
     try:
         data = tomllib.loads(path.read_text())
@@ -397,7 +443,13 @@ def load_scene(name_or_path: str | Path) -> Scene:
         raise SceneError(f"{path}: not valid TOML ({exc})") from None
     except OSError as exc:
         raise SceneError(f"{path}: cannot read it ({exc.strerror})") from None
-    return parse(path, data)
+    scene = parse(path, data)
+    levels = scene.raw["mesh"].get("refine", 0) + refine
+    if levels > MAX_REFINE:
+        raise SceneError(
+            f"{path}: mesh.refine: {levels} levels in all, at most {MAX_REFINE} (8^levels times the tetrahedra)"
+        )
+    return scene.refined(levels)
 
 
 def build_mesh(spec: dict, scene_path: Path) -> TetMesh:

@@ -1,0 +1,568 @@
+"""The advisor (docs/architecture.md section 9): the cheapest model, integrator and time step that meet
+an error tolerance while a simulator holds a frame rate on this machine, on the scene's mesh or, when
+the mesh's own error is what stops every model, on the refinement of it that the observed convergence
+rate says is needed.
+
+1. Every model runs on the scene at the sweep's steps (and, on a static scene, with implicit Euler).
+2. Each run's frame budget (``frame_budget``) says whether it holds the rate and what it costs.
+3. Runs of one model and integrator whose errors agree (the step changes nothing, as on a static
+   scene) are one candidate, the one that reaches its answer soonest.
+4. The cheapest candidate within the tolerance that holds the rate is the answer; every cheaper one is
+   named with the reason it failed: its error (with the budget's mesh, model and time parts), its
+   frame budget or its stability.
+5. When none qualifies and the budget's mesh part is what stops them, the P1 solution on one uniform
+   refinement gives the observed order of the mesh's error; the coarsest level whose predicted mesh
+   part leaves room for a model's own part is proposed, and the models are run there, cheapest
+   predicted first, until one meets both. The answer is a measured run, never a prediction.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from realtime import MODELS
+
+from .progress import Progress
+from .runner import REFERENCE_DEFAULTS, reference_result
+from .runs import cached_compare
+from .scene import Scene, SceneError, builtin_scenes
+from .sweep import sweep
+
+LINEAR_MODELS = ("linear-tm", "precomputed", "condensed")
+#: Time-stepping models tried with implicit Euler on static scenes (it settles in tens of steps).
+IMPLICIT_MODELS = ("linear-tm", "corotational-tm", "stvk-tm")
+#: The share of a frame a candidate may use: the rest is margin for timing noise between this run and
+#: the simulator's (the spread of repeated timings on a loaded 2-core machine reaches 10-20%).
+FRAME_SHARE = 0.8
+#: Two runs of one model whose errors differ by less than this, relatively, are the same answer.
+SAME_ANSWER = 1e-6
+#: The most uniform refinements the advisor proposes (each multiplies the tetrahedra by 8).
+MAX_LEVEL = 3
+#: Refined candidates the advisor runs before it gives up on a level.
+MAX_TRIALS = 4
+#: P1's order of convergence of vertex displacements in L2, the most the advisor extrapolates with:
+#: a pre-asymptotic observed order above it would promise a coarser mesh than the one needed.
+P1_ORDER = 2.0
+
+
+def deformation_summary(points: np.ndarray, tets: np.ndarray, u: np.ndarray) -> dict:
+    """Largest displacement relative to the body's size and largest element rotation (degrees) of a
+    displacement u (N, 3) m on a mesh with points (N, 3) m and tets (M, 4) int: the two numbers that
+    decide whether linear elasticity is enough. Rotation: the angle of the polar rotation of each
+    tetrahedron's P1 deformation gradient."""
+    from realtime.geometry import shape_gradients
+
+    g, _ = shape_gradients(points, tets)
+    F = np.eye(3) + np.einsum("eai,eaj->eij", u[tets], g)
+    U, _, Vt = np.linalg.svd(F)
+    R = U @ Vt
+    flip = np.linalg.det(R) < 0
+    U[flip, :, 2] *= -1
+    R = U @ Vt
+    angle = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+    size = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    return {
+        "max_displacement_m": float(np.linalg.norm(u, axis=-1).max()),
+        "size_m": size,
+        "displacement_ratio": float(np.linalg.norm(u, axis=-1).max() / size),
+        "max_rotation_deg": float(angle.max()),
+    }
+
+
+def frame_budget(row: dict, rate: float, dynamic: bool, share: float = 1.0) -> dict:
+    """Whether a run (a ``compare`` row) holds ``rate`` frames per second on this machine, using at
+    most ``share`` of each frame, and what reaching its answer costs.
+
+    - A quasi-static model (precomputed, condensed) updates once per frame: the update must fit.
+    - On a dynamic scene a time-stepping model must keep up with the wall clock: a frame of 1/rate s
+      advances it by 1/rate s, ceil(1 / (rate dt)) steps, which must fit in the frame (a real-time
+      factor of at least one, rounding included), and dt must not exceed the frame, or the state
+      changes less often than the display.
+    - On a static scene a frame runs as many steps as fit (at least one must), and the answer is
+      reached after the run's ``settle_steps``: ``time_to_answer_s`` is the wall time to settle at that
+      pace, what a user waits after a load change. Quasi-static models answer within their update.
+
+    Returns holds (bool), steps_per_frame, work_us (of one frame), frame_us, time_to_answer_s (None
+    on a dynamic scene, where the answer is the trajectory itself) and why (one line).
+    """
+    frame_us = 1e6 / rate
+    budget_us = share * frame_us
+    step_us = row["step_us"]
+    out = {"frame_us": frame_us, "share": share, "step_us": step_us}
+    if row.get("dt") is None:  # quasi-static: one update per frame
+        holds = step_us <= budget_us
+        out.update(
+            steps_per_frame=1,
+            work_us=step_us,
+            time_to_answer_s=None if dynamic else step_us * 1e-6,
+            holds=holds,
+            why=f"one update of {step_us:.3g} us per frame of {frame_us:.3g} us",
+        )
+        return out
+    dt_us = row["dt"] * 1e6
+    if dynamic:
+        n = max(1, math.ceil(frame_us / dt_us * (1.0 - 1e-12)))
+        work = n * step_us
+        holds = work <= budget_us and dt_us <= frame_us
+        why = f"{n} steps of {step_us:.3g} us keep up with the clock in {work:.3g} us of a {frame_us:.3g} us frame"
+        if dt_us > frame_us:
+            why = f"dt = {dt_us:.3g} us is longer than a frame of {frame_us:.3g} us: the state changes at {1e6 / dt_us:.0f} Hz"
+        elif work > budget_us:
+            why = (
+                f"{n} steps of {step_us:.3g} us per simulated frame take {work:.3g} us, over "
+                f"{share:.0%} of a {frame_us:.3g} us frame (real-time factor {frame_us / work:.2f})"
+            )
+        out.update(steps_per_frame=n, work_us=work, time_to_answer_s=None, holds=holds, why=why)
+        return out
+    n = int(budget_us // step_us)
+    settle = row.get("settle_steps") or 1
+    if n < 1:
+        out.update(
+            steps_per_frame=0,
+            work_us=step_us,
+            time_to_answer_s=settle * step_us * 1e-6,
+            holds=False,
+            why=f"one step takes {step_us:.3g} us, over {share:.0%} of a {frame_us:.3g} us frame",
+        )
+        return out
+    out.update(
+        steps_per_frame=n,
+        work_us=n * step_us,
+        time_to_answer_s=settle * step_us * 1e-6,
+        holds=True,
+        why=f"{n} step{'s' if n > 1 else ''} of {step_us:.3g} us per frame; settles in {settle} steps, "
+        f"{settle * step_us * 1e-6:.3g} s ({math.ceil(settle / n)} frames)",
+    )
+    return out
+
+
+def _cost(row: dict, dynamic: bool) -> float:
+    """What the advisor minimises: on a static scene the wall time to the answer, on a dynamic one the
+    work per frame (the share of the machine a candidate takes)."""
+    b = row["frame"]
+    return b["work_us"] if dynamic else b["time_to_answer_s"]
+
+
+def merge_same_answers(rows: list[dict], metric: str, dynamic: bool) -> list[dict]:
+    """One row per model and integrator among runs whose ``metric`` values agree within SAME_ANSWER
+    (relative): a step that changes nothing is not a choice. The row kept is the cheapest (``_cost``);
+    it lists the steps merged into it (``merged_dt``). Rows that diverged are kept apart."""
+    groups: list[list[dict]] = []
+    for r in rows:
+        if r["status"] != "ok":
+            groups.append([r])
+            continue
+        for g in groups:
+            h = g[0]
+            if (
+                h["status"] == "ok"
+                and (h["model"], h["integrator"]) == (r["model"], r["integrator"])
+                and abs(h[metric] - r[metric]) <= SAME_ANSWER * max(abs(h[metric]), abs(r[metric]), 1e-300)
+            ):
+                g.append(r)
+                break
+        else:
+            groups.append([r])
+    out = []
+    for g in groups:
+        best = min(g, key=lambda r: _cost(r, dynamic)) if g[0]["status"] == "ok" else g[0]
+        out.append({**best, "merged_dt": sorted(r["dt"] for r in g if r.get("dt") is not None)})
+    return out
+
+
+def _label(r: dict) -> str:
+    if r.get("dt") is None:
+        return f"{r['model']} (quasi-static)"
+    return f"{r['model']} ({r['integrator']}, dt {r['dt']:.3g} s)"
+
+
+def _verdict(r: dict, metric: str, tol: float) -> tuple[bool, str]:
+    """Whether a candidate qualifies, and a line saying why or why not."""
+    if r["status"] != "ok":
+        ratio = f", {r['dt'] / r['dt_crit']:.2f} x its critical step" if r.get("dt_crit") else ""
+        return False, f"{_label(r)}: unstable, diverged at step {r.get('step')}{ratio}"
+    value = r.get(metric)
+    bad = []
+    if value is None or value > tol:
+        b = r.get("error_budget") or {}
+        parts = ", ".join(f"{k} {b[k]:.3g}" for k in ("mesh", "model", "time") if b.get(k) is not None)
+        bad.append(f"{metric} {value:.3g} > {tol:g}" + (f" ({parts})" if parts else ""))
+    if not r["frame"]["holds"]:
+        bad.append(r["frame"]["why"])
+    if bad:
+        return False, f"{_label(r)}: {'; '.join(bad)}"
+    return True, f"{_label(r)}: {metric} {value:.3g} <= {tol:g}; {r['frame']['why']}"
+
+
+def _candidates(scene: Scene, metric: str, rate: float, use_cache: bool, comm, progress_label: str) -> list[dict]:
+    """The scene's runs, each with its frame budget, merged by ``merge_same_answers``."""
+    dynamic = scene.time.mode == "dynamic"
+    res = sweep(scene, use_cache=use_cache, comm=comm)
+    if not res:
+        return []
+    rows = list(res["rows"])
+    if not dynamic:
+        extra = [m for m in IMPLICIT_MODELS if m in MODELS]
+        progress = Progress(len(extra), progress_label)
+        for m in extra:
+            rows.append(cached_compare(scene, m, "implicit-euler", use_cache=use_cache))
+            progress.step(f"{m} implicit-euler")
+    for r in rows:
+        if r["status"] == "ok":
+            r["frame"] = frame_budget(r, rate, dynamic, FRAME_SHARE)
+    return merge_same_answers(rows, metric, dynamic)
+
+
+def _pick(rows: list[dict], metric: str, tol: float, dynamic: bool):
+    ok = [r for r in rows if _verdict(r, metric, tol)[0]]
+    return min(ok, key=lambda r: _cost(r, dynamic)) if ok else None
+
+
+def _mean_edge(mesh) -> float:
+    e = mesh.edges
+    return float(np.linalg.norm(mesh.points[e[:, 1]] - mesh.points[e[:, 0]], axis=1).mean())
+
+
+def _memory_bytes(model: str, n_vertices: int, n_surface: int) -> float:
+    """What a model's dense precomputation takes, in bytes: precomputed's responses (free dofs x
+    surface dofs, and the right-hand sides they are solved from), condensed's coupling block (interior
+    x retained dofs) and Schur complement (retained squared). Time-stepping models: sparse, negligible."""
+    n, s = 3.0 * n_vertices, 3.0 * n_surface
+    if model == "precomputed":
+        return 2 * 8 * n * s
+    if model == "condensed":
+        return 8 * ((n - s) * s + 2 * s * s)
+    return 0.0
+
+
+def _available_memory() -> float:
+    """Bytes of memory the advisor lets one run take: half of what the system has available."""
+    try:
+        for line in open("/proc/meminfo"):
+            if line.startswith("MemAvailable:"):
+                return 0.5 * float(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0.5 * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def _predict(r: dict, levels: int, dynamic: bool, rate: float) -> dict:
+    """A level-0 row's frame budget on a mesh refined ``levels`` times: a step costs 8^levels times as
+    much (the element loops), and an explicit step is 2^levels times shorter (dt_crit is proportional
+    to h), so a static scene settles in 2^levels times the steps and a dynamic frame needs 2^levels
+    times the steps. Implicit Euler's step (a sparse solve) is taken to grow like the elements too."""
+    grow = 8.0**levels
+    row = {**r, "step_us": r["step_us"] * grow}
+    if r.get("dt") is not None:
+        if r["integrator"] != "implicit-euler":
+            row["dt"] = r["dt"] / 2.0**levels
+        row["settle_steps"] = (r.get("settle_steps") or 1) * (2**levels if r["integrator"] != "implicit-euler" else 1)
+    return frame_budget(row, rate, dynamic, FRAME_SHARE)
+
+
+def propose_mesh(scene: Scene, rows: list[dict], metric: str, tol: float, rate: float, use_cache: bool) -> dict:
+    """The refinement level that the observed convergence of the mesh's part predicts is needed, and
+    the candidates to run there, cheapest predicted first (see the module docstring, step 5)."""
+    budgets = [r["error_budget"] for r in rows if r["status"] == "ok" and (r.get("error_budget") or {}).get("mesh")]
+    if not budgets:
+        return {"level": None, "why": "no error budget (no P1 solution on this mesh): no mesh size can be proposed"}
+    e0 = budgets[0]["mesh"]
+    truth = reference_result(scene, **REFERENCE_DEFAULTS)
+    fine = scene.refined(1)
+    p1 = reference_result(fine, degree=1, refine=0, estimate=False, own_mesh=True)
+    n = scene.mesh.n_vertices  # nested: the base vertices come first on the refined mesh
+    scale = float(np.linalg.norm(truth.displacement))
+    e1 = float(np.linalg.norm(p1.displacement[:, :n] - truth.displacement) / scale)
+    observed = math.log2(e0 / e1) if e1 > 0 else math.inf
+    out = {"mesh_part": [e0, e1], "observed_order": observed}
+    if not observed > 0.5:
+        out.update(
+            level=None,
+            why=f"the mesh's part does not fall with refinement ({e0:.3g} -> {e1:.3g}, order {observed:.2f}): "
+            "a finer mesh would not help",
+        )
+        return out
+    order = min(observed, P1_ORDER)
+    dynamic = scene.time.mode == "dynamic"
+    memory = _available_memory()
+    surface = len(scene.mesh.surface_vertices)
+    plans = []
+    for r in rows:
+        if r["status"] != "ok":
+            continue
+        own = _own(r)
+        for level in range(1, MAX_LEVEL + 1):
+            mesh_part = e1 / 2.0 ** (order * (level - 1))
+            # the parts' errors are distances between solutions: the total is at most their sum and, when
+            # they are unrelated (as P1's locking and a model's linearity are), close to their
+            # root-sum-square. A row is tried from the level where the latter meets the tolerance up to the
+            # one where the former does; the run on the level decides.
+            likely, bound = math.hypot(mesh_part, own), mesh_part + own
+            if likely > tol:
+                continue
+            predicted = _predict(r, level, dynamic, rate)
+            need = _memory_bytes(r["model"], n * 8**level, surface * 4**level)
+            plans.append(
+                {
+                    "row": r,
+                    "level": level,
+                    "predicted_error": likely,
+                    "error_bound": bound,
+                    "predicted_mesh_part": mesh_part,
+                    "predicted": predicted,
+                    "memory_bytes": need,
+                    "fits_memory": need <= memory,
+                }
+            )
+            if bound <= tol:
+                break
+    if not plans:
+        out.update(
+            level=None,
+            why=f"even {MAX_LEVEL} refinements (8^{MAX_LEVEL} times the tetrahedra) leave every model above "
+            f"{metric} {tol:g}: the mesh's part would be {e1 / 2.0 ** (order * (MAX_LEVEL - 1)):.3g} at order "
+            f"{order:.2f} and the models' own parts are at least "
+            f"{min((r.get('error_budget') or {}).get('model') or 0.0 for r in rows if r['status'] == 'ok'):.3g}",
+        )
+        return out
+    plans.sort(
+        key=lambda p: (
+            not (p["predicted"]["holds"] and p["fits_memory"]),
+            p["level"],
+            p["predicted"]["work_us"] if dynamic else p["predicted"]["time_to_answer_s"],
+        )
+    )
+    out.update(level=plans[0]["level"], order=order, plans=plans)
+    return out
+
+
+def advise(scene: Scene, tol: float, rate: float, metric: str = "rel_l2", use_cache: bool = True, comm=None) -> dict:
+    """The cheapest (model, integrator, dt, mesh) whose ``metric`` is at most ``tol`` while a simulator
+    holds ``rate`` frames per second on this machine (``frame_budget`` with FRAME_SHARE of each frame),
+    with the runner-up and why every cheaper option failed; on a refined mesh when the mesh's own error
+    stops every model on the scene's (module docstring). ``command`` re-runs the pick with compare."""
+    if metric == "reaction_rel_err" and not scene.problem.tools:
+        raise SceneError(
+            f"{scene.path}: --metric reaction_rel_err measures the tool's force, and this scene has no "
+            "displacement load (tool); use rel_l2 or surface_rel_l2"
+        )
+    if not (tol > 0 and rate > 0):
+        raise SceneError(f"--tol {tol!r} and --rate {rate!r}: both must be positive")
+    dynamic = scene.time.mode == "dynamic"
+    rows = _candidates(scene, metric, rate, use_cache, comm, f"advise {scene.name}")
+    if comm is not None and comm.rank != 0:
+        return {}
+    ref = reference_result(scene, **REFERENCE_DEFAULTS)
+    mesh = scene.mesh
+    defo = deformation_summary(
+        mesh.points, mesh.tets, ref.displacement[np.argmax(np.abs(ref.displacement).max(axis=(1, 2)))]
+    )
+    physics = (
+        f"displacements reach {100 * defo['displacement_ratio']:.1f}% of the size and elements rotate up to "
+        f"{defo['max_rotation_deg']:.0f} degrees"
+    )
+    out = {
+        "scene": scene.name,
+        "tol": tol,
+        "rate": rate,
+        "metric": metric,
+        "frame_share": FRAME_SHARE,
+        "deformation": defo,
+        "mesh": _mesh_summary(scene),
+        "reference_err_estimate": ref.meta.get("ref_err_estimate"),
+    }
+    choice = _pick(rows, metric, tol, dynamic)
+    proposal = None
+    tried = []
+    if choice is None:
+        blocked_by_mesh = any(
+            r["status"] == "ok" and (r.get("error_budget") or {}).get("mesh", 0.0) > tol - _own(r) for r in rows
+        )
+        if blocked_by_mesh:
+            proposal = propose_mesh(scene, rows, metric, tol, rate, use_cache)
+            choice, tried = _run_plans(scene, proposal, metric, tol, rate, use_cache)
+    ranked = sorted((r for r in rows if r["status"] == "ok"), key=lambda r: _cost(r, dynamic))
+    rejected = [_verdict(r, metric, tol)[1] for r in rows if not _verdict(r, metric, tol)[0]]
+    out["proposal"] = _proposal_summary(proposal, tried)
+    if choice is None:
+        best = min((r for r in rows if r["status"] == "ok"), key=lambda r: r[metric], default=None)
+        why = f"no model meets {metric} <= {tol:g} at {rate:g} Hz on this mesh"
+        if best is not None:
+            why += f": the most accurate is {_label(best)} with {best[metric]:.3g}"
+        if proposal is not None and proposal.get("level") is None:
+            why += f"; {proposal['why']}"
+        elif proposal is not None:
+            why += f"; on the mesh refined {refined_times(proposal['level'])} no candidate tried qualified either"
+        out.update(model=None, integrator=None, dt=None, why=f"{why}; {physics}", rejected=rejected, runner_up=None)
+        return out
+    level = choice.get("level", 0)
+    target = scene.refined(level) if level else scene
+    cheaper = [_verdict(r, metric, tol)[1] for r in ranked if _cost(r, dynamic) < _cost(choice, dynamic)]
+    if level:
+        cheaper = [f"on the scene's mesh: {line}" for line in rejected]
+    runner = next(
+        (
+            r
+            for r in ranked
+            if r is not choice and r["model"] != choice["model"] and _verdict(r, metric, tol)[0] and not level
+        ),
+        None,
+    )
+    if choice["model"] in LINEAR_MODELS:
+        why = f"linear is enough: {physics}, and {choice['model']} meets {metric} <= {tol:g} ({choice[metric]:.3g})"
+    else:
+        linear = [r[metric] for r in rows if r["status"] == "ok" and r["model"] in LINEAR_MODELS]
+        why = f"needs a rotation-invariant model: {physics}" + (
+            f"; the linear models' {metric} is at least {min(linear):.3g}" if linear else ""
+        )
+    if level:
+        why = (
+            f"the mesh's part of the error ({proposal['mesh_part'][0]:.3g}) stops every model on the scene's mesh; "
+            f"refined {refined_times(level)} (observed order {proposal['observed_order']:.2f}) it is "
+            f"{(choice.get('error_budget') or {}).get('mesh', float('nan')):.3g}, and {why}"
+        )
+    out.update(
+        model=choice["model"],
+        integrator=choice["integrator"],
+        dt=choice["dt"],
+        dt_fraction=choice.get("fraction"),
+        value=choice[metric],
+        error_budget=choice.get("error_budget"),
+        step_us=choice["step_us"],
+        rate_hz=choice["rate_hz"],
+        frame=choice["frame"],
+        refine=level,
+        mesh=_mesh_summary(target),
+        why=why,
+        runner_up=None
+        if runner is None
+        else {
+            "model": runner["model"],
+            "integrator": runner["integrator"],
+            "dt": runner["dt"],
+            "value": runner[metric],
+            "frame": runner["frame"],
+        },
+        cheaper_failed=cheaper,
+        command=_command(scene, choice, level, rate),
+    )
+    return out
+
+
+def _own(r: dict) -> float:
+    b = r.get("error_budget") or {}
+    return (b.get("model") or 0.0) + (b.get("time") or 0.0)
+
+
+def _run_plans(scene: Scene, proposal: dict, metric: str, tol: float, rate: float, use_cache: bool):
+    """Run the proposal's candidates on their refined meshes, cheapest predicted first, the ones
+    predicted to hold the rate and fit in memory only, at most MAX_TRIALS; the first that meets both is
+    the answer. Returns (row or None, what was tried)."""
+    if not proposal or proposal.get("level") is None:
+        return None, []
+    dynamic = scene.time.mode == "dynamic"
+    plans = [p for p in proposal["plans"] if p["predicted"]["holds"] and p["fits_memory"]][:MAX_TRIALS]
+    tried = []
+    progress = Progress(len(plans), f"advise {scene.name} refined")
+    for p in plans:
+        r0 = p["row"]
+        level_scene = scene.refined(p["level"])
+        fraction = (
+            None
+            if r0.get("dt") is None or r0["integrator"] == "implicit-euler"
+            else min(r0.get("fraction") or 0.9, 0.9)
+        )
+        row = cached_compare(level_scene, r0["model"], r0["integrator"], None, fraction, use_cache=use_cache)
+        progress.step(f"{r0['model']} level {p['level']}")
+        if row["status"] == "ok":
+            row["frame"] = frame_budget(row, rate, dynamic, FRAME_SHARE)
+        row["level"] = p["level"]
+        ok, line = _verdict(row, metric, tol)
+        tried.append(
+            {"level": p["level"], "model": row["model"], "integrator": row["integrator"], "ok": ok, "why": line}
+        )
+        if ok:
+            return row, tried
+    return None, tried
+
+
+def _proposal_summary(proposal: dict | None, tried: list) -> dict | None:
+    if proposal is None:
+        return None
+    out = {k: v for k, v in proposal.items() if k != "plans"}
+    out["tried"] = tried
+    out["predicted"] = [
+        {
+            "model": p["row"]["model"],
+            "integrator": p["row"]["integrator"],
+            "level": p["level"],
+            "predicted_error": p["predicted_error"],
+            "error_bound": p["error_bound"],
+            "predicted_frame": p["predicted"]["why"],
+            "holds": p["predicted"]["holds"],
+            "memory_gb": p["memory_bytes"] / 1e9,
+            "fits_memory": p["fits_memory"],
+        }
+        for p in proposal.get("plans", [])
+    ]
+    return out
+
+
+def refined_times(level: int) -> str:
+    return {1: "once", 2: "twice"}.get(level, f"{level} times")
+
+
+def _mesh_summary(scene: Scene) -> dict:
+    m = scene.mesh
+    return {"level": scene.level, "n_vertices": m.n_vertices, "n_tets": m.n_tets, "mean_edge_m": _mean_edge(m)}
+
+
+def _command(scene: Scene, row: dict, level: int, rate: float) -> str:
+    builtin = builtin_scenes().get(scene.name) == scene.path
+    parts = ["tissuebench compare", scene.name if builtin else str(scene.path)]
+    parts.append(f"--model {row['model']}")
+    if row.get("dt") is not None:
+        parts.append(f"--integrator {row['integrator']}")
+        if row["integrator"] != "implicit-euler":
+            parts.append(f"--dt {row['dt']:.6g}")
+    if level:
+        parts.append(f"--mesh-refine {level}")
+    parts.append(f"--rate {rate:g}")
+    return " ".join(parts)
+
+
+def format_advice(out: dict) -> str:
+    """The advisor's answer as text."""
+    lines = []
+    prop = out.get("proposal")
+    if out.get("model") is None:
+        lines.append(out["why"])
+    else:
+        m = out["mesh"]
+        mesh = (
+            f" on the mesh refined {refined_times(out['refine'])} ({m['n_vertices']} vertices, {m['n_tets']} tetrahedra, "
+            f"mean edge {m['mean_edge_m'] * 1e3:.3g} mm)"
+            if out["refine"]
+            else ""
+        )
+        dt = "quasi-static" if out["dt"] is None else f"{out['integrator']}, dt = {out['dt']:.3g} s"
+        lines.append(f"{out['model']} ({dt}){mesh}: {out['metric']} {out['value']:.3g} <= {out['tol']:g}")
+        lines.append(f"frame: {out['frame']['why']} (at most {out['frame_share']:.0%} of each frame)")
+        lines.append(f"why: {out['why']}")
+        if out.get("runner_up"):
+            r = out["runner_up"]
+            lines.append(f"runner-up: {r['model']} ({out['metric']} {r['value']:.3g}; {r['frame']['why']})")
+        lines.append(f"check it: {out['command']}")
+    if prop and prop.get("mesh_part"):
+        lines.append(
+            f"mesh: P1's error is {prop['mesh_part'][0]:.3g} on the scene's mesh and {prop['mesh_part'][1]:.3g} refined "
+            f"once (observed order {prop['observed_order']:.2f})"
+        )
+        for t in prop.get("tried", []):
+            lines.append(f"  tried on the mesh refined {refined_times(t['level'])}: {t['why']}")
+    for line in out.get("cheaper_failed") or out.get("rejected") or []:
+        lines.append(f"  rejected: {line}")
+    return "\n".join(lines)

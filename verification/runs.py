@@ -1,0 +1,144 @@
+"""Runs through the cache: one JSON file per run under ``$TISSUEBENCH_CACHE/runs``.
+
+A run is keyed by everything that makes its row (docs/architecture.md section 5): the code, the
+machine (a row holds timings), the scene's hash, the model, the integrator, the step (in seconds or as
+a fraction of the critical one), the reference's options and whether the row carries an error budget.
+A study killed half-way and started again recomputes only the runs it had not finished. The largest
+stable step of a model, found by bisection, is cached the same way.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from .results import atomic_write_text
+from .runner import REFERENCE_DEFAULTS, RUN_CODE, cache_dir, code_digest, compare, digest, machine_id, reference_result
+from .scene import Scene
+
+#: Bisection of the largest stable step: the span searched and the steps each trial runs.
+STABLE_SEARCH = (0.5, 3.0)
+STABLE_STEPS = 2000
+
+
+def run_key(
+    scene: Scene, model: str, integrator: str, dt: float | None, fraction: float | None, ref_opts, budget: bool = True
+) -> str:
+    return digest(
+        {
+            "code": code_digest(RUN_CODE),
+            "machine": machine_id(),  # a row holds timings: another machine's are not this one's
+            "scene": scene.sha256(),
+            "model": model,
+            "integrator": integrator,
+            "dt": dt,
+            "fraction": fraction,
+            "reference": ref_opts,
+            "budget": budget,
+        }
+    )
+
+
+def cached_compare(
+    scene: Scene,
+    model: str,
+    integrator: str = "symplectic-euler",
+    dt: float | None = None,
+    fraction: float | None = None,
+    reference=None,
+    ref_opts=None,
+    use_cache: bool = True,
+    max_steps: int = 2_000_000,
+    budget: bool = True,
+) -> dict:
+    """``runner.compare`` through the run cache. The row says whether it came from the cache."""
+    ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
+    path = (
+        cache_dir() / "runs" / f"{scene.name}-{run_key(scene, model, integrator, dt, fraction, ref_opts, budget)}.json"
+    )
+    if use_cache and path.exists():
+        row = json.loads(path.read_text())
+        row["cached"] = True
+        return row
+    ref = reference if reference is not None else reference_result(scene, **ref_opts)
+    row = compare(
+        scene,
+        model,
+        dt=dt,
+        dt_fraction=fraction,
+        integrator=integrator,
+        reference=ref,
+        max_steps=max_steps,
+        budget=budget,
+    )
+    row["fraction"] = fraction
+    if use_cache:
+        atomic_write_text(path, json.dumps(row, default=_jsonable))
+    row["cached"] = False
+    return row
+
+
+def _jsonable(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    return str(x)
+
+
+def largest_stable_fraction(
+    scene: Scene,
+    model_name: str,
+    integrator: str = "symplectic-euler",
+    steps: int = STABLE_STEPS,
+    iterations: int = 7,
+    use_cache: bool = True,
+) -> dict:
+    """Bisection on dt / dt_crit in STABLE_SEARCH for the largest step that runs ``steps`` steps from a
+    small perturbation of rest (1e-6 of the mesh size) without blowing up, with the scene's loading and
+    damping. Returns the stable and unstable fractions bracketing the limit, dt_crit and the ratio
+    observed / predicted (1 when the prediction is exact)."""
+    from realtime import DivergenceError, State, make_integrator, max_eigenvalue
+
+    from .runner import model_for
+
+    key = digest(
+        {
+            "code": code_digest(RUN_CODE),
+            "scene": scene.sha256(),
+            "model": model_name,
+            "integrator": integrator,
+            "steps": steps,
+            "iterations": iterations,
+        }
+    )
+    path = cache_dir() / "runs" / f"{scene.name}-stable-{key}.json"
+    if use_cache and path.exists():
+        return json.loads(path.read_text())
+    model = model_for(scene, model_name)
+    integ = make_integrator(integrator, scene.time.damping_mass, scene.time.damping_stiffness)
+    dt_crit = integ.critical_dt(model, max_eigenvalue(model))
+    size = float(np.ptp(model.points, axis=0).max())
+    rng = np.random.default_rng(0)
+    u0 = 1e-6 * size * rng.standard_normal(model.points.shape) * model.loading.free
+
+    def stable(frac):
+        st = State(u=u0.copy(), v=np.zeros_like(u0))
+        try:
+            integ.step(model, st, frac * dt_crit, steps, dt_crit=dt_crit)
+            return True
+        except DivergenceError:
+            return False
+
+    lo, hi = STABLE_SEARCH
+    if not stable(lo):
+        out = {"stable": None, "unstable": lo, "dt_crit": dt_crit, "ratio": None}
+    elif stable(hi):
+        out = {"stable": hi, "unstable": None, "dt_crit": dt_crit, "ratio": hi}
+    else:
+        for _ in range(iterations):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if stable(mid) else (lo, mid)
+        out = {"stable": lo, "unstable": hi, "dt_crit": dt_crit, "ratio": lo, "steps": steps}
+    if use_cache:
+        atomic_write_text(path, json.dumps(out))
+    return out

@@ -1,0 +1,180 @@
+"""Sweep: every model at several time steps against the reference; error against step time and the
+Pareto front. Under ``mpirun -n P`` the runs are spread over the ranks (the reference is solved once,
+collectively, first) and rank 0 gathers and prints the table.
+"""
+
+from __future__ import annotations
+
+import math
+
+from realtime import MODELS
+from realtime.models import QUASI_STATIC
+
+from .progress import Progress
+from .runner import REFERENCE_DEFAULTS, reference_result
+from .runs import cached_compare, largest_stable_fraction
+from .scene import Scene, SceneError
+
+#: Time steps a sweep tries by default, as fractions of each model's critical step.
+DEFAULT_FRACTIONS = (0.25, 0.5, 0.9)
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points no other point dominates, for two costs to minimise (x, y).
+
+    A point dominates another if it is no worse in both and better in one. Returned sorted by x.
+    Sorting by x then y and keeping each point whose y is below every y seen so far is exact: a later
+    point has x >= every earlier one, so it survives only by a strictly lower y.
+    """
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], points[i][1]))
+    front, best = [], math.inf
+    for i in order:
+        if points[i][1] < best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def sweep_plan(models, fractions, dts, integrator: str) -> list[dict]:
+    """The runs of a sweep: each model at each fraction (or each dt in seconds); quasi-static once."""
+    plan = []
+    for m in models:
+        if m in QUASI_STATIC:
+            plan.append({"model": m, "integrator": "quasi-static", "dt": None, "fraction": None})
+            continue
+        for f in fractions or []:
+            plan.append({"model": m, "integrator": integrator, "dt": None, "fraction": float(f)})
+        for dt in dts or []:
+            plan.append({"model": m, "integrator": integrator, "dt": float(dt), "fraction": None})
+    return plan
+
+
+def sweep(
+    scene: Scene,
+    models=None,
+    fractions=None,
+    dts=None,
+    integrator: str = "symplectic-euler",
+    largest_stable: bool = True,
+    use_cache: bool = True,
+    comm=None,
+) -> dict:
+    """Models x time steps -> rows of metrics and the Pareto front of error (rel_l2) against step_us.
+
+    Default: every model at DEFAULT_FRACTIONS of its critical step, plus (``largest_stable``) each
+    explicit model at the largest stable fraction that ``largest_stable_fraction`` finds.
+    """
+    models = list(models or MODELS)
+    if fractions is None and dts is None:
+        fractions = list(DEFAULT_FRACTIONS)
+    unknown = [m for m in models if m not in MODELS]
+    if unknown:
+        raise SceneError(f"model = {unknown[0]!r}: must be one of {', '.join(MODELS)}")
+    rank, size = (comm.rank, comm.size) if comm is not None else (0, 1)
+    ref = reference_result(scene, **REFERENCE_DEFAULTS)  # collective under MPI; cached afterwards
+    plan = sweep_plan(models, fractions, dts, integrator)
+    if largest_stable:
+        for m in models:
+            if m not in QUASI_STATIC and integrator != "implicit-euler":
+                plan.append({"model": m, "integrator": integrator, "dt": None, "fraction": "largest-stable"})
+    progress = Progress(len(plan), f"sweep {scene.name}") if rank == 0 else None
+    rows = []
+    for k, item in enumerate(plan):
+        if k % size != rank:
+            continue
+        fraction = item["fraction"]
+        if fraction == "largest-stable":
+            fraction = largest_stable_fraction(scene, item["model"], integrator, use_cache=use_cache)["stable"]
+            row = cached_compare(scene, item["model"], integrator, None, fraction, ref, use_cache=use_cache)
+            row["largest_stable"] = True
+        else:
+            row = cached_compare(
+                scene,
+                item["model"],
+                item["integrator"] if item["integrator"] != "quasi-static" else integrator,
+                item["dt"],
+                fraction,
+                ref,
+                use_cache=use_cache,
+            )
+        rows.append({**row, "plan_index": k})
+        if progress:
+            progress.step(f"{item['model']} {fraction}")
+    if comm is not None and size > 1:
+        gathered = comm.gather(rows, root=0)
+        if rank != 0:
+            return {}
+        rows = [r for part in gathered for r in part]
+    rows.sort(key=lambda r: r["plan_index"])
+    ok = [i for i, r in enumerate(rows) if r["status"] == "ok"]
+    front = [ok[i] for i in pareto_front([(rows[i]["step_us"], rows[i]["rel_l2"]) for i in ok])]
+    for i, r in enumerate(rows):
+        r["pareto"] = i in front
+    return {
+        "scene": scene.name,
+        "scene_sha256": scene.sha256(),
+        "integrator": integrator,
+        "reference": {
+            k: ref.meta.get(k) for k in ("law", "degree", "refine", "ref_err_estimate", "min_det_F", "cache_key")
+        },
+        "rows": rows,
+        "pareto": [rows[i]["model"] + (f"@{rows[i]['dt']:.3g}s" if rows[i]["dt"] else "") for i in front],
+        "computed": sum(not r.get("cached") for r in rows),
+        "cached": sum(bool(r.get("cached")) for r in rows),
+    }
+
+
+def sweep_csv(result: dict) -> str:
+    cols = [
+        "model",
+        "integrator",
+        "status",
+        "fraction",
+        "dt",
+        "dt_crit",
+        "rel_l2",
+        "surface_rel_l2",
+        "max_err",
+        "reaction_rel_err",
+        "volume_err",
+        "ref_err_estimate",
+        "step_us",
+        "step_us_min",
+        "step_us_max",
+        "rate_hz",
+        "pareto",
+    ]
+    parts = ("mesh", "model", "time")
+    lines = [",".join(cols + [f"budget_{p}" for p in parts])]
+    for r in result["rows"]:
+        budget = r.get("error_budget") or {}
+        values = [r.get(c) for c in cols] + [budget.get(p) for p in parts]
+        lines.append(",".join("" if v is None else str(v) for v in values))
+    return "\n".join(lines) + "\n"
+
+
+def format_sweep(result: dict) -> str:
+    est = result["reference"].get("ref_err_estimate")
+    out = [
+        f"sweep {result['scene']}: reference {result['reference']['law']} P{result['reference']['degree']}, "
+        f"own error estimate {est:.3g}"
+        if est is not None
+        else f"sweep {result['scene']}"
+    ]
+    out.append(f"{'model':<16} {'dt (s)':>10} {'dt/crit':>8} {'rel_l2':>10} {'reaction':>9} {'step us':>9} {'Hz':>9}  ")
+    for r in result["rows"]:
+        if r["status"] != "ok":
+            out.append(f"{r['model']:<16} {r['dt']:>10.3g} {r['dt'] / r['dt_crit']:>8.2f} diverged at step {r['step']}")
+            continue
+        ratio = "-" if r["dt"] is None or not r["dt_crit"] else f"{r['dt'] / r['dt_crit']:.2f}"
+        dt = "-" if r["dt"] is None else f"{r['dt']:.3g}"
+        reaction = "-" if r["reaction_rel_err"] is None else f"{r['reaction_rel_err']:.3g}"
+        flag = " pareto" if r["pareto"] else ""
+        flag += " (at reference accuracy)" if r["at_reference_accuracy"] else ""
+        out.append(
+            f"{r['model']:<16} {dt:>10} {ratio:>8} {r['rel_l2']:>10.4g} {reaction:>9} {r['step_us']:>9.1f} "
+            f"{r['rate_hz']:>9.0f} {flag}"
+        )
+    out.append(f"Pareto front (error against step time): {', '.join(result['pareto'])}")
+    out.append(f"{result['computed']} runs computed, {result['cached']} from the cache")
+    return "\n".join(out)
