@@ -208,7 +208,8 @@ def test_advise_large_rotation_recommends_a_rotation_invariant_model(capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["model"] not in LINEAR_MODELS and out["model"] is not None
     assert out["why"].startswith("needs a rotation-invariant model")
-    assert any(line.startswith("linear-tm") for line in out["cheaper_failed"])
+    # the linear models fail on their error, whatever they cost
+    assert "the linear models' rel_l2 is at least" in out["why"]
     assert out["refine"] == 0 and out["frame"]["holds"]
     assert out["deformation"]["max_rotation_deg"] > 30
 
@@ -319,3 +320,28 @@ def test_reference_cache_is_keyed_and_reused():
     files = list((cache_dir() / "reference").glob("cantilever-pull-*.npz"))
     b = reference_result(scene, degree=1, refine=0, estimate=False)
     assert files and np.array_equal(a.displacement, b.displacement) and a.meta == b.meta
+
+
+@pytest.mark.slow
+@pytest.mark.mpi
+def test_sweep_under_mpirun_on_a_cold_cache(tmp_path):
+    """Two ranks share the runs of a sweep. Each rank compiles the engine's kernels; with one numba
+    cache on disk for both, the second rank's save failed ("underlying object has vanished") and
+    left an index that broke later serial runs too. Each rank now keeps its own."""
+    import shutil
+
+    env = dict(os.environ, TISSUEBENCH_CACHE=str(tmp_path))
+    env.update(OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMPI_MCA_rmaps_base_oversubscribe="1")
+    env.pop("NUMBA_CACHE_DIR", None)
+    args = ["sweep", "block-press", "--models", "linear-tm", "stvk-tm", "--fractions", "0.9", "--no-largest-stable"]
+    r = subprocess.run(
+        [shutil.which("mpirun"), "-n", "2", sys.executable, "-m", "verification.cli", *args, "--json"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=900,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = json.loads(r.stdout)["rows"]
+    assert [x["model"] for x in rows] == ["linear-tm", "stvk-tm"] and all(x["status"] == "ok" for x in rows)
+    assert sorted(p.name for p in (tmp_path / "numba").iterdir()) == ["rank0", "rank1"]

@@ -1,0 +1,12 @@
+"""The harness: scenes, runs, studies, reports and the command line (docs/architecture.md section 1)."""
+
+import os
+from pathlib import Path
+
+# Under mpirun every rank compiles the engine's kernels; numba's on-disk cache is not safe for two
+# processes writing one index (the second fails with "underlying object has vanished" when it pickles
+# the first's entries), so each rank keeps its own. Set before realtime (and numba) is imported.
+_RANK = os.environ.get("OMPI_COMM_WORLD_RANK") or os.environ.get("PMI_RANK")
+if _RANK is not None and "NUMBA_CACHE_DIR" not in os.environ:
+    _base = Path(os.environ.get("TISSUEBENCH_CACHE", Path.home() / ".cache" / "tissuebench"))
+    os.environ["NUMBA_CACHE_DIR"] = str(_base / "numba" / f"rank{_RANK}")

@@ -23,7 +23,7 @@ import os
 
 import numpy as np
 
-from realtime import MODELS
+from realtime import MODELS, NotConvergedError
 
 from .progress import Progress
 from .runner import REFERENCE_DEFAULTS, reference_result
@@ -175,15 +175,17 @@ def merge_same_answers(rows: list[dict], metric: str, dynamic: bool) -> list[dic
 
 def _label(r: dict) -> str:
     if r.get("dt") is None:
-        return f"{r['model']} (quasi-static)"
+        return f"{r['model']} ({r['integrator']})"
     return f"{r['model']} ({r['integrator']}, dt {r['dt']:.3g} s)"
 
 
 def _verdict(r: dict, metric: str, tol: float) -> tuple[bool, str]:
     """Whether a candidate qualifies, and a line saying why or why not."""
-    if r["status"] != "ok":
+    if r["status"] == "diverged":
         ratio = f", {r['dt'] / r['dt_crit']:.2f} x its critical step" if r.get("dt_crit") else ""
         return False, f"{_label(r)}: unstable, diverged at step {r.get('step')}{ratio}"
+    if r["status"] != "ok":
+        return False, f"{_label(r)}: {r['status']} ({r.get('message', '')})"
     value = r.get(metric)
     bad = []
     if value is None or value > tol:
@@ -201,19 +203,28 @@ def _candidates(scene: Scene, metric: str, rate: float, use_cache: bool, comm, p
     """The scene's runs, each with its frame budget, merged by ``merge_same_answers``."""
     dynamic = scene.time.mode == "dynamic"
     res = sweep(scene, use_cache=use_cache, comm=comm)
-    if not res:
-        return []
+    if comm is not None and comm.size > 1:
+        # every rank goes on with the same rows: the reference solves below are collective
+        res = comm.bcast(res, root=0)
     rows = list(res["rows"])
     if not dynamic:
         extra = [m for m in IMPLICIT_MODELS if m in MODELS]
         progress = Progress(len(extra), progress_label)
         for m in extra:
-            rows.append(cached_compare(scene, m, "implicit-euler", use_cache=use_cache))
+            rows.append(_compare_or_unsettled(scene, m, "implicit-euler", None, use_cache))
             progress.step(f"{m} implicit-euler")
     for r in rows:
         if r["status"] == "ok":
             r["frame"] = frame_budget(r, rate, dynamic, FRAME_SHARE)
     return merge_same_answers(rows, metric, dynamic)
+
+
+def _compare_or_unsettled(scene: Scene, model: str, integrator: str, fraction, use_cache: bool) -> dict:
+    """A cached compare row; a run that does not settle is a candidate that failed, not an error."""
+    try:
+        return cached_compare(scene, model, integrator, None, fraction, use_cache=use_cache)
+    except NotConvergedError as exc:
+        return {"model": model, "integrator": integrator, "dt": None, "status": "not settled", "message": str(exc)}
 
 
 def _pick(rows: list[dict], metric: str, tol: float, dynamic: bool):
@@ -353,8 +364,6 @@ def advise(scene: Scene, tol: float, rate: float, metric: str = "rel_l2", use_ca
         raise SceneError(f"--tol {tol!r} and --rate {rate!r}: both must be positive")
     dynamic = scene.time.mode == "dynamic"
     rows = _candidates(scene, metric, rate, use_cache, comm, f"advise {scene.name}")
-    if comm is not None and comm.rank != 0:
-        return {}
     ref = reference_result(scene, **REFERENCE_DEFAULTS)
     mesh = scene.mesh
     defo = deformation_summary(
@@ -401,6 +410,7 @@ def advise(scene: Scene, tol: float, rate: float, metric: str = "rel_l2", use_ca
     level = choice.get("level", 0)
     target = scene.refined(level) if level else scene
     cheaper = [_verdict(r, metric, tol)[1] for r in ranked if _cost(r, dynamic) < _cost(choice, dynamic)]
+    cheaper += [_verdict(r, metric, tol)[1] for r in rows if r["status"] != "ok"]  # unstable or unsettled
     if level:
         cheaper = [f"on the scene's mesh: {line}" for line in rejected]
     runner = next(
@@ -414,10 +424,24 @@ def advise(scene: Scene, tol: float, rate: float, metric: str = "rel_l2", use_ca
     if choice["model"] in LINEAR_MODELS:
         why = f"linear is enough: {physics}, and {choice['model']} meets {metric} <= {tol:g} ({choice[metric]:.3g})"
     else:
-        linear = [r[metric] for r in rows if r["status"] == "ok" and r["model"] in LINEAR_MODELS]
-        why = f"needs a rotation-invariant model: {physics}" + (
-            f"; the linear models' {metric} is at least {min(linear):.3g}" if linear else ""
-        )
+        linear = [r for r in rows if r["status"] == "ok" and r["model"] in LINEAR_MODELS]
+        accurate = [r for r in linear if r[metric] <= tol]
+        if not linear:
+            why = f"{choice['model']} is the cheapest that qualifies: {physics}"
+        elif not accurate:
+            why = f"needs a rotation-invariant model: {physics}; the linear models' {metric} is at least " + format(
+                min(r[metric] for r in linear), ".3g"
+            )
+        elif any(_verdict(r, metric, tol)[0] for r in accurate):
+            best = min((r for r in accurate if _verdict(r, metric, tol)[0]), key=lambda r: _cost(r, dynamic))
+            why = (
+                f"{choice['model']} is the cheapest that qualifies; linear is accurate enough too ({physics}): "
+                f"{_label(best)} meets {metric} {best[metric]:.3g} but costs more"
+            )
+        else:
+            why = f"the linear models accurate enough do not hold the rate ({physics}): " + "; ".join(
+                _verdict(r, metric, tol)[1] for r in accurate
+            )
     if level:
         why = (
             f"the mesh's part of the error ({proposal['mesh_part'][0]:.3g}) stops every model on the scene's mesh; "
@@ -475,7 +499,7 @@ def _run_plans(scene: Scene, proposal: dict, metric: str, tol: float, rate: floa
             if r0.get("dt") is None or r0["integrator"] == "implicit-euler"
             else min(r0.get("fraction") or 0.9, 0.9)
         )
-        row = cached_compare(level_scene, r0["model"], r0["integrator"], None, fraction, use_cache=use_cache)
+        row = _compare_or_unsettled(level_scene, r0["model"], r0["integrator"], fraction, use_cache)
         progress.step(f"{r0['model']} level {p['level']}")
         if row["status"] == "ok":
             row["frame"] = frame_budget(row, rate, dynamic, FRAME_SHARE)

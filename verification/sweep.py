@@ -9,6 +9,7 @@ import math
 
 from realtime import MODELS
 from realtime.models import QUASI_STATIC
+from reference.errors import ReferenceSolveError
 
 from .progress import Progress
 from .runner import REFERENCE_DEFAULTS, reference_result
@@ -72,6 +73,13 @@ def sweep(
         raise SceneError(f"model = {unknown[0]!r}: must be one of {', '.join(MODELS)}")
     rank, size = (comm.rank, comm.size) if comm is not None else (0, 1)
     ref = reference_result(scene, **REFERENCE_DEFAULTS)  # collective under MPI; cached afterwards
+    # the error budget's P1 solution too, before the runs are spread over the ranks: a solve is collective
+    try:
+        reference_result(scene, degree=1, refine=0, estimate=False, own_mesh=True)
+    except ReferenceSolveError:
+        pass  # each row's budget then says why it has no mesh part
+    if comm is not None and size > 1:
+        comm.Barrier()  # rank 0 has written both to the cache before any rank looks for them there
     plan = sweep_plan(models, fractions, dts, integrator)
     if largest_stable:
         for m in models:
