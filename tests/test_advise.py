@@ -151,6 +151,9 @@ def test_advisor_pick_rerun_with_compare_meets_tolerance_and_rate(capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["model"] is not None and out["refine"] == 0
     again = _rerun(out, capsys)
+    # the printed command also runs as printed, in text mode (a quasi-static pick has no dt to print)
+    assert main(shlex.split(out["command"])[1:]) == 0
+    assert "holds 1000 Hz" in capsys.readouterr().out
     assert again["rel_l2"] <= 0.08
     assert again["frame"]["holds"], again["frame"]["why"]
 

@@ -223,7 +223,8 @@ def cmd_compare(args) -> int:
         print(out["message"])
     else:
         acc = " (at reference accuracy)" if out["at_reference_accuracy"] else ""
-        print(f"{scene.name} / {args.model} at dt = {out['dt']:.3g} s:")
+        at = "its quasi-static update" if out["dt"] is None else f"dt = {out['dt']:.3g} s"
+        print(f"{scene.name} / {args.model} at {at}:")
         for k in (
             "rel_l2",
             "surface_rel_l2",
