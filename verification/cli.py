@@ -345,9 +345,14 @@ def cmd_gate(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .bench import format_table, run
+    if args.reference:
+        from .bench_reference import format_table, run
 
-    out = run(meshes=args.meshes, repeats=args.repeats)
+        out = run(cases=args.cases, newton=args.newton)
+    else:
+        from .bench import format_table, run
+
+        out = run(meshes=args.meshes, repeats=args.repeats)
     if args.out:
         from .results import atomic_write_text
 
@@ -527,6 +532,18 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("bench", help="performance benchmark: microseconds per step of every model")
     s.add_argument("--meshes", nargs="+", default=["liver", "liver-x10"], help="stored meshes to run on")
     s.add_argument("--repeats", type=_count, default=15)
+    s.add_argument(
+        "--reference",
+        action="store_true",
+        help="time the dolfinx reference instead (seconds, Newton iterations, factorisations per case)",
+    )
+    s.add_argument("--cases", nargs="+", help="with --reference: only the cases whose label contains one of these")
+    s.add_argument(
+        "--newton",
+        choices=("modified", "classic"),
+        default="modified",
+        help="with --reference: classic refactorises at every Newton iteration (the solver before reuse)",
+    )
     s.add_argument("--out", help="also write the JSON to this file")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_bench)

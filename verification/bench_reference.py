@@ -1,0 +1,76 @@
+"""The reference's benchmark (``tissuebench bench --reference``): wall time, Newton iterations and
+factorisations of the dolfinx ground truth on the cases that made it the bottleneck (issue 14).
+
+Each case is solved afresh (never from the cache) with the options every study uses, and its row says
+what the solve did: degrees of freedom, load steps, Newton iterations, factorisations and seconds, with
+and without the error estimate. ``--newton classic`` refactorises at every iteration (the solver before
+factorisations were reused), for a before-and-after comparison in the same run.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from reference import fem
+
+from .bench import machine
+from .runner import log, reference_result
+from .scene import load_scene
+
+BENCH_SCENES = Path(__file__).parent / "scenes" / "bench"
+#: (label, scene, with the estimate): the slender P2 beam with and without its estimate, the
+#: 90-degree twisted cylinder, the liver, and a dynamic case of about 40 000 dofs and 1600 steps.
+CASES = (
+    ("slender beam P2, no estimate", BENCH_SCENES / "slender-beam.toml", False),
+    ("slender beam P2 + estimate", BENCH_SCENES / "slender-beam.toml", True),
+    ("cylinder twisted 90 degrees P2 + estimate", BENCH_SCENES / "twisted-cylinder.toml", True),
+    ("liver P2 + estimate", "liver", True),
+    ("slender beam dynamic P2, 1600 steps", BENCH_SCENES / "slender-beam-dynamic.toml", False),
+)
+
+
+def _solve_row(label: str, scene_ref, estimate: bool) -> dict:
+    scene = load_scene(scene_ref)
+    log(f"bench --reference: {label} ...")
+    t0 = time.perf_counter()
+    res = reference_result(scene, degree=2, refine=0, estimate=estimate, use_cache=False)
+    wall = time.perf_counter() - t0
+    solves = res.meta.get("solves", [])
+    return {
+        "case": label,
+        "scene": scene.name,
+        "estimate": estimate,
+        "n_dofs": [s.get("n_dofs") for s in solves],
+        "load_steps": sum(len(s.get("load_steps", [])) for s in solves),
+        "newton_iterations": sum(int(s.get("iterations", 0)) for s in solves),
+        "factorisations": sum(int(s.get("factorisations", 0)) for s in solves),
+        "wall_s": wall,
+        "ref_err_estimate": res.meta.get("ref_err_estimate"),
+    }
+
+
+def run(cases=None, newton: str = "modified") -> dict:
+    """Solve each case; ``newton`` "classic" refactorises at every Newton iteration (fem.SLOW = inf)."""
+    chosen = [c for c in CASES if cases is None or any(k in c[0] for k in cases)]
+    saved = fem.SLOW
+    fem.SLOW = float("inf") if newton == "classic" else saved
+    try:
+        rows = [_solve_row(*c) for c in chosen]
+    finally:
+        fem.SLOW = saved
+    return {"machine": machine(), "newton": newton, "rows": rows}
+
+
+def format_table(out: dict) -> str:
+    lines = [
+        f"reference benchmark ({out['newton']} Newton) on {out['machine']['cpu']}, {out['machine']['cores']} cores"
+    ]
+    lines.append(f"{'case':<44} {'dofs':>16} {'loads':>6} {'Newton':>7} {'factor.':>8} {'seconds':>9}")
+    for r in out["rows"]:
+        dofs = "+".join(str(d) for d in r["n_dofs"] if d)
+        lines.append(
+            f"{r['case']:<44} {dofs:>16} {r['load_steps']:>6} {r['newton_iterations']:>7} "
+            f"{r['factorisations']:>8} {r['wall_s']:>9.1f}"
+        )
+    return "\n".join(lines)
