@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from reference.driver import solve_static as reference_static
-from verification.runner import compare, reference_result
+from verification.runner import ROOT, compare, reference_result
 from verification.scene import load_scene
 
 
@@ -137,3 +137,26 @@ def test_modified_newton_reuses_factorisations_and_finds_the_same_equilibrium(mo
     classic, modified = (runs[m]["meta"]["solves"][0] for m in ("classic", "modified"))
     assert classic["factorisations"] == classic["iterations"]  # Newton: one per iteration
     assert modified["factorisations"] < classic["factorisations"] <= modified["iterations"]
+
+
+def test_evaluate_finds_boundary_points_that_round_off_puts_outside_every_cell():
+    """Nested iteration evaluates the coarse P2 solution at the refined mesh's nodes. On the slender
+    benchmark beam some boundary midpoints lie a hair outside every coarse cell for dolfinx's collision
+    test, and the estimate's solve failed with "lies outside the reference mesh". The closest cell
+    within 1e-9 of the body's size holds them: a quadratic field is reproduced to round-off (P2 holds
+    quadratics exactly; 1e-14 m on a 0.1 m body)."""
+    from dolfinx import geometry
+
+    from reference.fem import ElasticityProblem
+
+    scene = load_scene(str(ROOT / "verification" / "scenes" / "bench" / "slender-beam.toml"))
+    coarse = ElasticityProblem(scene.mesh, scene.material, scene.problem, degree=2, refine=0)
+    coarse.u.interpolate(lambda x: np.vstack([x[0] ** 2, x[1] * x[2], x[2] * x[0]]))
+    nodes = ElasticityProblem(
+        scene.mesh, scene.material, scene.problem, degree=2, refine=1
+    ).V.tabulate_dof_coordinates()
+    tree = geometry.BoundingBoxTree(coarse.domain, 3)
+    cells = geometry.compute_colliding_cells(coarse.domain, geometry.compute_collisions(tree, nodes), nodes)
+    assert any(len(cells.links(i)) == 0 for i in range(len(nodes)))  # the case exists on this mesh
+    exact = np.stack([nodes[:, 0] ** 2, nodes[:, 1] * nodes[:, 2], nodes[:, 2] * nodes[:, 0]], axis=1)
+    assert np.abs(coarse.evaluate(nodes) - exact).max() <= 1e-14
