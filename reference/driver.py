@@ -39,6 +39,7 @@ def solve_static(
     points: np.ndarray | None = None,
     min_increment: float = 1e-4,
     nested: bool = True,
+    petsc_options: dict | None = None,
 ) -> dict:
     """Solve, evaluate at ``points`` (K, 3) m (default the scene mesh's vertices), describe the run.
 
@@ -62,9 +63,11 @@ def solve_static(
             warm = nested and coarse is not None and comm.size == 1
             if warm:
                 ep.start_from(coarse)
-            info = ep.solve(steps=newton_steps, min_increment=min_increment, start_at_full_load=warm)
+            info = ep.solve(
+                steps=newton_steps, min_increment=min_increment, start_at_full_load=warm, petsc_options=petsc_options
+            )
         else:
-            info = ep.solve()
+            info = ep.solve(petsc_options=petsc_options)
         coarse = ep
         values.append(ep.evaluate(mesh.points if points is None else points))
         reactions.append(ep.reaction())
@@ -83,7 +86,8 @@ def solve_static(
         "refine": refine,
         "mpi_ranks": comm.size,
         "solves": infos,
-        "petsc_options": infos[0].get("petsc_options"),
+        "petsc_options": infos[-1].get("petsc_options"),  # the finest solve's: the choice goes by size
+        "petsc_options_per_solve": [i.get("petsc_options") for i in infos],
         "versions": {"dolfinx": dolfinx.__version__, "python": platform.python_version()},
     }
     meta["min_det_F"] = infos[-1].get("min_det_F")
@@ -118,6 +122,7 @@ def solve_dynamic(
     substeps: int = 4,
     comm=MPI.COMM_WORLD,
     points: np.ndarray | None = None,
+    petsc_options: dict | None = None,
 ) -> dict:
     """Newmark trajectory from rest at ``points`` (K, 3) m (default the scene mesh's vertices), every
     ``output_every`` up to ``end``.
@@ -138,7 +143,12 @@ def solve_dynamic(
         t0 = time.perf_counter()
         ep = ElasticityProblem(mesh, material, problem, degree=degree, refine=level, comm=comm)
         times, vals, reac, info = ep.solve_dynamic(
-            step, end, output_every, mesh.points if points is None else points, rayleigh=rayleigh
+            step,
+            end,
+            output_every,
+            mesh.points if points is None else points,
+            rayleigh=rayleigh,
+            petsc_options=petsc_options,
         )
         info.update(level=level, n_dofs=ep.n_dofs, wall_s=time.perf_counter() - t0)
         return times, vals, reac, info

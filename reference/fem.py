@@ -32,6 +32,36 @@ from .materials import LAWS, volume_penalty_energy
 from .problem import Force, Problem, Traction
 
 LU_OPTIONS = {"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}
+#: Large problems: GMRES (the StVK tangent need not be definite) preconditioned by smoothed-aggregation
+#: algebraic multigrid with the six rigid-body modes as its near null space, the standard setup for
+#: elasticity. The inner tolerance is far below Newton's steps; Newton's own residual test decides.
+GAMG_OPTIONS = {
+    "ksp_type": "gmres",
+    "ksp_rtol": 1e-10,
+    "ksp_max_it": 2000,
+    "pc_type": "gamg",
+    "pc_gamg_type": "agg",
+    "pc_gamg_agg_nsmooths": 1,
+    "mg_levels_ksp_type": "chebyshev",
+    "mg_levels_pc_type": "jacobi",
+    "mg_levels_esteig_ksp_type": "cg",
+}
+#: Degrees of freedom up to which a solve factorises with MUMPS; above, GAMG_OPTIONS (measured in
+#: ``tissuebench bench --reference``: see the README's timings).
+DIRECT_LIMIT = 150_000
+
+
+def solver_options(n_dofs: int, user: dict | None = None) -> dict:
+    """The PETSc options of a solve with ``n_dofs`` unknowns: MUMPS LU up to DIRECT_LIMIT, GAMG above,
+    and the user's options (``--petsc-option KEY=VALUE``) over the choice; a user's ``pc_type`` replaces
+    the choice whole."""
+    base = LU_OPTIONS if n_dofs <= DIRECT_LIMIT else GAMG_OPTIONS
+    user = dict(user or {})
+    if "pc_type" in user:
+        base = {}
+    return {**base, **user}
+
+
 #: Modified Newton keeps a factorised tangent while each step cuts the residual at least this much.
 SLOW = 10.0
 
@@ -48,12 +78,13 @@ class Newton:
     constraints lifted, by ``petsc_options`` (default MUMPS LU).
     """
 
-    def __init__(self, comm, residual, u, bcs, jacobian, petsc_options: dict, reuse: bool = True):
-        self.comm, self.u, self.bcs, self.reuse = comm, u, bcs, reuse
-        self.factorisations = self.undone = 0
+    def __init__(self, comm, residual, u, bcs, jacobian, petsc_options: dict, reuse: bool = True, near_nullspace=None):
+        self.comm, self.u, self.bcs, self.reuse, self.options = comm, u, bcs, reuse, dict(petsc_options)
+        self.factorisations = self.undone = self.linear_iterations = 0
         self.at = None  # where the factorised tangent was taken: None (nowhere yet), "current" or "older" u
         self.L, self.a = fem.form(residual), fem.form(jacobian)
         self.A = fem.petsc.create_matrix(self.a)
+        self.near_nullspace = near_nullspace
         self.b = fem.petsc.create_vector(self.L)
         self.raw = fem.petsc.create_vector(self.L)
         self.du = u.vector.copy()
@@ -63,7 +94,6 @@ class Newton:
         opts = PETSc.Options()
         for key, val in petsc_options.items():
             opts[f"{prefix}{key}"] = val
-        self.ksp.setFromOptions()
         V = u.function_space
         n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
         self.constrained = np.zeros(n_owned, dtype=bool)
@@ -90,7 +120,11 @@ class Newton:
         self.A.zeroEntries()
         fem.petsc.assemble_matrix(self.A, self.a, bcs=self.bcs)
         self.A.assemble()
+        if self.near_nullspace is not None:
+            self.A.setNearNullSpace(self.near_nullspace)  # after assembly, or GAMG does not see it
         self.ksp.setOperators(self.A)
+        if not self.factorisations:
+            self.ksp.setFromOptions()  # once the operator is known: GAMG reads its block size then
         self.factorisations += 1
         self.at = "current"
 
@@ -142,7 +176,17 @@ class Newton:
                 self._factorise()
             fresh_step = self.at == "current"
             before, previous, previous_held = u.x.array.copy(), free, held
-            self.ksp.solve(self.b, self.du)
+            try:
+                self.ksp.solve(self.b, self.du)
+            except PETSc.Error as exc:  # a preconditioner that cannot be built (GAMG on a tiny mesh)
+                raise ReferenceSolveError(
+                    f"reference: the linear solver failed (PETSc error {exc.ierr} in its setup, options "
+                    f"{self.options}); try --petsc-option pc_type=lu"
+                ) from None
+            if self.ksp.getConvergedReason() < 0:  # an iterative inner solve that failed: Newton failed
+                out["ksp_reason"] = int(self.ksp.getConvergedReason())
+                break
+            self.linear_iterations += self.ksp.getIterationNumber()
             u.vector.axpy(-1.0, self.du)
             u.x.scatter_forward()
             self.at = "older"  # the factorised tangent is now the one at an earlier u
@@ -309,7 +353,7 @@ class ElasticityProblem:
         """One linear solve (law = linear): K u = f with the Dirichlet conditions."""
         if self.material.law != "linear" or self.material.volume_penalty > 0.0:
             raise ValueError("solve_linear needs law = linear and no volume penalty; use solve_newton")
-        opts = dict(LU_OPTIONS if petsc_options is None else petsc_options)
+        opts = solver_options(self.n_dofs, petsc_options)
         du = ufl.TrialFunction(self.V)
         zero = fem.Function(self.V)
         a = ufl.replace(ufl.derivative(self.residual, self.u, du), {self.u: zero})
@@ -347,9 +391,17 @@ class ElasticityProblem:
         increment became smaller than ``min_increment`` or the solve took more than ``time_limit``
         seconds. Each load step's Newton iterations go to stderr.
         """
-        opts = dict(LU_OPTIONS if petsc_options is None else petsc_options)
+        opts = solver_options(self.n_dofs, petsc_options)
         du = ufl.TrialFunction(self.V)
-        solver = Newton(self.comm, self.residual, self.u, self.bcs, ufl.derivative(self.residual, self.u, du), opts)
+        solver = Newton(
+            self.comm,
+            self.residual,
+            self.u,
+            self.bcs,
+            ufl.derivative(self.residual, self.u, du),
+            opts,
+            near_nullspace=self.rigid_body_modes() if opts.get("pc_type") == "gamg" else None,
+        )
         t0 = time.perf_counter()
         done, inc = 0.0, 1.0 / steps
         history = []
@@ -421,6 +473,7 @@ class ElasticityProblem:
             "iterations": sum(h["iterations"] for h in history),
             "factorisations": solver.factorisations,  # failed load steps' included
             "undone_steps": solver.undone,
+            "linear_iterations": solver.linear_iterations,
             "rtol": rtol,
             "min_det_F": history[-1]["min_det_F"],
         }
@@ -445,7 +498,8 @@ class ElasticityProblem:
         petsc_vecs = []
         for v in vecs:
             v.x.scatter_forward()
-            petsc_vecs.append(v.vector)
+            # a copy owns its memory: v.vector wraps the Function's array, which dies with this frame
+            petsc_vecs.append(v.vector.copy())
         return PETSc.NullSpace().create(vectors=_orthonormal(petsc_vecs), comm=self.comm)
 
     def energy(self) -> float:
@@ -512,7 +566,8 @@ class ElasticityProblem:
             residual += a_m * rho * ufl.inner(veloc(u), w) * ufl.dx
         if b_k:
             residual += b_k * k0(veloc(u), w) * ufl.dx
-        opts = dict(LU_OPTIONS if petsc_options is None else petsc_options)
+        opts = solver_options(self.n_dofs, petsc_options)
+        modes = self.rigid_body_modes() if opts.get("pc_type") == "gamg" else None
         times, values, reactions = [0.0], [self.evaluate(points)], [self.reaction()]
         self.set_tool_fraction_at(0.0)
         # initial acceleration: M a0 = f_ext - f_int(0) with the tools' accelerations zero at rest
@@ -535,6 +590,8 @@ class ElasticityProblem:
             a_form = fem.form(ufl.replace(J, {u: zero}))
             A = fem.petsc.assemble_matrix(a_form, bcs=self.bcs)
             A.assemble()
+            if modes is not None:
+                A.setNearNullSpace(modes)
             ksp = PETSc.KSP().create(self.comm)
             ksp.setOperators(A)
             popts = PETSc.Options()
@@ -546,7 +603,7 @@ class ElasticityProblem:
             L_form = fem.form(-ufl.replace(residual, {u: zero}))
             b = fem.petsc.create_vector(L_form)
         else:
-            solver = Newton(self.comm, residual, u, self.bcs, J, opts)
+            solver = Newton(self.comm, residual, u, self.bcs, J, opts, near_nullspace=modes)
         iterations = 0
         for step in range(1, n_steps + 1):
             t = step * dt
@@ -559,6 +616,11 @@ class ElasticityProblem:
                 b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
                 fem.petsc.set_bc(b, self.bcs)
                 ksp.solve(b, u.vector)
+                if ksp.getConvergedReason() < 0:
+                    raise ReferenceSolveError(
+                        f"reference: Newmark's linear solve failed at t = {t:.4g} s (PETSc reason "
+                        f"{ksp.getConvergedReason()}, options {opts}); try --petsc-option pc_type=lu"
+                    )
                 u.x.scatter_forward()
                 iterations += 1
             else:

@@ -160,3 +160,26 @@ def test_evaluate_finds_boundary_points_that_round_off_puts_outside_every_cell()
     assert any(len(cells.links(i)) == 0 for i in range(len(nodes)))  # the case exists on this mesh
     exact = np.stack([nodes[:, 0] ** 2, nodes[:, 1] * nodes[:, 2], nodes[:, 2] * nodes[:, 0]], axis=1)
     assert np.abs(coarse.evaluate(nodes) - exact).max() <= 1e-14
+
+
+def test_large_problems_switch_to_gamg_and_agree_with_mumps(monkeypatch):
+    """Above DIRECT_LIMIT dofs the reference's solves use GMRES with GAMG and the rigid-body near null
+    space; the metadata says so, and the equilibrium is MUMPS's to 1e-8 relative (both Newtons stop at
+    1e-10 of the force scale; the stiffness's conditioning, about 1e4 here, scales that)."""
+    from reference import fem
+
+    scene = load_scene("block-twist")
+    lu = reference_static(scene.mesh, scene.material, scene.problem, degree=1, estimate=False)
+    monkeypatch.setattr(fem, "DIRECT_LIMIT", 10)
+    gamg = reference_static(scene.mesh, scene.material, scene.problem, degree=1, estimate=False)
+    opts = gamg["meta"]["petsc_options"]
+    assert opts["pc_type"] == "gamg" and lu["meta"]["petsc_options"]["pc_type"] == "lu"
+    a, b = lu["displacement"], gamg["displacement"]
+    assert np.linalg.norm(a - b) <= 1e-8 * np.linalg.norm(a)
+    assert gamg["meta"]["solves"][0]["linear_iterations"] > 0
+    # a user's pc_type replaces the choice whole; other options go over it
+    assert fem.solver_options(10**9, {"pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}) == {
+        "pc_type": "lu",
+        "pc_factor_mat_solver_type": "mumps",
+    }
+    assert fem.solver_options(1, {"ksp_view": ""})["pc_type"] == "lu"

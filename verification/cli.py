@@ -137,6 +137,7 @@ def cmd_reference(args) -> int:
         estimate=not args.no_estimate,
         use_cache=not args.no_cache,
         newton_steps=args.load_steps,
+        petsc_options=args.petsc_option,
     )
     from mpi4py import MPI
 
@@ -210,6 +211,7 @@ def cmd_compare(args) -> int:
         integrator=args.integrator,
         degree=args.degree,
         refine=args.refine,
+        petsc_options=args.petsc_option,
         max_steps=args.max_steps,
         vtk=args.vtk,
     )
@@ -404,6 +406,27 @@ _level = _whole(0, 4)  # each refinement has 8 times the cells
 MESH_REFINE_HELP = "cut the scene's mesh uniformly K more times (h / 2^K; the reference stays the base mesh's)"
 
 
+PETSC_HELP = (
+    "a PETSc option for the reference's linear solves, over the choice by size (MUMPS LU up to "
+    "reference.fem.DIRECT_LIMIT dofs, GAMG above); a pc_type replaces the choice; repeatable"
+)
+
+
+def _petsc_option(text: str) -> dict:
+    key, sep, value = text.partition("=")
+    key = key.strip().lstrip("-")
+    if not sep or not key or not value.strip():
+        raise argparse.ArgumentTypeError(f"{text!r} is not KEY=VALUE (for example pc_type=gamg)")
+    return {key: value.strip()}
+
+
+class _Merge(argparse.Action):
+    """Repeated KEY=VALUE options merged into one dict."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, {**(getattr(namespace, self.dest) or {}), **values})
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="tissuebench", description="What real-time soft-tissue models give up for their speed.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -432,6 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", help="write the result file (.npz)")
     s.add_argument("--vtk", help=VTK_HELP)
     s.add_argument("--no-estimate", action="store_true", help="skip the refined solve behind ref_err_estimate")
+    s.add_argument("--petsc-option", type=_petsc_option, action=_Merge, metavar="KEY=VALUE", help=PETSC_HELP)
     s.add_argument("--no-cache", action="store_true")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_reference)
@@ -454,6 +478,7 @@ def build_parser() -> argparse.ArgumentParser:
         else:
             s.add_argument("--degree", type=int, choices=(1, 2), default=2, help="reference degree")
             s.add_argument("--refine", type=_level, default=0, help="reference refinement level")
+            s.add_argument("--petsc-option", type=_petsc_option, action=_Merge, metavar="KEY=VALUE", help=PETSC_HELP)
             s.add_argument(
                 "--rate", type=_positive, help="frame rate, Hz: say whether the run holds it (as advise decides)"
             )

@@ -103,9 +103,15 @@ def machine_id() -> dict:
 
 
 def reference_key(
-    scene: Scene, degree: int, refine: int, estimate: bool, newton=(1, 1e-4), own_mesh: bool = False
+    scene: Scene,
+    degree: int,
+    refine: int,
+    estimate: bool,
+    newton=(1, 1e-4),
+    own_mesh: bool = False,
+    petsc_options: dict | None = None,
 ) -> str:
-    from reference.fem import LU_OPTIONS
+    from reference.fem import DIRECT_LIMIT, GAMG_OPTIONS, LU_OPTIONS
 
     return digest(
         {
@@ -115,7 +121,7 @@ def reference_key(
             "refine": refine,
             "estimate": estimate,
             "newton": list(newton),
-            "solver": LU_OPTIONS,
+            "solver": {"lu": LU_OPTIONS, "gamg": GAMG_OPTIONS, "direct_limit": DIRECT_LIMIT, "user": petsc_options},
             "version": REFERENCE_VERSION,
             "code": code_digest(REFERENCE_CODE),
         }
@@ -131,6 +137,7 @@ def reference_result(
     newton_steps: int = 1,
     min_increment: float = 1e-4,
     own_mesh: bool = False,
+    petsc_options: dict | None = None,
 ) -> Result:
     """The scene's reference, from the cache or solved now (and then cached). ``newton_steps`` and
     ``min_increment`` set the non-linear static solve's first load increment (1 / newton_steps) and the
@@ -139,13 +146,14 @@ def reference_result(
     On a refined scene (``Scene.refined``) the reference is solved on the base scene's mesh and
     evaluated at the refined vertices: the truth does not depend on the mesh a model runs on, and the
     base's solve (with its estimate) costs 8^level times less. ``own_mesh`` solves on the scene's own
-    mesh instead (the error budget's P1 solution on the model's mesh)."""
+    mesh instead (the error budget's P1 solution on the model's mesh). ``petsc_options`` go over the
+    solver chosen by size (``reference.fem.solver_options``)."""
     from mpi4py import MPI
 
     from reference.driver import solve_dynamic as reference_dynamic
     from reference.driver import solve_static as reference_static
 
-    key = reference_key(scene, degree, refine, estimate, (newton_steps, min_increment), own_mesh)
+    key = reference_key(scene, degree, refine, estimate, (newton_steps, min_increment), own_mesh, petsc_options)
     path = cache_dir() / "reference" / f"{scene.name}-{key}.npz"
     if use_cache and path.exists():
         return Result.load(path)
@@ -167,6 +175,7 @@ def reference_result(
             refine=refine,
             estimate=estimate,
             points=mesh.points,
+            petsc_options=petsc_options,
         )
         times, disp, reac = sol["times"], sol["displacement"], sol["reaction"]
     else:
@@ -180,6 +189,7 @@ def reference_result(
             newton_steps=newton_steps,
             min_increment=min_increment,
             points=mesh.points,
+            petsc_options=petsc_options,
         )
         times, disp, reac = np.zeros(1), sol["displacement"][None], sol["reaction"][None]
     meta = sol["meta"]
