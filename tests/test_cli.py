@@ -146,3 +146,23 @@ def test_compare_on_a_real_sofa_liver(capsys):
     for k in METRICS:
         assert out[k] is not None and np.isfinite(out[k]), k
     assert 0 < out["rel_l2"] < 1 and out["reaction_rel_err"] > 0
+
+
+def test_petsc_options_are_merged_and_a_malformed_one_is_one_line(capsys):
+    from verification.cli import build_parser
+
+    args = build_parser().parse_args(
+        [
+            "reference",
+            "cantilever",
+            "--petsc-option",
+            "pc_type=lu",
+            "--petsc-option=-pc_factor_mat_solver_type=mumps",  # PETSc's own spelling, dash and all
+        ]
+    )
+    assert args.petsc_option == {"pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}
+    with pytest.raises(SystemExit) as exc:
+        main(["reference", "cantilever", "--petsc-option", "pc_type"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'pc_type' is not KEY=VALUE" in err[0]
