@@ -552,8 +552,11 @@ def _command(scene: Scene, row: dict, level: int, rate: float) -> str:
         parts.append(f"--integrator {row['integrator']}")
         if row["integrator"] != "implicit-euler":
             parts.append(f"--dt {row['dt']:.6g}")
-    if level:
-        parts.append(f"--mesh-refine {level}")
+    # the scene's file may refine its mesh already ([mesh] refine); --mesh-refine adds to it
+    in_file = (scene.base or scene).raw.get("mesh", {}).get("refine", 0)
+    extra = scene.level + level - in_file
+    if extra:
+        parts.append(f"--mesh-refine {extra}")
     parts.append(f"--rate {rate:g}")
     return " ".join(parts)
 
