@@ -177,6 +177,13 @@ def test_large_problems_switch_to_gamg_and_agree_with_mumps(monkeypatch):
     a, b = lu["displacement"], gamg["displacement"]
     assert np.linalg.norm(a - b) <= 1e-8 * np.linalg.norm(a)
     assert gamg["meta"]["solves"][0]["linear_iterations"] > 0
+    # a linear law's one solve is the answer itself: GAMG iterates to 1e-12 there
+    lin = scene.with_material(law="linear")
+    runs = []
+    for limit in (10**9, 10):
+        monkeypatch.setattr(fem, "DIRECT_LIMIT", limit)
+        runs.append(reference_static(lin.mesh, lin.material, lin.problem, degree=1, estimate=False)["displacement"])
+    assert np.linalg.norm(runs[0] - runs[1]) <= 1e-9 * np.linalg.norm(runs[0])
     # a user's pc_type replaces the choice whole; other options go over it
     assert fem.solver_options(10**9, {"pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}) == {
         "pc_type": "lu",

@@ -403,8 +403,21 @@ def advise(scene: Scene, tol: float, rate: float, metric: str = "rel_l2", use_ca
             why += f": the most accurate is {_label(best)} with {best[metric]:.3g}"
         if proposal is not None and proposal.get("level") is None:
             why += f"; {proposal['why']}"
-        elif proposal is not None:
+        elif proposal is not None and tried:
             why += f"; on the mesh refined {refined_times(proposal['level'])} no candidate tried qualified either"
+        elif proposal is not None:
+            first = proposal["plans"][0]
+            why += (
+                f"; the mesh's part ({proposal['mesh_part'][0]:.3g}, observed order "
+                f"{proposal['observed_order']:.2f}) leaves room for a model's own only on the mesh refined "
+                f"{refined_times(first['level'])}, and there no model is predicted to hold {rate:g} Hz within "
+                f"memory: the first, {_label(first['row'])}, "
+                + (
+                    first["predicted"]["why"]
+                    if not first["predicted"]["holds"]
+                    else f"would need {first['memory_bytes'] / 1e9:.0f} GB"
+                )
+            )
         out.update(model=None, integrator=None, dt=None, why=f"{why}; {physics}", rejected=rejected, runner_up=None)
         return out
     level = choice.get("level", 0)
