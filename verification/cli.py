@@ -567,7 +567,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--newton",
         choices=("modified", "classic"),
         default="modified",
-        help="with --reference: classic refactorises at every Newton iteration (the solver before reuse)",
+        help="with --reference: classic refactorises at every Newton iteration with MUMPS at every size (the solver before)",
     )
     s.add_argument("--out", help="also write the JSON to this file")
     s.add_argument("--json", action="store_true")
