@@ -256,7 +256,7 @@ def _advice_html(a: dict) -> str:
     if not a.get("model"):
         why = a["why"]  # it already says that no model meets the bound
         return f"<p class='advice'>{html.escape(why[0].upper() + why[1:])}</p>" + rej
-    dt = "quasi-static" if a["dt"] is None else f"dt = {a['dt']:.3g} s"
+    step = a["integrator"] if a["dt"] is None else f"{a['integrator']}, dt = {a['dt']:.3g} s"
     m = a["mesh"]
     mesh = (
         f" on the mesh refined {refined_times(a['refine'])} ({m['n_vertices']} vertices, mean edge "
@@ -268,7 +268,7 @@ def _advice_html(a: dict) -> str:
     ru = f" Runner-up: <b>{runner['model']}</b> (rel_l2 {runner['value']:.3g})." if runner else ""
     return (
         f"<p class='advice'>For rel_l2 &le; {ADVISE_TOL} at {ADVISE_RATE:.0f} Hz: <b>{a['model']}</b> "
-        f"({a['integrator']}, {dt}){mesh}: rel_l2 {a['value']:.3g}; {html.escape(a['frame']['why'])}. "
+        f"({step}){mesh}: rel_l2 {a['value']:.3g}; {html.escape(a['frame']['why'])}. "
         f"{html.escape(a['why'][0].upper() + a['why'][1:])}.{ru} Check it: <code>{html.escape(a['command'])}</code></p>"
         + rej
     )
