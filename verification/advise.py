@@ -445,6 +445,14 @@ def advise(scene: Scene, tol: float, rate: float, metric: str = "rel_l2", use_ca
     )
     if choice["model"] in LINEAR_MODELS:
         why = f"linear is enough: {physics}, and {choice['model']} meets {metric} <= {tol:g} ({choice[metric]:.3g})"
+    elif level:
+        # on the scene's mesh the linear models' totals carry the mesh's part; their own part does not
+        own = [_own(r) for r in rows if r["status"] == "ok" and r["model"] in LINEAR_MODELS and r.get("error_budget")]
+        why = f"{choice['model']} is the first candidate that qualifies there: {physics}" + (
+            f"; the linear models' own part of the error (against P1 on the same mesh) is at least {min(own):.3g}"
+            if own
+            else ""
+        )
     else:
         linear = [r for r in rows if r["status"] == "ok" and r["model"] in LINEAR_MODELS]
         accurate = [r for r in linear if r[metric] <= tol]
