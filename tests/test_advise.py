@@ -7,6 +7,7 @@ after it, not by the numbers it was made from.
 
 import json
 import shlex
+import tomllib
 
 import numpy as np
 import pytest
@@ -121,9 +122,9 @@ def test_the_reference_of_a_refined_scene_is_the_base_reference_at_its_vertices(
 
 
 def test_mesh_refine_key_is_checked(tmp_path):
-    text = (load_scene("block-press").path).read_text()
+    text = load_scene("block-press").path.read_text()
     for bad in ("-1", "9", "1.5", "true"):
-        data = __import__("tomllib").loads(text.replace("[mesh]\n", f"[mesh]\nrefine = {bad}\n"))
+        data = tomllib.loads(text.replace("[mesh]\n", f"[mesh]\nrefine = {bad}\n"))
         with pytest.raises(SceneError, match=r"mesh\.refine: must be a whole number from 0 to 4"):
             parse(tmp_path / "s.toml", data)
     with pytest.raises(SceneError, match="refine = 7"):
