@@ -82,6 +82,11 @@ class TetMesh:
     def edges(self) -> np.ndarray:
         return unique_edges(self.tets)
 
+    def mean_edge(self) -> float:
+        """The mean edge length, m: the h of convergence studies and of the advisor's refinements."""
+        e = self.edges
+        return float(np.linalg.norm(self.points[e[:, 1]] - self.points[e[:, 0]], axis=1).mean())
+
     def refined(self) -> TetMesh:
         """The mesh cut uniformly, each tetrahedron into eight (red refinement: four corner tetrahedra
         and the inner octahedron split along its shortest diagonal). The vertices keep their

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import os
+from pathlib import Path
 
 import numpy as np
 
@@ -236,11 +237,6 @@ def _pick(rows: list[dict], metric: str, tol: float, dynamic: bool):
     return min(ok, key=lambda r: _cost(r, dynamic)) if ok else None
 
 
-def _mean_edge(mesh) -> float:
-    e = mesh.edges
-    return float(np.linalg.norm(mesh.points[e[:, 1]] - mesh.points[e[:, 0]], axis=1).mean())
-
-
 def _memory_bytes(model: str, n_vertices: int, n_surface: int) -> float:
     """What a model's dense precomputation takes, in bytes: precomputed's responses (free dofs x
     surface dofs, and the right-hand sides they are solved from), condensed's coupling block (interior
@@ -256,7 +252,7 @@ def _memory_bytes(model: str, n_vertices: int, n_surface: int) -> float:
 def _available_memory() -> float:
     """Bytes of memory the advisor lets one run take: half of what the system has available."""
     try:
-        for line in open("/proc/meminfo"):
+        for line in Path("/proc/meminfo").read_text().splitlines():
             if line.startswith("MemAvailable:"):
                 return 0.5 * float(line.split()[1]) * 1024
     except OSError:
@@ -572,7 +568,7 @@ def refined_times(level: int) -> str:
 
 def _mesh_summary(scene: Scene) -> dict:
     m = scene.mesh
-    return {"level": scene.level, "n_vertices": m.n_vertices, "n_tets": m.n_tets, "mean_edge_m": _mean_edge(m)}
+    return {"level": scene.level, "n_vertices": m.n_vertices, "n_tets": m.n_tets, "mean_edge_m": m.mean_edge()}
 
 
 def _command(scene: Scene, row: dict, level: int, rate: float) -> str:

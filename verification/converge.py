@@ -52,8 +52,7 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
     for _ in range(levels - 1):
         scenes.append(scenes[-1].refined())
     meshes = [s.mesh for s in scenes]
-    e = scene.mesh.edges
-    h0 = float(np.linalg.norm(scene.mesh.points[e[:, 1]] - scene.mesh.points[e[:, 0]], axis=1).mean())  # mean edge
+    h0 = scene.mesh.mean_edge()
     hs = [h0 / 2**k for k in range(levels)]
     progress = Progress(1 + levels * (len(models) + 2), f"converge {scene.name}")
     fine = reference_static(
