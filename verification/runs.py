@@ -23,21 +23,29 @@ STABLE_STEPS = 2000
 
 
 def run_key(
-    scene: Scene, model: str, integrator: str, dt: float | None, fraction: float | None, ref_opts, budget: bool = True
+    scene: Scene,
+    model: str,
+    integrator: str,
+    dt: float | None,
+    fraction: float | None,
+    ref_opts,
+    budget: bool = True,
+    options: dict | None = None,
 ) -> str:
-    return digest(
-        {
-            "code": code_digest(RUN_CODE),
-            "machine": machine_id(),  # a row holds timings: another machine's are not this one's
-            "scene": scene.sha256(),
-            "model": model,
-            "integrator": integrator,
-            "dt": dt,
-            "fraction": fraction,
-            "reference": ref_opts,
-            "budget": budget,
-        }
-    )
+    fields = {
+        "code": code_digest(RUN_CODE),
+        "machine": machine_id(),  # a row holds timings: another machine's are not this one's
+        "scene": scene.sha256(),
+        "model": model,
+        "integrator": integrator,
+        "dt": dt,
+        "fraction": fraction,
+        "reference": ref_opts,
+        "budget": budget,
+    }
+    if options:  # a model's builder options (hybrid-tm's threshold); absent for the default model
+        fields["options"] = options
+    return digest(fields)
 
 
 def cached_compare(
@@ -51,11 +59,15 @@ def cached_compare(
     use_cache: bool = True,
     max_steps: int = 2_000_000,
     budget: bool = True,
+    options: dict | None = None,
 ) -> dict:
-    """``runner.compare`` through the run cache. The row says whether it came from the cache."""
+    """``runner.compare`` through the run cache. The row says whether it came from the cache.
+    ``options`` go to the model's builder and into the run's key."""
     ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
     path = (
-        cache_dir() / "runs" / f"{scene.name}-{run_key(scene, model, integrator, dt, fraction, ref_opts, budget)}.json"
+        cache_dir()
+        / "runs"
+        / f"{scene.name}-{run_key(scene, model, integrator, dt, fraction, ref_opts, budget, options)}.json"
     )
     if use_cache and path.exists():
         row = json.loads(path.read_text())
@@ -71,8 +83,11 @@ def cached_compare(
         reference=ref,
         max_steps=max_steps,
         budget=budget,
+        options=options,
     )
     row["fraction"] = fraction
+    if options:
+        row["options"] = options
     if use_cache:
         atomic_write_text(path, json.dumps(row, default=_jsonable))
     row["cached"] = False
