@@ -74,6 +74,19 @@ def solver_options(n_dofs: int, user: dict | None = None, linear: bool = False) 
 SLOW = 10.0
 
 
+def configure(ksp, options: dict) -> None:
+    """Apply ``options`` (PETSc option names without prefix) to ``ksp`` through its prefix, then take
+    them out of PETSc's global table: it holds 512 entries per process, and a study that solves a few
+    hundred problems in one process would fill it."""
+    prefix = ksp.getOptionsPrefix()
+    table = PETSc.Options()
+    for key, val in options.items():
+        table[f"{prefix}{key}"] = val
+    ksp.setFromOptions()
+    for key in options:
+        table.delValue(f"{prefix}{key}")
+
+
 class Newton:
     """Newton's method on a residual form with a test on the residual itself.
 
@@ -97,11 +110,7 @@ class Newton:
         self.raw = fem.petsc.create_vector(self.L)
         self.du = u.vector.copy()
         self.ksp = PETSc.KSP().create(comm)
-        prefix = f"tb_newton_{id(self)}_"
-        self.ksp.setOptionsPrefix(prefix)
-        opts = PETSc.Options()
-        for key, val in petsc_options.items():
-            opts[f"{prefix}{key}"] = val
+        self.ksp.setOptionsPrefix(f"tb_newton_{id(self)}_")
         V = u.function_space
         n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
         self.constrained = np.zeros(n_owned, dtype=bool)
@@ -131,8 +140,8 @@ class Newton:
         if self.near_nullspace is not None:
             self.A.setNearNullSpace(self.near_nullspace)  # after assembly, or GAMG does not see it
         self.ksp.setOperators(self.A)
-        if not self.factorisations:
-            self.ksp.setFromOptions()  # once the operator is known: GAMG reads its block size then
+        if not self.factorisations:  # once the operator is known: GAMG reads its block size then
+            configure(self.ksp, self.options)
         self.factorisations += 1
         self.at = "current"
 
@@ -602,12 +611,8 @@ class ElasticityProblem:
                 A.setNearNullSpace(modes)
             ksp = PETSc.KSP().create(self.comm)
             ksp.setOperators(A)
-            popts = PETSc.Options()
-            prefix = f"tb_dyn_{id(self)}_"
-            ksp.setOptionsPrefix(prefix)
-            for k, val in opts.items():
-                popts[f"{prefix}{k}"] = val
-            ksp.setFromOptions()
+            ksp.setOptionsPrefix(f"tb_dyn_{id(self)}_")
+            configure(ksp, opts)
             L_form = fem.form(-ufl.replace(residual, {u: zero}))
             b = fem.petsc.create_vector(L_form)
         else:

@@ -190,3 +190,20 @@ def test_large_problems_switch_to_gamg_and_agree_with_mumps(monkeypatch):
         "pc_factor_mat_solver_type": "mumps",
     }
     assert fem.solver_options(1, {"ksp_view": ""})["pc_type"] == "lu"
+
+
+def test_solver_options_leave_petsc_s_table_empty():
+    """PETSc's global options table holds 512 entries per process; every solver's options went in under
+    a prefix of their own and stayed, so the 60th solve or so of a test session failed with "Number of
+    options 512 < max number of options 512". configure() takes them out once the solver has read them."""
+    from petsc4py import PETSc
+
+    from reference.fem import GAMG_OPTIONS, configure
+
+    for k in range(200):  # 200 solvers x 9 options: three times the table
+        ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+        ksp.setOptionsPrefix(f"tb_test_{k}_")
+        configure(ksp, GAMG_OPTIONS)
+        assert ksp.getType() == GAMG_OPTIONS["ksp_type"]
+        ksp.destroy()
+    assert not [key for key in PETSc.Options().getAll() if key.startswith("tb_")]
