@@ -33,9 +33,8 @@ import scipy.sparse.linalg as spla
 
 from .errors import InputError
 from .geometry import shape_gradients
-from .laws import linear_elasticity_tensor
 from .model import Model, State, _tool_value
-from .tensor_mass import TensorMass, assemble_blocks
+from .tensor_mass import TensorMass, assemble_blocks, element_elasticity
 
 _JIT = dict(nogil=True, cache=True)
 
@@ -394,12 +393,12 @@ def element_critical_dt(model: Model) -> float:
         lam_max = float(np.max(k * (1.0 / share[edges[:, 0]] + 1.0 / share[edges[:, 1]])))
         return 2.0 / math.sqrt(lam_max)
     m = model.material
-    C = linear_elasticity_tensor(m.lam + m.volume_penalty, m.mu, m.fiber_vector, m.dlam, m.dmu)
     grads, vol = shape_gradients(model.points, model.tets)
     lam_max = 0.0
     for start in range(0, len(vol), 4096):  # bounded memory: (4096, 12, 12) at a time
         g, v = grads[start : start + 4096], vol[start : start + 4096]
-        ke = np.einsum("maj,ijkl,mbl->maibk", g, C, g).reshape(len(v), 12, 12) * v[:, None, None]
+        C = element_elasticity(model.points, model.tets[start : start + 4096], m, extra_lam=m.volume_penalty)
+        ke = np.einsum("maj,mijkl,mbl->maibk", g, C, g).reshape(len(v), 12, 12) * v[:, None, None]
         ev = np.linalg.eigvalsh(ke)[:, -1] / (m.density * v / 4.0)
         lam_max = max(lam_max, float(ev.max()))
     return 2.0 / math.sqrt(lam_max)

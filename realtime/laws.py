@@ -95,25 +95,26 @@ def volume_penalty_pk1(F, kappa):
 
 
 def linear_elasticity_tensor(lam: float, mu: float, a: np.ndarray, dlam: float, dmu: float):
-    """Fourth-order tensor C_pqrs = d^2 W / d eps_pq d eps_rs of linear_energy, (3, 3, 3, 3) Pa.
+    """Fourth-order tensor C_pqrs = d^2 W / d eps_pq d eps_rs of linear_energy, Pa: (3, 3, 3, 3) for
+    one fibre direction a (3,), (K, 3, 3, 3, 3) for K directions a (K, 3) (zeros: isotropic).
 
     C = lam d_pq d_rs + mu (d_pr d_qs + d_ps d_qr) + dlam a_p a_q a_r a_s
         + dmu/2 (d_pr a_q a_s + d_qr a_p a_s + d_ps a_q a_r + d_qs a_p a_r)
     """
     d = np.eye(3)
     a = np.asarray(a, dtype=float)
-    aa = np.outer(a, a)
+    aa = np.einsum("...p,...q->...pq", a, a)
     C = lam * np.einsum("pq,rs->pqrs", d, d)
-    C += mu * (np.einsum("pr,qs->pqrs", d, d) + np.einsum("ps,qr->pqrs", d, d))
-    C += dlam * np.einsum("pq,rs->pqrs", aa, aa)
-    C += (
+    C = C + mu * (np.einsum("pr,qs->pqrs", d, d) + np.einsum("ps,qr->pqrs", d, d))
+    C = C + dlam * np.einsum("...pq,...rs->...pqrs", aa, aa)
+    C = C + (
         0.5
         * dmu
         * (
-            np.einsum("pr,qs->pqrs", d, aa)
-            + np.einsum("qr,ps->pqrs", d, aa)
-            + np.einsum("ps,qr->pqrs", d, aa)
-            + np.einsum("qs,pr->pqrs", d, aa)
+            np.einsum("pr,...qs->...pqrs", d, aa)
+            + np.einsum("qr,...ps->...pqrs", d, aa)
+            + np.einsum("ps,...qr->...pqrs", d, aa)
+            + np.einsum("qs,...pr->...pqrs", d, aa)
         )
     )
     return C

@@ -31,6 +31,11 @@ which makes ``young_fiber`` mean what its name says whatever ``fiber_shear`` is.
 plane that holds the fibre is then mu + dmu/2; across it, mu. Tests check each by the experiment that
 defines it (uniaxial stress, simple shear) on both the engine's laws and the reference's.
 
+The fibres run along one direction ``fiber`` everywhere, or around an axis (``fiber_axis`` through
+``fiber_point``: circumferential fibres, a vessel's or an intestine's smooth muscle), where the direction
+at x is a(x) = t / |t|, t = axis x (x - point). ``fiber_directions`` evaluates either at points: the
+engine at each tetrahedron's centroid, the reference at its quadrature points (the continuous field).
+
 The volume penalty (Picinbono 2003, "incompressibility constraint") is the energy-consistent term
 ``volume_penalty/2 (J - 1)^2`` per unit reference volume, J = det F, coefficient in Pa.
 """
@@ -111,6 +116,8 @@ class Material:
         density: mass density rho, kg/m^3.
         law: continuum model of the ground truth, "linear" or "stvk".
         fiber: unit fibre direction a (3,) for a transversely isotropic material, or None.
+        fiber_axis: instead of ``fiber``, fibres around this axis (3,) (circumferential), or None.
+        fiber_point: a point (3,) m of that axis (default the origin).
         young_fiber: Young's modulus along the fibre, Pa (None: isotropic).
         fiber_shear: Picinbono's dmu, Pa (0 unless given).
         volume_penalty: coefficient of the energy volume_penalty/2 (J - 1)^2, Pa.
@@ -124,6 +131,8 @@ class Material:
     young_fiber: float | None = None
     fiber_shear: float = 0.0
     volume_penalty: float = 0.0
+    fiber_axis: tuple[float, float, float] | None = None
+    fiber_point: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         check_elastic_constants(self.young, self.poisson, self.density)
@@ -131,14 +140,24 @@ class Material:
             raise MaterialError(f"law = {self.law!r}: must be one of {', '.join(LAWS)}")
         if self.volume_penalty < 0.0 or not math.isfinite(self.volume_penalty):
             raise MaterialError(f"volume_penalty = {self.volume_penalty!r}: must be >= 0 Pa")
-        if (self.fiber is None) != (self.young_fiber is None):
-            raise MaterialError("fiber and young_fiber go together: give both or neither")
-        if self.fiber is not None:
-            a = np.asarray(self.fiber, dtype=float)
-            norm = float(np.linalg.norm(a))
-            if a.shape != (3,) or not norm > 0.0:
-                raise MaterialError(f"fiber = {self.fiber!r}: must be a non-zero 3-vector")
-            object.__setattr__(self, "fiber", tuple(float(x) for x in a / norm))
+        if self.fiber is not None and self.fiber_axis is not None:
+            raise MaterialError("fiber and fiber_axis: give one fibre direction or one axis to run around, not both")
+        if (self.fiber is None and self.fiber_axis is None) != (self.young_fiber is None):
+            raise MaterialError("fiber and young_fiber go together: give both or neither (or fiber_axis and young_fiber)")
+        for name in ("fiber", "fiber_axis"):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            a = np.asarray(value, dtype=float)
+            norm = float(np.linalg.norm(a)) if a.shape == (3,) else 0.0
+            if not (math.isfinite(norm) and norm > 0.0):
+                raise MaterialError(f"{name} = {value!r}: must be a non-zero 3-vector")
+            object.__setattr__(self, name, tuple(float(x) for x in a / norm))
+        point = np.asarray(self.fiber_point, dtype=float)
+        if point.shape != (3,) or not np.all(np.isfinite(point)):
+            raise MaterialError(f"fiber_point = {self.fiber_point!r}: must be a finite 3-vector, m")
+        object.__setattr__(self, "fiber_point", tuple(float(x) for x in point))
+        if self.transverse:
             if not (math.isfinite(self.young_fiber) and self.young_fiber > 0.0):
                 raise MaterialError(f"young_fiber = {self.young_fiber!r}: must be a positive number of Pa")
             if not (math.isfinite(self.fiber_shear) and self.mu + 0.5 * self.fiber_shear > 0.0):
@@ -158,6 +177,11 @@ class Material:
         return shear_modulus(self.young, self.poisson)
 
     @property
+    def transverse(self) -> bool:
+        """True for a transversely isotropic material (fibres along a direction or around an axis)."""
+        return self.fiber is not None or self.fiber_axis is not None
+
+    @property
     def dlam(self) -> float:
         """Fibre coefficient dlambda, Pa (0 for an isotropic material)."""
         return 0.0 if self.young_fiber is None else fiber_lambda(self.young, self.young_fiber, self.fiber_shear)
@@ -165,12 +189,29 @@ class Material:
     @property
     def dmu(self) -> float:
         """Fibre shear coefficient dmu, Pa (0 for an isotropic material)."""
-        return 0.0 if self.fiber is None else self.fiber_shear
+        return self.fiber_shear if self.transverse else 0.0
 
     @property
     def fiber_vector(self) -> np.ndarray:
-        """Unit fibre direction (3,) float64; zeros for an isotropic material."""
+        """The one fibre direction (3,) float64; zeros for an isotropic material. Fibres around an axis
+        have none: ``fiber_directions`` gives theirs."""
+        if self.fiber_axis is not None:
+            raise MaterialError("fiber_axis: fibres around an axis change direction; use fiber_directions(points)")
         return np.zeros(3) if self.fiber is None else np.asarray(self.fiber, dtype=float)
+
+    def fiber_directions(self, x: np.ndarray) -> np.ndarray:
+        """Unit fibre directions (K, 3) float64 at points x (K, 3) m: ``fiber`` everywhere, or around
+        ``fiber_axis``: axis x (x - fiber_point), normalised; zeros for an isotropic material and on the
+        axis itself, where the circumferential direction is undefined (the law is isotropic there)."""
+        x = np.asarray(x, dtype=float).reshape(-1, 3)
+        if self.fiber_axis is None:
+            return np.broadcast_to(self.fiber_vector, x.shape).copy()
+        t = np.cross(np.asarray(self.fiber_axis), x - np.asarray(self.fiber_point))
+        norm = np.linalg.norm(t, axis=1)
+        out = np.zeros_like(t)
+        ok = norm > 1e-12 * max(1.0, float(np.abs(x).max(initial=0.0)))
+        out[ok] = t[ok] / norm[ok, None]
+        return out
 
     @property
     def wave_speed(self) -> float:
@@ -197,4 +238,6 @@ class Material:
             "young_fiber": self.young_fiber,
             "fiber_shear": self.fiber_shear,
             "volume_penalty": self.volume_penalty,
+            "fiber_axis": list(self.fiber_axis) if self.fiber_axis is not None else None,
+            "fiber_point": list(self.fiber_point),
         }

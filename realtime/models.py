@@ -103,7 +103,7 @@ def build_stvk_tm(points, tets, material: Material, loading: Loading | None = No
     """Non-linear StVK tensor-mass (Picinbono et al. 2003), isotropic or transversely isotropic, with
     the volume penalty when ``material.volume_penalty`` > 0. Rotation invariant."""
     points, tets = prepare_mesh(points, tets)
-    btets, geo = block_data(points, tets)
+    btets, geo = block_data(points, tets, material)
     data = (btets, geo, law_params(material), np.zeros(9 * BLOCK), np.ones(len(btets), dtype=np.bool_))
     return _model("stvk-tm", points, tets, material, loading, stvk_force, stvk_energy, data, False)
 
@@ -113,13 +113,13 @@ def build_corotational_tm(points, tets, material: Material, loading: Loading | N
 
     Isotropic only: for an anisotropic law the rotated-frame force is not the gradient of an energy.
     """
-    if material.fiber is not None:
+    if material.transverse:
         raise InputError(
             "corotational-tm: isotropic materials only (the rotated-frame force of an anisotropic "
             "law is not the gradient of an energy); use stvk-tm for fibres"
         )
     points, tets = prepare_mesh(points, tets)
-    btets, geo = block_data(points, tets)
+    btets, geo = block_data(points, tets, material)
     scratch = (np.zeros(9 * BLOCK), np.zeros(10 * BLOCK), np.ones(len(btets), dtype=np.bool_))
     data = (btets, geo, law_params(material), *scratch)
     return _model(
@@ -142,7 +142,7 @@ def build_hybrid_tm(
         threshold = 0.1 * float(np.linalg.norm(points[e[:, 0]] - points[e[:, 1]], axis=1).mean())
     if not threshold >= 0.0:
         raise InputError(f"hybrid-tm: threshold = {threshold!r} must be >= 0 m")
-    btets, geo = block_data(points, tets)
+    btets, geo = block_data(points, tets, material)
     data = (
         tm.kernel_data(),
         btets,

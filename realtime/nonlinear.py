@@ -44,9 +44,9 @@ def tet_data(points: np.ndarray, tets: np.ndarray):
 
 
 def law_params(material: Material) -> np.ndarray:
-    """(8,) float64: lam, mu, a_x, a_y, a_z, dlam, dmu, kappa (Pa, unit fibre, Pa, Pa, Pa)."""
-    a = material.fiber_vector
-    return np.array([material.lam, material.mu, a[0], a[1], a[2], material.dlam, material.dmu, material.volume_penalty])
+    """(5,) float64: lam, mu, dlam, dmu, kappa, Pa. The fibre direction is per tetrahedron, in
+    ``block_data``'s geometry."""
+    return np.array([material.lam, material.mu, material.dlam, material.dmu, material.volume_penalty])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -61,30 +61,35 @@ def law_params(material: Material) -> np.ndarray:
 
 #: Tetrahedra per block: a block's scratch (9 x 64 float64, 4.6 kB) and geometry stay in L1.
 BLOCK = 64
-_ROW = tuple(np.uint64(k * BLOCK) for k in range(10))
-_GEO_ROWS = np.uint64(10 * BLOCK)
+#: Rows of geometry per tetrahedron: 9 shape-gradient components, the volume, the fibre direction.
+GEO_ROWS = 13
+_ROW = tuple(np.uint64(k * BLOCK) for k in range(GEO_ROWS))
+_GEO_ROWS = np.uint64(GEO_ROWS * BLOCK)
 _UBLOCK = np.uint64(BLOCK)
 
 
-def block_data(points: np.ndarray, tets: np.ndarray):
+def block_data(points: np.ndarray, tets: np.ndarray, material: Material):
     """The element kernels' geometry in blocks of BLOCK tetrahedra.
 
-    Returns tets (P, 4) int64 and geo (10 P,) float64, P = BLOCK ceil(M / BLOCK): the tetrahedra in
-    Morton order (neighbours share blocks; the kernels sum over all of them, so their order is
-    internal), the last block padded with zero-volume tetrahedra on vertex 0, which contribute
-    nothing. Block b holds, for its tetrahedron q (row b BLOCK + q of the returned tets),
-    geo[(10 b + 3 a + c) BLOCK + q] = g_{a+1, c} (1/m, a, c = 0..2; g_0 = -(g_1 + g_2 + g_3)) and
-    geo[(10 b + 9) BLOCK + q] = V (m^3).
+    points (N, 3) float64 m; tets (M, 4) int64. Returns tets (P, 4) int64 and geo (GEO_ROWS P,)
+    float64, P = BLOCK ceil(M / BLOCK): the tetrahedra in Morton order (neighbours share blocks; the
+    kernels sum over all of them, so their order is internal), the last block padded with zero-volume
+    tetrahedra on vertex 0, which contribute nothing. Block b holds, for its tetrahedron q (row
+    b BLOCK + q of the returned tets), with G = GEO_ROWS:
+    geo[(G b + 3 a + c) BLOCK + q] = g_{a+1, c} (1/m, a, c = 0..2; g_0 = -(g_1 + g_2 + g_3)),
+    geo[(G b + 9) BLOCK + q] = V (m^3) and geo[(G b + 10 + c) BLOCK + q] = a_c, the material's unit
+    fibre direction at the centroid (zeros for an isotropic material).
     """
     t, g, vol = tet_data(points, tets[morton_order(points, tets)])
     m = len(t)
     p = BLOCK * -(-m // BLOCK)
     tp = np.zeros((p, 4), dtype=np.int64)
     tp[:m] = t
-    rows = np.zeros((10, p))
+    rows = np.zeros((GEO_ROWS, p))
     rows[:9, :m] = g.reshape(m, 9).T
     rows[9, :m] = vol
-    geo = rows.reshape(10, p // BLOCK, BLOCK).transpose(1, 0, 2).ravel()
+    rows[10:13, :m] = material.fiber_directions(points[t].mean(axis=1)).T
+    geo = rows.reshape(GEO_ROWS, p // BLOCK, BLOCK).transpose(1, 0, 2).ravel()
     return tp, np.ascontiguousarray(geo)
 
 
@@ -199,10 +204,11 @@ def _stvk_block(W, geo, gb, prm, minus_linear):
     linear tensor-mass has none), which is the hybrid model's correction.
     W: (9 BLOCK,) float64 scratch; geo: block_data's geo; gb: uint64 offset of the block in geo.
     """
-    lam, mu2, a0, a1, a2, dlam, dmu, kappa = prm[0], 2.0 * prm[1], prm[2], prm[3], prm[4], prm[5], prm[6], prm[7]
+    lam, mu2, dlam, dmu, kappa = prm[0], 2.0 * prm[1], prm[2], prm[3], prm[4]
     fibre = dlam != 0.0 or dmu != 0.0
     for q in range(_UBLOCK):
         H, g, v = _lane_in(W, geo, gb, q)
+        a0, a1, a2 = geo[gb + _ROW[10] + q], geo[gb + _ROW[11] + q], geo[gb + _ROW[12] + q]
         h00, h01, h02, h10, h11, h12, h20, h21, h22 = H
         # Green-Lagrange E = (H + H^T + H^T H) / 2
         e00 = h00 + 0.5 * (h00 * h00 + h10 * h10 + h20 * h20)
@@ -261,7 +267,7 @@ def _stvk_block(W, geo, gb, prm, minus_linear):
 def stvk_force(data, u, f):
     """StVK tensor-mass force (Picinbono et al. 2003), with fibre terms and the volume penalty.
 
-    data: (tets (P, 4) int64 and geo (10 P,) from block_data, prm (8,) law_params,
+    data: (tets (P, 4) int64 and geo (GEO_ROWS P,) from block_data, prm (5,) law_params,
            W (9 BLOCK,) float64 scratch, everywhere (P,) bool all True)
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
     """
@@ -275,15 +281,16 @@ def stvk_force(data, u, f):
 
 @nb.njit(inline="always", **_JIT)
 def _block_grad_u(tets, geo, e, u):
-    """F = I + grad u (3, 3) on tetrahedron e of block_data's layout, and its volume."""
+    """F = I + grad u (3, 3) on tetrahedron e of block_data's layout, its volume and fibre (3,)."""
     b, q = e // BLOCK, e % BLOCK
     F = np.eye(3)
     for a in range(1, 4):
         for r in range(3):
             d = u[tets[e, a], r] - u[tets[e, 0], r]
             for c in range(3):
-                F[r, c] += d * geo[(10 * b + 3 * (a - 1) + c) * BLOCK + q]
-    return F, geo[(10 * b + 9) * BLOCK + q]
+                F[r, c] += d * geo[(GEO_ROWS * b + 3 * (a - 1) + c) * BLOCK + q]
+    fibre = np.array([geo[(GEO_ROWS * b + 10 + c) * BLOCK + q] for c in range(3)])
+    return F, geo[(GEO_ROWS * b + 9) * BLOCK + q], fibre
 
 
 @nb.njit(**_JIT)
@@ -291,11 +298,10 @@ def stvk_energy(data, u):
     """sum_e V_e W(F_e), J, W the StVK energy plus the volume penalty (laws.stvk_energy and
     laws.volume_penalty_energy: the energy stvk_force differentiates)."""
     tets, geo, prm = data[0], data[1], data[2]
-    a = prm[2:5].copy()
     w = 0.0
     for e in range(tets.shape[0]):
-        F, vol = _block_grad_u(tets, geo, e, u)
-        w += vol * (stvk_density(F, prm[0], prm[1], a, prm[5], prm[6]) + volume_penalty_energy(F, prm[7]))
+        F, vol, a = _block_grad_u(tets, geo, e, u)
+        w += vol * (stvk_density(F, prm[0], prm[1], a, prm[2], prm[3]) + volume_penalty_energy(F, prm[4]))
     return w
 
 
@@ -443,7 +449,7 @@ def corotational_force(data, u, f):
 
     This is the exact gradient of W(F) = lam/2 tr(S - I)^2 + mu |S - I|^2, S = R^T F the polar stretch
     (the "corotated" energy; SOFA's TetrahedronFEMForceField, method "polar").
-    data: (tets (P, 4) int64 and geo (10 P,) from block_data, prm (8,) law_params,
+    data: (tets (P, 4) int64 and geo (GEO_ROWS P,) from block_data, prm (5,) law_params,
            scratch: W (9 BLOCK,), R (10 BLOCK,) float64, everywhere (P,) bool all True)
     """
     tets, geo, prm, W, R, everywhere = data
@@ -461,7 +467,7 @@ def corotational_energy(data, u):
     lam, mu = prm[0], prm[1]
     w = 0.0
     for e in range(tets.shape[0]):
-        F, vol = _block_grad_u(tets, geo, e, u)
+        F, vol, _ = _block_grad_u(tets, geo, e, u)
         R = np.array(_polar((F[0, 0], F[0, 1], F[0, 2], F[1, 0], F[1, 1], F[1, 2], F[2, 0], F[2, 1], F[2, 2])))
         S = R.reshape(3, 3).T @ F - np.eye(3)
         S = 0.5 * (S + S.T)
@@ -482,7 +488,7 @@ def hybrid_force(data, u, f):
     (Picinbono et al. 2003, section 5). Threshold 0: every tetrahedron, the stvk-tm force (to
     round-off). Threshold infinity: none, exactly the linear-tm force. Blocks with no flagged
     tetrahedron cost only the flag test.
-    data: (linear-tm data tuple, tets (P, 4) int64 and geo (10 P,) from block_data, prm (8,)
+    data: (linear-tm data tuple, tets (P, 4) int64 and geo (GEO_ROWS P,) from block_data, prm (5,)
            law_params, W (9 BLOCK,) float64 scratch, threshold (1,) m, scratch: moved (N,) bool,
            flags (P,) bool)
     """
@@ -510,7 +516,6 @@ def hybrid_energy(data, u):
     on the flagged tetrahedra, V (W_stvk + W_penalty - W_linear)."""
     lin, tets, geo, prm = data[0], data[1], data[2], data[3]
     thr2 = data[5][0] * data[5][0]
-    a = prm[2:5].copy()
     w = linear_tm_energy(lin, u)
     for e in range(tets.shape[0]):
         moved = False
@@ -519,11 +524,11 @@ def hybrid_energy(data, u):
             moved |= u[i, 0] * u[i, 0] + u[i, 1] * u[i, 1] + u[i, 2] * u[i, 2] > thr2
         if not moved:
             continue
-        F, vol = _block_grad_u(tets, geo, e, u)
+        F, vol, a = _block_grad_u(tets, geo, e, u)
         w += vol * (
-            stvk_density(F, prm[0], prm[1], a, prm[5], prm[6])
-            + volume_penalty_energy(F, prm[7])
-            - linear_density(F, prm[0], prm[1], a, prm[5], prm[6])
+            stvk_density(F, prm[0], prm[1], a, prm[2], prm[3])
+            + volume_penalty_energy(F, prm[4])
+            - linear_density(F, prm[0], prm[1], a, prm[2], prm[3])
         )
     return w
 

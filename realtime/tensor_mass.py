@@ -40,8 +40,19 @@ def element_stiffness(points: np.ndarray, tets: np.ndarray, material: Material) 
     ke[e, a, b] is the 3x3 block coupling local vertex a (rows) to local vertex b (columns).
     """
     grads, vol = shape_gradients(points, tets)
-    C = linear_elasticity_tensor(material.lam, material.mu, material.fiber_vector, material.dlam, material.dmu)
-    return np.einsum("e,pqrs,eaq,ebs->eabpr", vol, C, grads, grads, optimize=True)
+    if material.fiber_axis is None:
+        C = linear_elasticity_tensor(material.lam, material.mu, material.fiber_vector, material.dlam, material.dmu)
+        return np.einsum("e,pqrs,eaq,ebs->eabpr", vol, C, grads, grads, optimize=True)
+    C = element_elasticity(points, tets, material)  # fibres around an axis: one tensor per tetrahedron
+    return np.einsum("e,epqrs,eaq,ebs->eabpr", vol, C, grads, grads, optimize=True)
+
+
+def element_elasticity(points: np.ndarray, tets: np.ndarray, material: Material, extra_lam: float = 0.0):
+    """The elasticity tensor of every tetrahedron, (M, 3, 3, 3, 3) Pa, its fibre direction taken at the
+    centroid (``Material.fiber_directions``); ``extra_lam`` (Pa) adds to lambda (the volume penalty's
+    stiffness at rest)."""
+    a = material.fiber_directions(points[tets].mean(axis=1))
+    return linear_elasticity_tensor(material.lam + extra_lam, material.mu, a, material.dlam, material.dmu)
 
 
 def edge_index(edges: np.ndarray, n_vertices: int, pairs: np.ndarray) -> np.ndarray:

@@ -75,3 +75,21 @@ def test_young_fiber_is_the_stiffness_along_the_fibre():
 def test_fiber_needs_both_keys():
     with pytest.raises(MaterialError, match="fiber and young_fiber"):
         Material(1e4, 0.3, 1000.0, fiber=(1, 0, 0))
+
+
+def test_fibres_around_an_axis():
+    m = Material(1e4, 0.3, 1000.0, fiber_axis=(0.0, 0.0, 2.0), fiber_point=(1.0, 0.0, 0.0), young_fiber=3e4)
+    x = np.array([[2.0, 0.0, 5.0], [1.0, -3.0, 0.0], [1.0, 0.0, 7.0]])
+    a = m.fiber_directions(x)
+    # around the line x = 1, y = 0 along z: tangent to the circle through each point, counter-clockwise;
+    # on the axis itself there is no direction, and the law is isotropic there
+    np.testing.assert_allclose(a, [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]], atol=1e-15)
+    assert m.transverse and m.dlam == pytest.approx(3e4 - 1e4) and m.fiber_axis == (0.0, 0.0, 1.0)
+    with pytest.raises(MaterialError, match="fiber_directions"):
+        m.fiber_vector  # noqa: B018  (the property raises)
+    with pytest.raises(MaterialError, match="not both"):
+        Material(1e4, 0.3, 1000.0, fiber=(1.0, 0.0, 0.0), fiber_axis=(0.0, 0.0, 1.0), young_fiber=3e4)
+    with pytest.raises(MaterialError, match="fiber_axis = "):
+        Material(1e4, 0.3, 1000.0, fiber_axis=(0.0, 0.0, 0.0), young_fiber=3e4)
+    with pytest.raises(MaterialError, match="young_fiber go together"):
+        Material(1e4, 0.3, 1000.0, fiber_axis=(0.0, 0.0, 1.0))

@@ -16,6 +16,17 @@ from .conftest import match_nodes
 ISO = Material(2.8e4, 0.4, 1000.0, law="stvk")
 FIBRE = Material(2.8e4, 0.4, 1000.0, law="stvk", fiber=(1.0, 0.5, 0.2), young_fiber=6e4, fiber_shear=3e3)
 PENALTY = Material(2.8e4, 0.4, 1000.0, law="stvk", volume_penalty=5e4)
+#: Circumferential fibres around a line through the test meshes (not through any centroid).
+AROUND = Material(
+    2.8e4,
+    0.4,
+    1000.0,
+    law="stvk",
+    fiber_axis=(0.1, 0.2, 1.0),
+    fiber_point=(1e-3, 2e-3, 0.0),
+    young_fiber=6e4,
+    fiber_shear=3e3,
+)
 DYNAMIC = [m for m in MODELS if m not in QUASI_STATIC]
 
 
@@ -217,8 +228,43 @@ def test_cutting_equals_rebuild():
 
 def test_corotational_refuses_fibres():
     mesh = cylinder()
-    with pytest.raises(ValueError, match="isotropic"):
-        build_model("corotational-tm", mesh.points, mesh.tets, FIBRE)
+    for material in (FIBRE, AROUND):
+        with pytest.raises(ValueError, match="isotropic"):
+            build_model("corotational-tm", mesh.points, mesh.tets, material)
+
+
+@pytest.mark.parametrize("name", ["linear-tm", "stvk-tm", "hybrid-tm"])
+def test_fibres_around_an_axis_force_is_minus_energy_gradient(name, rng):
+    mesh = cylinder()
+    model = build_model(name, mesh.points, mesh.tets, AROUND, **({"threshold": 2e-3} if name == "hybrid-tm" else {}))
+    u = 1e-3 * rng.standard_normal(mesh.points.shape)
+    f = model.internal_force(u)
+    h = 1e-8
+    for k in rng.choice(mesh.n_vertices, 4, replace=False):
+        for c in range(3):
+            d = np.zeros_like(u)
+            d[k, c] = h
+            fd = -(model.elastic_energy(u + d) - model.elastic_energy(u - d)) / (2 * h)
+            # as test_force_is_minus_energy_gradient: truncation ~1e-12 f, round-off ~1e-8 |f|max
+            assert fd == pytest.approx(f[k, c], rel=1e-5, abs=1e-6 * np.abs(f).max())
+
+
+@pytest.mark.parametrize("name", ["linear-tm", "stvk-tm"])
+def test_fibres_around_an_axis_are_each_tetrahedron_s_own(name, rng):
+    """A model whose fibres turn around an axis is, tetrahedron by tetrahedron, the model with one
+    fibre direction: the one at that tetrahedron's centroid. Summing one-tetrahedron models of the
+    constant-fibre law rebuilds the field model's force, which checks the kernels' per-element fibres
+    (their block layout and Morton order) against the path that has one fibre for all."""
+    mesh = structured_box([0.02, 0.02, 0.02], 2)
+    model = build_model(name, mesh.points, mesh.tets, AROUND)
+    u = 2e-3 * rng.standard_normal(mesh.points.shape)
+    directions = AROUND.fiber_directions(mesh.points[mesh.tets].mean(axis=1))
+    total = np.zeros_like(u)
+    for tet, a in zip(mesh.tets, directions, strict=True):
+        one = AROUND.replace(fiber_axis=None, fiber=tuple(a))
+        total += build_model(name, mesh.points, tet[None], one).internal_force(u)
+    # the same element integrals summed in another order: round-off
+    assert np.linalg.norm(model.internal_force(u) - total) < 1e-12 * np.linalg.norm(total)
 
 
 @pytest.mark.parametrize("name", ["precomputed", "condensed"])

@@ -55,6 +55,21 @@ BAD = [
     ('generator = "box"', 'generator = "sphere"', "mesh.generator"),
     ("h = 0.005", 'h = "fine"', "mesh.h"),
     ("value = [0.0, 0.0, -9.81]", "value = [0.0, -9.81]", "load[0].value"),
+    (
+        "density = 1000.0",
+        "density = 1000.0\nfiber_around = { axis = [0.0, 0.0, 0.0] }\nyoung_fiber = 1e6",
+        "material.fiber_around.axis",
+    ),
+    (
+        "density = 1000.0",
+        "density = 1000.0\nfiber = [1.0, 0.0, 0.0]\nfiber_around = { axis = [0.0, 0.0, 1.0] }\nyoung_fiber = 1e6",
+        "material.fiber_around",
+    ),
+    (
+        "density = 1000.0",
+        "density = 1000.0\nfiber_around = { axis = [0.0, 0.0, 1.0], centre = [0.0, 0.0, 0.0] }\nyoung_fiber = 1e6",
+        "material.fiber_around.centre",
+    ),
 ]
 
 

@@ -340,15 +340,31 @@ def parse(path: Path, data: dict) -> Scene:
         density=mat.number("density"),
         volume_penalty=mat.number("volume_penalty", 0.0),
     )
-    if mat.has("fiber") or mat.has("young_fiber"):
+    if mat.has("fiber") and mat.has("fiber_around"):
+        mat.fail("fiber_around", "give fibres one direction (fiber) or an axis to run around (fiber_around), not both")
+    if mat.has("fiber_around"):
+        around = _Reader(path, mat.get("fiber_around"), "material.fiber_around")
+        fields["fiber_axis"] = around.vec3("axis")
+        fields["fiber_point"] = around.vec3("point", [0.0, 0.0, 0.0])
+        around.finish(("axis", "point"))
+        fields["young_fiber"] = mat.number("young_fiber")
+        fields["fiber_shear"] = mat.number("fiber_shear", 0.0)
+    elif mat.has("fiber") or mat.has("young_fiber"):
         fields["fiber"] = mat.vec3("fiber")
         fields["young_fiber"] = mat.number("young_fiber")
         fields["fiber_shear"] = mat.number("fiber_shear", 0.0)
-    mat.finish(("law", "young", "poisson", "density", "volume_penalty", "fiber", "young_fiber", "fiber_shear"))
+    mat.finish(
+        ("law", "young", "poisson", "density", "volume_penalty", "fiber", "fiber_around", "young_fiber", "fiber_shear")
+    )
     try:
         material = Material(**fields)
     except MaterialError as exc:
-        key = str(exc).split(" ", 1)[0]
+        key = (
+            str(exc)
+            .split(" ", 1)[0]
+            .replace("fiber_axis", "fiber_around.axis")
+            .replace("fiber_point", "fiber_around.point")
+        )
         raise SceneError(f"{path}: material.{key} {str(exc).split(' ', 1)[1]}") from None
 
     fixed = []
