@@ -32,6 +32,8 @@ from .geometry import boundary_faces
 from .model import Model, State
 
 _JIT = dict(nogil=True, cache=True)
+#: Elementary responses solved per block of right-hand sides while precomputing.
+PRECOMPUTE_BLOCK = 512
 
 
 def _surface_vertices(tets: np.ndarray) -> np.ndarray:
@@ -94,9 +96,15 @@ class Precomputed:
         self.row[self.free_dofs] = np.arange(len(self.free_dofs))
         self.column = np.full(3 * n, -1, dtype=np.int64)
         self.column[self.surface_dofs] = np.arange(len(self.surface_dofs))
-        rhs = np.zeros((len(self.free_dofs), len(self.surface_dofs)))
-        rhs[self.row[self.surface_dofs], np.arange(len(self.surface_dofs))] = 1.0
-        self.T = np.ascontiguousarray(lu.solve(rhs))
+        # T column by column block: the whole right-hand side, its solution and a C-ordered copy were
+        # three (free x surface) arrays at once, 11 GB for a 12k-vertex beam; now T and one block
+        self.T = np.empty((len(self.free_dofs), len(self.surface_dofs)))
+        rows = self.row[self.surface_dofs]
+        for start in range(0, len(self.surface_dofs), PRECOMPUTE_BLOCK):
+            cols = np.arange(start, min(start + PRECOMPUTE_BLOCK, len(self.surface_dofs)))
+            rhs = np.zeros((len(self.free_dofs), len(cols)), order="F")
+            rhs[rows[cols], cols - start] = 1.0
+            self.T[:, cols] = lu.solve(rhs)
         self.u0 = np.zeros(3 * n)
         self.u0[self.free_dofs] = lu.solve(lo.external_force.ravel()[self.free_dofs])
         self.n = n
@@ -168,11 +176,16 @@ class Condensed:
         K = _stiffness(model)
         f = lo.external_force.ravel()
         Kii = K[idofs][:, idofs].tocsc()
-        Kir = K[idofs][:, rdofs].toarray()
+        Kir = K[idofs][:, rdofs].tocsc()
+        Kri = K[rdofs][:, idofs].tocsr()
         self.lu_ii = spla.splu(Kii)
-        X = self.lu_ii.solve(np.column_stack([Kir, f[idofs]]))
-        self.K_star = K[rdofs][:, rdofs].toarray() - K[rdofs][:, idofs] @ X[:, :-1]
-        self.f_star = f[rdofs] - K[rdofs][:, idofs] @ X[:, -1]
+        # K* a block of retained columns at a time: K_ii^-1 K_ir whole was an (interior x retained)
+        # dense array, with its right-hand side and a copy beside it
+        self.K_star = K[rdofs][:, rdofs].toarray()
+        for start in range(0, len(rdofs), PRECOMPUTE_BLOCK):
+            cols = slice(start, min(start + PRECOMPUTE_BLOCK, len(rdofs)))
+            self.K_star[:, cols] -= Kri @ self.lu_ii.solve(Kir[:, cols].toarray(order="F"))
+        self.f_star = f[rdofs] - Kri @ self.lu_ii.solve(f[idofs])
         self.retained, self.interior = rdofs, idofs
         self._Kir, self._fi = K[idofs][:, rdofs].tocsr(), f[idofs]
         held = (lo.free.ravel() == 0.0)[rdofs]

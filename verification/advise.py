@@ -239,13 +239,13 @@ def _pick(rows: list[dict], metric: str, tol: float, dynamic: bool):
 
 def _memory_bytes(model: str, n_vertices: int, n_surface: int) -> float:
     """What a model's dense precomputation takes, in bytes: precomputed's responses (free dofs x
-    surface dofs, and the right-hand sides they are solved from), condensed's coupling block (interior
-    x retained dofs) and Schur complement (retained squared). Time-stepping models: sparse, negligible."""
-    n, s = 3.0 * n_vertices, 3.0 * n_surface
+    surface dofs) and condensed's Schur complement with its Cholesky factor (retained squared, twice);
+    both solve their right-hand sides a block at a time. Time-stepping models: sparse, negligible."""
+    n, s = 3.0 * n_vertices, 3.0 * n_surface  # dofs, surface dofs
     if model == "precomputed":
-        return 2 * 8 * n * s
+        return 8 * n * s
     if model == "condensed":
-        return 8 * ((n - s) * s + 2 * s * s)
+        return 8 * 2 * s * s
     return 0.0
 
 
