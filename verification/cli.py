@@ -251,10 +251,31 @@ def cmd_compare(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from .report import write_report
+    from .report import write_report, write_seeds_report
 
-    path = write_report(args.scenes or None, out=args.out, fractions=args.fractions)
+    if args.seeds:
+        if args.scenes:
+            return _fail("tissuebench: report --seeds takes no scenes (it is the page of the seeds experiments)", 2)
+        from .seeds import run_seeds
+
+        path = write_seeds_report(run_seeds(), out=args.out)
+    else:
+        path = write_report(args.scenes or None, out=args.out, fractions=args.fractions)
     print(f"report written to {path}")
+    return 0
+
+
+def cmd_seeds(args) -> int:
+    from .seeds import EXPERIMENTS, format_seeds, run_seeds, without_pictures
+
+    unknown = [k for k in args.only or () if k not in EXPERIMENTS]
+    if unknown:
+        return _fail(f"tissuebench: seeds --only {unknown[0]}: not an experiment (known: {', '.join(EXPERIMENTS)})", 2)
+    out = run_seeds(args.only)
+    if args.json:
+        _print_json(without_pictures(out))
+    else:
+        print(format_seeds(out))
     return 0
 
 
@@ -499,7 +520,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=[0.25, 0.5, 0.9, 1.1],
         help="time steps as fractions of each model's critical step",
     )
+    s.add_argument("--seeds", action="store_true", help="the page of the seeds experiments (reports/seeds)")
     s.set_defaults(func=cmd_report)
+
+    s = sub.add_parser("seeds", help="the source documents' experiments: each claim measured, with a verdict")
+    s.add_argument("--only", nargs="+", metavar="KEY", help="run only these experiments (by key)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_seeds)
 
     s = sub.add_parser("sweep", help="error against step time for models x time steps, with the Pareto front")
     s.add_argument("scene")
