@@ -143,7 +143,9 @@ class Material:
         if self.fiber is not None and self.fiber_axis is not None:
             raise MaterialError("fiber and fiber_axis: give one fibre direction or one axis to run around, not both")
         if (self.fiber is None and self.fiber_axis is None) != (self.young_fiber is None):
-            raise MaterialError("fiber and young_fiber go together: give both or neither (or fiber_axis and young_fiber)")
+            raise MaterialError(
+                "fiber and young_fiber go together: give both or neither (or fiber_axis and young_fiber)"
+            )
         for name in ("fiber", "fiber_axis"):
             value = getattr(self, name)
             if value is None:

@@ -183,6 +183,17 @@ def test_seeds_json_lists_nine_findings(capsys):
     assert "not an experiment" in capsys.readouterr().err
 
 
+def test_report_seeds_fails_on_a_bad_directory_before_running(tmp_path, capsys):
+    """A report directory that cannot be made is one line, said before half an hour of runs."""
+    from verification.cli import main
+
+    taken = tmp_path / "a-file"
+    taken.write_text("")
+    assert main(["report", "--seeds", "--out", str(taken)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and str(taken) in err and "existing file" in err
+
+
 def test_seeds_page_images_load_in_a_headless_browser(tmp_path):
     from verification.report import write_seeds_report
 

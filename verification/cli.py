@@ -251,13 +251,14 @@ def cmd_compare(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from .report import write_report, write_seeds_report
+    from .report import seeds_report_dir, write_report, write_seeds_report
 
     if args.seeds:
         if args.scenes:
             return _fail("tissuebench: report --seeds takes no scenes (it is the page of the seeds experiments)", 2)
         from .seeds import run_seeds
 
+        seeds_report_dir(args.out)  # a directory that cannot be made fails before half an hour of runs
         path = write_seeds_report(run_seeds(), out=args.out)
     else:
         path = write_report(args.scenes or None, out=args.out, fractions=args.fractions)

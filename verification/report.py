@@ -432,14 +432,18 @@ def report_dir(scenes: list[str], out: str | None = None) -> tuple[str, Path]:
     """The report's name and directory, created now. Every scene is read first, so a bad one fails before
     any compute; a scene given as a path is named by its scene name, never by its path."""
     name = "default" if scenes == DEFAULT_SCENES else "-".join(load_scene(s).name for s in scenes)
-    outdir = Path(out) if out else REPORTS / name
+    return name, make_report_dir(Path(out) if out else REPORTS / name)
+
+
+def make_report_dir(outdir: Path) -> Path:
+    """Create a report's directory now, before any compute; a path that cannot be one is a SceneError."""
     if outdir.exists() and not outdir.is_dir():
         raise SceneError(f"{outdir}: the report directory is an existing file")
     try:
         outdir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise SceneError(f"{outdir}: cannot create the report directory ({exc.strerror})") from None
-    return name, outdir
+    return outdir
 
 
 def write_report(
@@ -540,17 +544,16 @@ def _reference_bar(ref: dict) -> str:
     return f"{ref['kind']}, error estimate {est:.1e}"
 
 
+def seeds_report_dir(out: str | None = None) -> Path:
+    """The seeds page's directory, ``reports/seeds`` or ``out``, created now."""
+    return make_report_dir(Path(out) if out else REPORTS / "seeds")
+
+
 def write_seeds_report(res: dict, out: str | None = None) -> Path:
     """The seeds study as its own page, ``reports/seeds/index.html`` (or ``out``), with its data."""
     from .seeds import without_pictures
 
-    outdir = Path(out) if out else REPORTS / "seeds"
-    if outdir.exists() and not outdir.is_dir():
-        raise SceneError(f"{outdir}: the report directory is an existing file")
-    try:
-        outdir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise SceneError(f"{outdir}: cannot create the report directory ({exc.strerror})") from None
+    outdir = seeds_report_dir(out)
     meta = {
         "commit": git_commit(),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
