@@ -476,15 +476,7 @@ def _run_quasi_static(scene: Scene, model, build_s: float) -> Result:
     return Result(scene.mesh.points, scene.mesh.tets, np.zeros(1), u[None], reaction[None], meta)
 
 
-def error_budget(
-    scene: Scene,
-    model_name: str,
-    res: Result,
-    ref: Result,
-    integrator: str,
-    max_steps: int,
-    options: dict | None = None,
-) -> dict:
+def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integrator: str, max_steps: int) -> dict:
     """Which part of a model's error is whose (docs/architecture.md section 6), each an L2 distance over
     the scene's vertices and output times relative to the converged reference's norm, like ``rel_l2``:
 
@@ -517,7 +509,7 @@ def error_budget(
     model_u = res.displacement
     dt = res.meta.get("dt")
     if scene.time.mode == "dynamic" and dt is not None and model_name not in QUASI_STATIC:
-        fine = run_model(scene, model_name, dt=dt / 8.0, integrator=integrator, max_steps=max_steps, options=options)
+        fine = run_model(scene, model_name, dt=dt / 8.0, integrator=integrator, max_steps=max_steps)
         out["time"] = distance(res.displacement, fine.displacement)
         model_u = fine.displacement
     out["model"] = distance(model_u, p1.displacement)
@@ -547,7 +539,6 @@ def compare(
     max_steps: int = 2_000_000,
     vtk: str | None = None,
     budget: bool = True,
-    options: dict | None = None,
     **ref_options,
 ) -> dict:
     """Metrics of one model run against the scene's reference (docs/architecture.md section 6).
@@ -555,7 +546,6 @@ def compare(
     A diverging run gives {"status": "diverged", ...} with the step, dt and dt_crit instead of errors.
     ``vtk`` (a directory or a .pvd path) also writes both displacements and the pointwise error at every
     output time as one ParaView series. ``budget`` adds ``error_budget`` (see ``error_budget``).
-    ``options`` go to the model's builder (``run_model``).
     """
     ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
     # a quasi-static model has its own update whatever integrator was asked for
@@ -565,15 +555,7 @@ def compare(
         "integrator": "quasi-static" if model_name in QUASI_STATIC else integrator,
     }
     try:
-        res = run_model(
-            scene,
-            model_name,
-            dt=dt,
-            dt_fraction=dt_fraction,
-            integrator=integrator,
-            max_steps=max_steps,
-            options=options,
-        )
+        res = run_model(scene, model_name, dt=dt, dt_fraction=dt_fraction, integrator=integrator, max_steps=max_steps)
     except DivergenceError as exc:
         return {
             **base,
@@ -612,7 +594,7 @@ def compare(
             },
         )
     m = res.meta
-    parts = error_budget(scene, model_name, res, ref, integrator, max_steps, options) if budget else None
+    parts = error_budget(scene, model_name, res, ref, integrator, max_steps) if budget else None
     return {
         **base,
         "status": "ok",

@@ -32,6 +32,8 @@ def run_key(
     budget: bool = True,
     options: dict | None = None,
 ) -> str:
+    """The cache key of a run; ``options`` are what else makes it (a model builder's options, how it
+    was run), absent for a sweep's rows."""
     fields = {
         "code": code_digest(RUN_CODE),
         "machine": machine_id(),  # a row holds timings: another machine's are not this one's
@@ -43,7 +45,7 @@ def run_key(
         "reference": ref_opts,
         "budget": budget,
     }
-    if options:  # a model's builder options (hybrid-tm's threshold); absent for the default model
+    if options:
         fields["options"] = options
     return digest(fields)
 
@@ -59,15 +61,11 @@ def cached_compare(
     use_cache: bool = True,
     max_steps: int = 2_000_000,
     budget: bool = True,
-    options: dict | None = None,
 ) -> dict:
-    """``runner.compare`` through the run cache. The row says whether it came from the cache.
-    ``options`` go to the model's builder and into the run's key."""
+    """``runner.compare`` through the run cache. The row says whether it came from the cache."""
     ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
     path = (
-        cache_dir()
-        / "runs"
-        / f"{scene.name}-{run_key(scene, model, integrator, dt, fraction, ref_opts, budget, options)}.json"
+        cache_dir() / "runs" / f"{scene.name}-{run_key(scene, model, integrator, dt, fraction, ref_opts, budget)}.json"
     )
     if use_cache and path.exists():
         row = json.loads(path.read_text())
@@ -83,11 +81,8 @@ def cached_compare(
         reference=ref,
         max_steps=max_steps,
         budget=budget,
-        options=options,
     )
     row["fraction"] = fraction
-    if options:
-        row["options"] = options
     if use_cache:
         atomic_write_text(path, json.dumps(row, default=_jsonable))
     row["cached"] = False
