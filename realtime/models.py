@@ -168,6 +168,13 @@ def build_hybrid_tm(
     )
 
 
+def nonlinear_fraction(tets: np.ndarray, u: np.ndarray, threshold: float) -> float:
+    """Fraction of the tetrahedra (M, 4) int64 that hybrid-tm treats as StVK at displacement u (N, 3) m:
+    those with a vertex displaced more than ``threshold`` m (``hybrid_force``'s rule)."""
+    moved = np.linalg.norm(u, axis=1) > threshold
+    return float(moved[tets].any(axis=1).mean())
+
+
 def spring_stiffness(points, tets, edges, material: Material) -> np.ndarray:
     """Van Gelder's calibration (1998): k_ij = E sum_{T around ij} V_T / L_ij^2, N/m (E,).
 

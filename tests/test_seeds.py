@@ -14,6 +14,7 @@ import pytest
 
 from realtime.integrators import rest_stiffness
 from verification import seeds
+from verification.metrics import rel_l2
 from verification.runner import model_for, reference_result
 
 pytestmark = pytest.mark.slow
@@ -119,7 +120,7 @@ def test_tensor_mass_is_the_p1_solution_on_every_mesh():
     p1 = reference_result(scene, degree=1, estimate=False, own_mesh=True).displacement[0]
     # one linear system solved by dolfinx's LU and by damped dynamics settled to 1e-10 of the force
     # scale, over a conditioning of about 1e3
-    assert seeds._rel(u, p1) < 1e-6
+    assert rel_l2(u, p1) < 1e-6
     a, fine, _ = f["table"]
     assert fine["linear-tm_rel_l2"] < a["linear-tm_rel_l2"] / 1.5  # P1 converges on refinement
     assert fine["mass-spring_rel_l2"] > 0.8 * a["mass-spring_rel_l2"]  # the springs' error is their own
@@ -160,8 +161,9 @@ def test_speedups_linear_models_share_one_answer():
     # condensed and precomputed solve the settled linear tensor-mass's system exactly (docs section 7)
     for m in ("condensed", "precomputed"):
         assert by[m]["rel_l2"] == pytest.approx(by["linear-tm"]["rel_l2"], rel=1e-6)
-    for r in f["table"][1:]:
-        assert r["speedup_update"] == pytest.approx(f["data"]["fem_s"] / r["update_s"])
+    # stvk-tm's force is dolfinx's P1 StVK residual on the same mesh (test_models), so settled it
+    # answers what the timed full FEM solve answers, to the two solvers' tolerances (1e-10, 1e-10)
+    assert by["stvk-tm"]["rel_l2"] == pytest.approx(f["table"][0]["rel_l2"], rel=1e-6)
 
 
 def test_seeds_json_lists_nine_findings(capsys):

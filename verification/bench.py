@@ -21,6 +21,7 @@ import numpy as np
 from meshes import stored_mesh
 from meshes.store import STORED
 from realtime import Loading, Material, State, SymplecticEuler, build_model
+from realtime.models import nonlinear_fraction
 from realtime.quasistatic import QuasiStatic
 
 from .runner import git_commit, log, versions
@@ -95,12 +96,6 @@ def _step_case(integ, model, state, dt, n, calls=1):
     return fn
 
 
-def _nonlinear_fraction(model, u) -> float:
-    """Fraction of tetrahedra a hybrid model treats as non-linear at displacement u (N, 3) m."""
-    moved = np.linalg.norm(u, axis=1) > model.extra["threshold"]
-    return float(moved[model.tets].any(axis=1).mean())
-
-
 def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
     rows = []
     iso = Material(2.8e4, 0.4, 1000.0, law="stvk")
@@ -159,7 +154,7 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                 )
             if model_name == "hybrid-tm":
                 cases[-1]["probe"] = lambda model=model, state=state: {
-                    "nonlinear_fraction": _nonlinear_fraction(model, state.u)
+                    "nonlinear_fraction": nonlinear_fraction(model.tets, state.u, model.extra["threshold"])
                 }
         cases += haptic
         # the baseline a user would otherwise write: scipy's BSR product with the same matrix

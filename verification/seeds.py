@@ -35,9 +35,10 @@ from meshes.store import get_mesh
 from realtime import Loading, Material, NotConvergedError, State, SymplecticEuler, build_model
 from realtime.geometry import signed_volumes
 from realtime.integrators import rest_stiffness
-from realtime.models import QUASI_STATIC
+from realtime.models import QUASI_STATIC, nonlinear_fraction
 
 from .advise import FRAME_SHARE, _available_memory, _memory_bytes, frame_budget
+from .metrics import rel_l2
 from .plots import png, projected_shapes
 from .results import atomic_write_text
 from .runner import REFERENCE_DEFAULTS, cache_dir, log, reference_result, run_model
@@ -181,11 +182,6 @@ def _step_time(scene: Scene, model: str, options: dict | None) -> dict:
     integ = SymplecticEuler(scene.time.damping_mass, scene.time.damping_stiffness)
     dt = 0.9 * integ.critical_dt(built)
     return {"dt": dt, **time_steps(built, integ, dt, State.at_rest(built.n_vertices))}
-
-
-def _rel(u: np.ndarray, ref: np.ndarray) -> float:
-    """|u - ref| / |ref| over all vertices (Euclidean), the suite's rel_l2."""
-    return float(np.linalg.norm(u - ref) / max(np.linalg.norm(ref), 1e-300))
 
 
 def _ref(scene: Scene, size: Size):
@@ -419,9 +415,9 @@ def partial_rotation(size: Size) -> dict:
         for m in TENSOR_MASS:
             u, meta = _settled(scene, m, size.reference)
             answers[m] = u
-            row[f"{m}_rel_l2"] = _rel(u, ref)
+            row[f"{m}_rel_l2"] = rel_l2(u, ref)
             row[f"{m}_volume_change"] = _volume_change(mesh.points, mesh.tets, u)
-        row["linear_vs_stvk"] = _rel(answers["linear-tm"], answers["stvk-tm"])
+        row["linear_vs_stvk"] = rel_l2(answers["linear-tm"], answers["stvk-tm"])
         rows.append(row)
         shapes = (mesh, ref, answers, deg)
         log(f"seeds 2: {deg} degrees: linear {row['linear-tm_rel_l2']:.3f}, stvk {row['stvk-tm_rel_l2']:.3f}")
@@ -514,7 +510,7 @@ def tubes(size: Size) -> dict:
         for m in ("linear-tm", "stvk-tm"):
             u, _ = _settled(scene, m, size.reference)
             row[f"{m}_tip_mm"] = 1e3 * float(u[top, 0].mean())
-            row[f"{m}_rel_l2"] = _rel(u, ref)
+            row[f"{m}_rel_l2"] = rel_l2(u, ref)
         rows.append(row)
         log(f"seeds 3: {label}: reference tip {row['ref_tip_mm']:.3f} mm, stvk-tm {row['stvk-tm_tip_mm']:.3f} mm")
     iso = rows[0]
@@ -598,14 +594,14 @@ def liver(size: Size) -> dict:
             "ref_max_mm": 1e3 * float(np.linalg.norm(ref, axis=1).max()),
             "ref_max_of_size": float(np.linalg.norm(ref, axis=1).max()) / extent,
             "ref_err_estimate": est,
-            "mesh_part": _rel(p1, ref),
+            "mesh_part": rel_l2(p1, ref),
         }
         answers = {}
         for m in TENSOR_MASS:
             u, _ = _settled(scene, m, size.reference)
             answers[m] = u
-            row[f"{m}_rel_l2"] = _rel(u, ref)
-        row["linear_vs_stvk"] = _rel(answers["linear-tm"], answers["stvk-tm"])
+            row[f"{m}_rel_l2"] = rel_l2(u, ref)
+        row["linear_vs_stvk"] = rel_l2(answers["linear-tm"], answers["stvk-tm"])
         rows.append(row)
         pictures.append((scene.name, mesh, answers))
         log(
@@ -655,13 +651,6 @@ def liver(size: Size) -> dict:
 # ---- 5. hybrid threshold --------------------------------------------------------------------------------
 
 
-def nonlinear_fraction(tets: np.ndarray, u: np.ndarray, threshold: float) -> float:
-    """Fraction of tetrahedra (M, 4) with a vertex displaced more than ``threshold`` m by u (N, 3) m:
-    the part the hybrid model treats as StVK."""
-    moved = np.linalg.norm(u, axis=1) > threshold
-    return float(moved[tets].any(axis=1).mean())
-
-
 def hybrid_rates(size: Size) -> dict:
     out = _finding(
         5,
@@ -690,7 +679,7 @@ def hybrid_rates(size: Size) -> dict:
                 "nonlinear_tets": nonlinear_fraction(scene.mesh.tets, ref, threshold),
                 "step_us": meta["step_us"],
                 "rate_hz": 1e6 / meta["step_us"],
-                "rel_l2": None if u is None else _rel(u, ref),
+                "rel_l2": None if u is None else rel_l2(u, ref),
                 "settled": meta.get("unsettled", "yes"),
             }
         )
@@ -700,10 +689,10 @@ def hybrid_rates(size: Size) -> dict:
     bounds, answers = {}, {}
     for m in ("stvk-tm", "linear-tm"):
         answers[m], meta = _settled(scene, m, size.reference)
-        bounds[m] = {"step_us": meta["step_us"], "rate_hz": 1e6 / meta["step_us"], "rel_l2": _rel(answers[m], ref)}
-    linear_departure = _rel(answers["linear-tm"], answers["stvk-tm"])
+        bounds[m] = {"step_us": meta["step_us"], "rate_hz": 1e6 / meta["step_us"], "rel_l2": rel_l2(answers[m], ref)}
+    linear_departure = rel_l2(answers["linear-tm"], answers["stvk-tm"])
     for r, u in zip(rows, hybrid_answers, strict=True):
-        r["departure_from_stvk"] = None if u is None else _rel(u, answers["stvk-tm"])
+        r["departure_from_stvk"] = None if u is None else rel_l2(u, answers["stvk-tm"])
     out["table"] = rows
     rates = [r["rate_hz"] for r in rows]
     gain = rates[-1] / rates[0]
@@ -798,7 +787,7 @@ def remeshing(size: Size) -> dict:
         }
         for m in ("linear-tm", "mass-spring"):
             u, meta = _settled(scene, m, size.reference)
-            row[f"{m}_rel_l2"] = _rel(u, ref)
+            row[f"{m}_rel_l2"] = rel_l2(u, ref)
             row[f"{m}_tip_mm"] = 1e3 * float(u[tip, 2].mean())
             row[f"{m}_step_us"] = meta["step_us"]
         rows.append(row)
@@ -1021,7 +1010,7 @@ def rates(size: Size) -> dict:
             row.update(
                 status="ok" if settled else f"did not settle: {meta['unsettled']}",
                 step_us=meta["step_us"],
-                rel_l2=_rel(u, ref) if settled else None,
+                rel_l2=rel_l2(u, ref) if settled else None,
             )
             for label, hz in RATES:
                 row[f"holds_{label}"] = frame_budget(run, hz, dynamic=False, share=FRAME_SHARE)["holds"]
@@ -1095,7 +1084,7 @@ def speedups(size: Size) -> dict:
         t0 = time.perf_counter()
         fem = reference_result(scene, degree=1, refine=0, estimate=False, own_mesh=True, use_cache=False)
         fem_s = time.perf_counter() - t0
-    fem_err = _rel(fem.displacement[0], ref)
+    fem_err = rel_l2(fem.displacement[0], ref)
     rows = [{"model": "full FEM (dolfinx P1, Newton)", "update_s": fem_s, "answer_s": fem_s, "rel_l2": fem_err}]
     for m in SPEEDUP_MODELS:
         u, meta = _settled(scene, m, size.reference, allow_unsettled=True)
@@ -1108,7 +1097,7 @@ def speedups(size: Size) -> dict:
                 "answer_s": answer_s,
                 "speedup_update": fem_s / step_s,
                 "speedup_answer": 0.0 if answer_s is None else fem_s / answer_s,
-                "rel_l2": None if u is None else _rel(u, ref),
+                "rel_l2": None if u is None else rel_l2(u, ref),
                 "settled": meta.get("unsettled", "yes"),
             }
         )
