@@ -93,7 +93,8 @@ class Newton:
     Converged when the free components of the residual F(u) (N) are below ``rtol`` times the problem's
     force scale, the largest of: the external load's norm |F(0)| (gravity, tractions), the force on the
     constrained components (the tools' and supports' reactions) and the first iterate's residual; and
-    when the constrained components hold their prescribed values. Constraint gaps (m) and forces (N) are
+    when the constrained components hold their prescribed values (to 1e-12 of their norm, or of the body's
+    extent where they are zero and an iterative solve leaves round-off on them). Constraint gaps (m) and forces (N) are
     never added in one norm, and a tiny first load increment cannot make round-off look like a failure
     (dolfinx's incremental test compared |du_k| with rtol |du_1|). Each step solves J du = F with the
     constraints lifted, by ``petsc_options`` (default MUMPS LU).
@@ -117,6 +118,10 @@ class Newton:
         for bc in bcs:
             idx = np.asarray(bc.dof_indices()[0])
             self.constrained[idx[idx < n_owned]] = True
+        # m, the largest extent of any rank's part of the mesh: the floor of the constraint test, which
+        # a held value of zero would otherwise make relative to the round-off an iterative solve leaves
+        x = V.mesh.geometry.x
+        self.length = comm.allreduce(float(np.ptp(x, axis=0).max()) if len(x) else 0.0, op=MPI.MAX)
 
     def _norms(self, vec) -> tuple[float, float]:
         """MPI-reduced norms of the free and the constrained owned components of a PETSc vector."""
@@ -180,7 +185,7 @@ class Newton:
             self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
             fem.petsc.set_bc(self.b, self.bcs, u.vector, -1.0)  # constrained rows: u - g, m
             gap = self._norms(self.b)[1]
-            size = max(self._norms(u.vector)[1], 1e-300)
+            size = max(self._norms(u.vector)[1], self.length)
             scale = max(load, held, first, 1e-300)
             ok = np.isfinite(free) and np.isfinite(gap)
             out = {"iterations": it, "factorisations": self.factorisations - start, "scale": scale}
