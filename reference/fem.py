@@ -72,6 +72,9 @@ def solver_options(n_dofs: int, user: dict | None = None, linear: bool = False) 
 
 #: Modified Newton keeps a factorised tangent while each step cuts the residual at least this much.
 SLOW = 10.0
+#: A step with a fresh tangent that raises the free residual this many times above the lowest it reached
+#: since the call's first step has left Newton's basin: the call gives up (the load step is then cut).
+DIVERGED = 1e3
 
 
 def configure(ksp, options: dict) -> None:
@@ -159,25 +162,32 @@ class Newton:
         step that cuts it less is kept and the tangent is refactorised at the new u, and a step with an
         old tangent that makes the residual grow is undone and redone with a fresh one. The convergence
         test is the same either way, so the answer is the same to ``rtol``. ``max_it`` bounds the
-        factorisations of one call; its iterations are bounded by four times as many.
+        factorisations of one call; its iterations are bounded by four times as many. A call whose fresh
+        Newton step raises the residual DIVERGED times above its best since the first step stops early
+        with ``diverged`` (the first step is not judged: from a converged neighbour under a new load it
+        can raise the residual by orders of magnitude and still lead to the root).
         """
         u = self.u
         saved = u.x.array.copy()
         u.x.array[:] = 0.0
         load = math.hypot(*self._assemble_raw())  # |F(0)|: the external load (stress-free rest state)
         u.x.array[:] = saved
-        first = previous = previous_held = before = None
+        first = previous = previous_held = before = best = None
         fresh_step = False  # whether the last step was taken with the tangent at its own u
         start = self.factorisations
         for it in range(4 * max_it + 1):
             free, held = self._assemble_raw()
-            if previous is not None and not fresh_step and not (np.isfinite(free) and free <= previous):
+            undo = previous is not None and not fresh_step and not (np.isfinite(free) and free <= previous)
+            if undo:
                 u.x.array[:] = before  # an old tangent led astray: undo its step, take Newton's
                 u.x.scatter_forward()
                 free, held = previous, previous_held
                 self.undone += 1
                 self._factorise()
             first = free if first is None else first
+            diverged = fresh_step and best is not None and free > DIVERGED * best
+            if previous is not None and not undo and np.isfinite(free):  # a state a kept step reached
+                best = free if best is None else min(best, free)
             with self.b.localForm() as loc:
                 loc.set(0.0)
             fem.petsc.assemble_vector(self.b, self.L)
@@ -191,6 +201,8 @@ class Newton:
             out = {"iterations": it, "factorisations": self.factorisations - start, "scale": scale}
             if ok and free <= rtol * scale and gap <= 1e-12 * size:
                 return {**out, "converged": True, "residual": free}
+            if diverged:
+                return {**out, "converged": False, "residual": free, "diverged": True}
             if not ok or self.factorisations - start >= max_it:
                 break
             slow = previous is not None and free > previous / SLOW
@@ -496,7 +508,14 @@ class ElasticityProblem:
                 continue
             self.u.x.array[:] = saved
             inc *= 0.5
-            what = "Newton failed" if not ok else f"Newton found inverted elements (min det F = {jmin:.3g})"
+            if ok:
+                what = f"Newton found inverted elements (min det F = {jmin:.3g})"
+            elif res.get("diverged"):
+                what = (
+                    f"Newton diverged after {res['factorisations']} factorisations (residual {DIVERGED:.0e} x its best)"
+                )
+            else:
+                what = f"Newton failed ({res['factorisations']} factorisations)"
             self._log(f"reference: load {target:.4g}: {what}, load increment halved to {inc:.3g}")
             if inc < min_increment or elapsed > time_limit:
                 why = f"increments down to {inc:.1e}" if inc < min_increment else f"{elapsed:.0f} s, the limit"
