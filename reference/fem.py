@@ -45,6 +45,7 @@ GAMG_OPTIONS = {
     "pc_gamg_type": "agg",
     "pc_gamg_agg_nsmooths": 1,
     "pc_gamg_threshold": 0.01,
+    "pc_gamg_reuse_interpolation": True,
     "mg_levels_ksp_type": "chebyshev",
     "mg_levels_pc_type": "jacobi",
     "mg_levels_esteig_ksp_type": "cg",
@@ -115,6 +116,12 @@ class Newton:
         self.du = u.vector.copy()
         self.ksp = PETSc.KSP().create(comm)
         self.ksp.setOptionsPrefix(f"tb_newton_{id(self)}_")
+        # an iterative solve (GAMG above DIRECT_LIMIT) costs its iterations, not a factorisation: Newton
+        # then takes the current tangent at every step and keeps the preconditioner instead (inexact
+        # Newton, Eisenstat and Walker's inner tolerances down to the options' ksp_rtol)
+        self.iterative = self.options.get("ksp_type", "preonly") != "preonly"
+        self.ksp_rtol = float(self.options.get("ksp_rtol", 1e-8))
+        self.pc_first_its = None  # the linear iterations of the first solve after the last set-up
         V = u.function_space
         n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
         self.constrained = np.zeros(n_owned, dtype=bool)
@@ -152,6 +159,27 @@ class Newton:
             configure(self.ksp, self.options)
         self.factorisations += 1
         self.at = "current"
+
+    def _tangent(self, rebuild: bool) -> None:
+        """Iterative solves: assemble the tangent at the current u as the operator, and rebuild the
+        preconditioner from it only when ``rebuild`` (counted as a factorisation)."""
+        if rebuild or self.at is None:
+            self._factorise()
+            self.ksp.getPC().setReusePreconditioner(False)
+            self.pc_first_its = None
+            return
+        self.A.zeroEntries()
+        fem.petsc.assemble_matrix(self.A, self.a, bcs=self.bcs)
+        self.A.assemble()
+        self.ksp.getPC().setReusePreconditioner(True)
+        self.at = "current"
+
+    def _inner_rtol(self, free: float, previous: float | None, target: float) -> float:
+        """Eisenstat and Walker's second choice of the linear solve's relative tolerance for an inexact
+        Newton step (SIAM J. Sci. Comput. 17, 1996): 0.9 (|F_k| / |F_k-1|)^2, at most 1e-2; never tighter
+        than the step needs to reach the target (a quarter of it) nor than the options' ksp_rtol."""
+        eta = 1e-2 if not previous else min(1e-2, 0.9 * (free / previous) ** 2)  # none before the first step
+        return min(0.5, max(eta, 0.25 * target / max(free, 1e-300), self.ksp_rtol))
 
     def solve(self, rtol: float = 1e-10, max_it: int = 25) -> dict:
         """Iterate from the current u; returns iterations, factorisations, converged, residual and
@@ -206,7 +234,12 @@ class Newton:
             if not ok or self.factorisations - start >= max_it:
                 break
             slow = previous is not None and free > previous / SLOW
-            if self.at != "current" and (self.at is None or not self.reuse or slow):
+            if self.iterative:
+                tired = self.pc_first_its is not None and self.ksp.getIterationNumber() > 2 * self.pc_first_its + 10
+                self._tangent(rebuild=not self.reuse or tired)  # the operator is current: only the
+                # preconditioner can grow stale, and the linear iterations say when
+                self.ksp.setTolerances(rtol=self._inner_rtol(free, previous, rtol * scale))
+            elif self.at != "current" and (self.at is None or not self.reuse or slow):
                 self._factorise()
             fresh_step = self.at == "current"
             before, previous, previous_held = u.x.array.copy(), free, held
@@ -221,6 +254,12 @@ class Newton:
                 out["ksp_reason"] = int(self.ksp.getConvergedReason())
                 break
             self.linear_iterations += self.ksp.getIterationNumber()
+            if self.iterative:
+                if self.pc_first_its is None:
+                    self.pc_first_its = self.ksp.getIterationNumber()
+                # the constrained rows are identity rows: their exact solution is u - g, whatever the
+                # inner tolerance left there
+                self.du.array[self.constrained] = self.b.array_r[self.constrained]
             u.vector.axpy(-1.0, self.du)
             u.x.scatter_forward()
             self.at = "older"  # the factorised tangent is now the one at an earlier u
