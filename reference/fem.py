@@ -140,6 +140,7 @@ class Newton:
         self.pc_first_its = None  # the linear iterations of the first solve after the last set-up
         V = u.function_space
         n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
+        self.n_owned = n_owned
         self.constrained = np.zeros(n_owned, dtype=bool)
         for bc in bcs:
             idx = np.asarray(bc.dof_indices()[0])
@@ -232,9 +233,14 @@ class Newton:
             diverged = fresh_step and best is not None and free > DIVERGED * best
             if previous is not None and not undo and np.isfinite(free):  # a state a kept step reached
                 best = free if best is None else min(best, free)
-            with self.b.localForm() as loc:
-                loc.set(0.0)
-            fem.petsc.assemble_vector(self.b, self.L)
+            if undo:  # raw holds the residual where the undone step led
+                with self.b.localForm() as loc:
+                    loc.set(0.0)
+                fem.petsc.assemble_vector(self.b, self.L)
+            else:  # raw is F(u) already: its owners hold the ghosts' parts, which must not be added twice
+                self.raw.copy(self.b)
+                with self.b.localForm() as loc:
+                    loc.array[self.n_owned :] = 0.0
             fem.petsc.apply_lifting(self.b, [self.a], bcs=[self.bcs], x0=[u.vector], scale=-1.0)
             self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
             fem.petsc.set_bc(self.b, self.bcs, u.vector, -1.0)  # constrained rows: u - g, m
