@@ -60,7 +60,7 @@ def solve_static(
         ep = ElasticityProblem(mesh, material, problem, degree=degree, refine=level, comm=comm)
         nonlinear = material.law != "linear" or material.volume_penalty
         if nonlinear:
-            warm = nested and coarse is not None and comm.size == 1
+            warm = nested and coarse is not None
             if warm:
                 ep.start_from(coarse)
             info = ep.solve(

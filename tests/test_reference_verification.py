@@ -279,6 +279,25 @@ def test_mpirun_two_ranks_equals_serial(tmp_path):
     assert np.linalg.norm(a.reaction - b.reaction) / np.linalg.norm(a.reaction) < 1e-8
 
 
+@pytest.mark.slow
+@pytest.mark.mpi
+def test_mpirun_nested_estimate_equals_serial(tmp_path):
+    """With the estimate: on two ranks the refined solve starts from the coarse solution too (every
+    rank's nodes gathered and evaluated on the distributed coarse mesh), and the returned solution and
+    its bar are the serial ones (1e-8: Newtons stopped at 1e-10 of the force scale)."""
+    serial, parallel = tmp_path / "serial.npz", tmp_path / "mpi.npz"
+    args = ["reference", "cantilever-pull", "--degree", "1", "--no-cache"]
+    for out, mpi in ((serial, 0), (parallel, 2)):
+        r = cli(*args, "--out", str(out), mpi=mpi)
+        assert r.returncode == 0, r.stderr
+    a, b = Result.load(serial), Result.load(parallel)
+    assert b.meta["mpi_ranks"] == 2
+    for res in (a, b):
+        assert res.meta["solves"][1]["load_steps"][0].get("nested")
+    assert np.linalg.norm(a.displacement - b.displacement) / np.linalg.norm(a.displacement) < 1e-8
+    assert b.meta["ref_err_estimate"] == pytest.approx(a.meta["ref_err_estimate"], rel=1e-6)
+
+
 def test_cli_reference_writes_the_result_file_with_its_estimate(tmp_path):
     scene = tmp_path / "small.toml"
     text = load_scene("cantilever-pull").path.read_text().replace("h = 0.005", "h = 0.01")
