@@ -38,8 +38,12 @@ REFERENCE_DEFAULTS = {"degree": 2, "refine": 0, "estimate": True}
 
 
 def log(msg: str) -> None:
-    """Progress to stderr (stdout is kept for --json)."""
-    print(msg, file=sys.stderr, flush=True)
+    """Progress to stderr (stdout is kept for --json), from the first MPI rank only (under mpirun every
+    rank runs the same driver, and each line came once per rank)."""
+    from . import _RANK
+
+    if _RANK in (None, "0"):
+        print(msg, file=sys.stderr, flush=True)
 
 
 def cache_dir() -> Path:
