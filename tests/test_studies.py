@@ -167,6 +167,30 @@ def test_largest_stable_step_of_linear_tm_on_the_cantilever():
 
 
 @pytest.mark.slow
+def test_references_solved_ahead_on_two_processes_are_the_ones_a_study_finds(tmp_path, monkeypatch):
+    """solve_references puts each reference in the cache from its own process (a spawned interpreter),
+    and reports the one that has no equilibrium with its reason instead of caching it. What a study then
+    reads from the cache is what it would have solved itself (1e-12: one code, one machine; only the
+    process differs)."""
+    from verification.prefetch import solve_references
+    from verification.runner import P1_OWN_MESH, reference_path
+    from verification.stability import _far_face_tool
+
+    monkeypatch.setenv("TISSUEBENCH_CACHE", str(tmp_path))  # the workers inherit it
+
+    pull, press = load_scene("cantilever-pull"), load_scene("block-press")
+    squashed = _far_face_tool(load_scene("cantilever"), "compression")
+    hard = {"degree": 1, "refine": 0, "estimate": False, "newton_steps": 4, "min_increment": 1e-2}
+    failed = solve_references([(pull, P1_OWN_MESH), (press, P1_OWN_MESH), (squashed, hard)], workers=2)
+    assert list(failed) == [squashed.sha256()] and "beyond load fraction" in failed[squashed.sha256()]
+    assert not reference_path(squashed, **hard).exists()
+    for scene in (pull, press):
+        assert reference_path(scene, **P1_OWN_MESH).exists()
+        cached = reference_result(scene, **P1_OWN_MESH)
+        fresh = reference_result(scene, **P1_OWN_MESH, use_cache=False).displacement
+        assert np.linalg.norm(cached.displacement - fresh) <= 1e-12 * np.linalg.norm(fresh)
+
+
 def test_stability_reports_nearly_incompressible_honestly(capsys):
     assert main(["stability", "cantilever", "--models", "linear-tm", "stvk-tm", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)

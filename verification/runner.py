@@ -35,6 +35,8 @@ from .scene import Scene
 #: Bumped whenever the reference's numbers can change for the same inputs, so old cache entries die.
 REFERENCE_VERSION = "2"  # 2: spanned regions, the finer solution returned, det F checked, exact tool kinematics
 REFERENCE_DEFAULTS = {"degree": 2, "refine": 0, "estimate": True}
+#: The P1 solution of a scene on its own mesh (the error budget's mesh part).
+P1_OWN_MESH = {"degree": 1, "refine": 0, "estimate": False, "own_mesh": True}
 
 
 def log(msg: str) -> None:
@@ -132,6 +134,21 @@ def reference_key(
     )
 
 
+def reference_path(
+    scene: Scene,
+    degree: int = 2,
+    refine: int = 0,
+    estimate: bool = True,
+    newton_steps: int = 1,
+    min_increment: float = 1e-4,
+    own_mesh: bool = False,
+    petsc_options: dict | None = None,
+) -> Path:
+    """Where ``reference_result`` with these arguments keeps its answer."""
+    key = reference_key(scene, degree, refine, estimate, (newton_steps, min_increment), own_mesh, petsc_options)
+    return cache_dir() / "reference" / f"{scene.name}-{key}.npz"
+
+
 def reference_result(
     scene: Scene,
     degree: int = 2,
@@ -157,8 +174,7 @@ def reference_result(
     from reference.driver import solve_dynamic as reference_dynamic
     from reference.driver import solve_static as reference_static
 
-    key = reference_key(scene, degree, refine, estimate, (newton_steps, min_increment), own_mesh, petsc_options)
-    path = cache_dir() / "reference" / f"{scene.name}-{key}.npz"
+    path = reference_path(scene, degree, refine, estimate, newton_steps, min_increment, own_mesh, petsc_options)
     if use_cache and path.exists():
         return Result.load(path)
     mesh = scene.mesh
@@ -203,7 +219,7 @@ def reference_result(
         mesh_sha256=mesh.sha256(),
         scene_level=scene.level,
         solved_on_mesh_sha256=solved.mesh.sha256(),
-        cache_key=key,
+        cache_key=path.stem.rsplit("-", 1)[1],
         wall_s=time.perf_counter() - t0,
         commit=git_commit(),
         date=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
@@ -521,7 +537,7 @@ def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integr
 
     out = {"mesh": None, "model": None, "time": None}
     try:
-        p1 = reference_result(scene, degree=1, refine=0, estimate=False, own_mesh=True)
+        p1 = reference_result(scene, **P1_OWN_MESH)
     except ReferenceSolveError as exc:
         out["why"] = f"no P1 solution on this mesh: {exc}"
         return out

@@ -12,6 +12,7 @@ import numpy as np
 from realtime import MODELS
 from realtime.models import QUASI_STATIC
 
+from .prefetch import solve_references
 from .progress import Progress
 from .runs import cached_compare, largest_stable_fraction
 from .scene import Scene, SceneError
@@ -22,7 +23,7 @@ STABILITY_BUDGET = 200_000
 #: The stability study's references: P2 without the refined solve behind the error estimate (ten
 #: variants of a scene, each a non-linear solve: the estimate would triple the cost).
 #: References that could not be solved in this process, by scene hash (they are not cached on disk).
-_FAILED_REFERENCES: dict[str, str] = {}
+FAILED_REFERENCES: dict[str, str] = {}
 STABILITY_REFERENCE = {"degree": 2, "refine": 0, "estimate": False, "newton_steps": 1, "min_increment": 1e-2}
 EXTREME_YOUNG = (1e3, 1e5, 1e7)
 
@@ -88,8 +89,8 @@ def _cell(scene: Scene, model: str, integrator: str, tol: float, baseline: float
     from realtime import NotConvergedError
     from reference.fem import ReferenceSolveError
 
-    if scene.sha256() in _FAILED_REFERENCES:  # a reference that failed once fails again: do not re-solve it
-        return _alone(scene, model, integrator, f"no reference ({_FAILED_REFERENCES[scene.sha256()]})")
+    if scene.sha256() in FAILED_REFERENCES:  # a reference that failed once fails again: do not re-solve it
+        return _alone(scene, model, integrator, f"no reference ({FAILED_REFERENCES[scene.sha256()]})")
     try:
         row = cached_compare(
             scene,
@@ -104,7 +105,7 @@ def _cell(scene: Scene, model: str, integrator: str, tol: float, baseline: float
             budget=False,  # the extremes ask what a model does, not whose error is whose
         )
     except ReferenceSolveError as exc:
-        _FAILED_REFERENCES[scene.sha256()] = str(exc)
+        FAILED_REFERENCES[scene.sha256()] = str(exc)
         return _alone(scene, model, integrator, f"no reference ({exc})")
     except NotConvergedError as exc:
         return {"status": "not settled", "detail": str(exc)}
@@ -157,6 +158,26 @@ def _alone(scene: Scene, model: str, integrator: str, why: str) -> dict:
     }
 
 
+def _cases(scene: Scene) -> list[tuple[str, float, Scene]]:
+    """The extremes: (case, value, variant of the scene)."""
+    cases = []
+    for nu in EXTREME_POISSON:
+        cases.append(("poisson", nu, scene.with_material(poisson=nu)))
+    for E in EXTREME_YOUNG:
+        cases.append(("young", E, scene.with_material(young=E)))
+    for kind in ("rotation", "compression"):
+        cases.append((kind, 90.0 if kind == "rotation" else 0.5, _far_face_tool(scene, kind)))
+    sliver = _sliver_variant(scene)
+    if sliver is not None:
+        cases.append(("sliver", sliver.mesh.quality()["max_aspect_ratio"], sliver))
+    return cases
+
+
+def reference_jobs(scene: Scene) -> list[tuple[Scene, dict]]:
+    """The references the stability study of ``scene`` solves (for ``prefetch.solve_references``)."""
+    return [(scene, STABILITY_REFERENCE)] + [(variant, STABILITY_REFERENCE) for _, _, variant in _cases(scene)]
+
+
 def stability(scene: Scene, models=None, tol: float = 0.1, use_cache: bool = True) -> dict:
     """The largest stable explicit step of every model against its predicted critical step, and what
     each model does at the extremes: nu -> 0.4999 (explicit and implicit), E from 1 kPa to 10 MPa,
@@ -168,16 +189,10 @@ def stability(scene: Scene, models=None, tol: float = 0.1, use_cache: bool = Tru
         raise SceneError(f"{scene.path}: stability studies a static scene (time.mode = static)")
     models = list(models or MODELS)
     explicit = [m for m in models if m not in QUASI_STATIC]
-    cases = []
-    for nu in EXTREME_POISSON:
-        cases.append(("poisson", nu, scene.with_material(poisson=nu)))
-    for E in EXTREME_YOUNG:
-        cases.append(("young", E, scene.with_material(young=E)))
-    for kind in ("rotation", "compression"):
-        cases.append((kind, 90.0 if kind == "rotation" else 0.5, _far_face_tool(scene, kind)))
-    sliver = _sliver_variant(scene)
-    if sliver is not None:
-        cases.append(("sliver", sliver.mesh.quality()["max_aspect_ratio"], sliver))
+    cases = _cases(scene)
+    if use_cache:
+        jobs = [job for job in reference_jobs(scene) if job[0].sha256() not in FAILED_REFERENCES]
+        FAILED_REFERENCES.update(solve_references(jobs))
     progress = Progress(len(explicit) + len(cases) * len(models), f"stability {scene.name}")
     limits = {}
     for m in explicit:

@@ -12,7 +12,7 @@ from realtime.models import QUASI_STATIC
 from reference.errors import ReferenceSolveError
 
 from .progress import Progress
-from .runner import REFERENCE_DEFAULTS, reference_result
+from .runner import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from .runs import cached_compare, largest_stable_fraction
 from .scene import Scene, SceneError
 
@@ -75,7 +75,7 @@ def sweep(
     ref = reference_result(scene, **REFERENCE_DEFAULTS)  # collective under MPI; cached afterwards
     # the error budget's P1 solution too, before the runs are spread over the ranks: a solve is collective
     try:
-        reference_result(scene, degree=1, refine=0, estimate=False, own_mesh=True)
+        reference_result(scene, **P1_OWN_MESH)
     except ReferenceSolveError:
         pass  # each row's budget then says why it has no mesh part
     if comm is not None and size > 1:

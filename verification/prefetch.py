@@ -1,0 +1,65 @@
+"""Reference solves ahead of a study, on all the machine's cores (docs/architecture.md section 6,
+"References ahead of a study").
+
+A study asks for its references one at a time, between model runs, and solves each on one core. When
+the study knows its references in advance (the report's scenes, the stability study's variants), they
+are solved first, in separate processes, one per core, into the reference cache; the study then finds
+them there. Nothing is timed while they run: model runs, whose step times the studies report, start
+afterwards on a quiet machine. Under mpirun the ranks already share the work, and nothing is
+prefetched.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import multiprocessing
+import os
+
+from .runner import log, reference_path
+from .scene import Scene
+
+
+def _solve(scene: Scene, options: dict) -> str | None:
+    """One reference into the cache (in a worker process); the one-line reason if it cannot be solved."""
+    from reference.fem import ReferenceSolveError
+
+    from .runner import reference_result
+
+    try:
+        reference_result(scene, **options)
+    except ReferenceSolveError as exc:
+        return str(exc)
+    return None
+
+
+def solve_references(jobs: list[tuple[Scene, dict]], workers: int | None = None) -> dict[str, str]:
+    """Solve the references of ``jobs`` ((scene, ``reference_result`` keyword arguments) pairs) that are
+    not cached yet, ``workers`` at a time (default: the cores this process may use), largest first.
+
+    Returns the references that cannot be solved, as {scene hash: reason}: they are not cached, and a
+    study that would solve them again can skip them. With one worker, one job, or under mpirun, nothing
+    is solved here and the study solves as it goes.
+    """
+    from mpi4py import MPI
+
+    workers = workers or len(os.sched_getaffinity(0))
+    todo, seen = [], set()
+    for scene, options in jobs:
+        path = reference_path(scene, **options)
+        if path not in seen and not path.exists():
+            seen.add(path)
+            todo.append((scene, options))
+    if workers < 2 or len(todo) < 2 or MPI.COMM_WORLD.size > 1:
+        return {}
+    # the finest solves first, so that the last to finish is a small one
+    todo.sort(key=lambda job: -job[0].mesh.n_vertices * (8 if job[1].get("estimate", True) else 1))
+    log(f"references: solving {len(todo)} on {min(workers, len(todo))} processes before the runs")
+    failed = {}
+    context = multiprocessing.get_context("spawn")  # a fresh interpreter: no MPI or PETSc state forked
+    with concurrent.futures.ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=context) as pool:
+        futures = {pool.submit(_solve, scene, options): scene for scene, options in todo}
+        for future in concurrent.futures.as_completed(futures):
+            reason = future.result()
+            if reason is not None:
+                failed[futures[future].sha256()] = reason
+    return failed
