@@ -10,9 +10,17 @@ from verification.cli import quiet_compilers
 quiet_compilers()  # FFCx's JIT logs its compiler calls at INFO
 
 
+#: Scenes whose P2 reference (with its estimate) and P1 solution the suite's studies ask for (compare,
+#: sweep, advise, gate, report); with the stability study's variants of the cantilever they are solved
+#: ahead, on all cores, when the session runs slow tests.
+SUITE_REFERENCES = ("cantilever", "cantilever-pull", "cantilever-dynamic", "block-press", "block-twist")
+_SESSION = {"slow": False}
+
+
 def pytest_collection_modifyitems(config, items):
     """Tests marked run_last go after all the others (they inspect what the whole session loaded)."""
     items.sort(key=lambda item: item.get_closest_marker("run_last") is not None)
+    _SESSION["slow"] = any(item.get_closest_marker("slow") is not None for item in items)
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -21,6 +29,22 @@ def private_cache(tmp_path_factory):
     mp.setenv("TISSUEBENCH_CACHE", str(tmp_path_factory.mktemp("cache")))
     yield
     mp.undo()
+
+
+@pytest.fixture(scope="session", autouse=True)
+def references_ahead(private_cache):
+    """The suite's references solved first, one process per core, into the session's private cache (as
+    ``tissuebench report`` does): what the tests then find there is what they would have solved, and a
+    test that checks a solve itself asks for its own (``use_cache=False`` or a scene of its own)."""
+    if not _SESSION["slow"]:
+        return
+    from verification.prefetch import solve_references
+    from verification.runner import P1_OWN_MESH, REFERENCE_DEFAULTS
+    from verification.scene import load_scene
+    from verification.stability import FAILED_REFERENCES, reference_jobs
+
+    jobs = [(load_scene(name), opts) for name in SUITE_REFERENCES for opts in (REFERENCE_DEFAULTS, P1_OWN_MESH)]
+    FAILED_REFERENCES.update(solve_references(jobs + reference_jobs(load_scene("cantilever"))))
 
 
 @pytest.fixture
