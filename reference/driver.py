@@ -46,14 +46,15 @@ def solve_static(
     ``nested``: the refined solve behind the estimate starts from the coarse solution at full load
     (nested iteration) instead of from rest with its own load path; it is the same discrete problem, so
     the answer is the same to Newton's tolerance, in a few iterations instead of a load path.
-    Returns a dict: displacement (K, 3) m, reaction (3,) N, meta (dict, JSON-ready).
+    Returns a dict: displacement (K, 3) m, reaction (3,) N, meta (dict, JSON-ready), and problems (the
+    solved ElasticityProblem of each level, for ``evaluate_static`` at other points).
     """
     import dolfinx
 
     from .fem import ElasticityProblem
 
     levels = [refine, refine + 1] if estimate else [refine]
-    values, reactions, infos = [], [], []
+    problems, infos = [], []
     coarse = None
     for level in levels:
         t0 = time.perf_counter()
@@ -69,8 +70,7 @@ def solve_static(
         else:
             info = ep.solve(petsc_options=petsc_options)
         coarse = ep
-        values.append(ep.evaluate(mesh.points if points is None else points))
-        reactions.append(ep.reaction())
+        problems.append(ep)
         info.update(
             level=level,
             n_dofs=ep.n_dofs,
@@ -91,7 +91,22 @@ def solve_static(
         "versions": {"dolfinx": dolfinx.__version__, "python": platform.python_version()},
     }
     meta["min_det_F"] = infos[-1].get("min_det_F")
-    if estimate:
+    answer = evaluate_static(problems, meta, mesh.points if points is None else points)
+    return {**answer, "problems": problems}
+
+
+def evaluate_static(problems: list, meta: dict, points: np.ndarray) -> dict:
+    """The answer of a static solve at ``points`` (K, 3) m, from the solved problems of its levels
+    (``solve_static``'s "problems": R, and R + 1 with the estimate) and its ``meta``, which is copied, not
+    changed: the same solve evaluated anywhere in the body (a refined scene's vertices), with the
+    estimate over those points. Collective under MPI."""
+    import copy
+
+    values = [ep.evaluate(points) for ep in problems]
+    reactions = [ep.reaction() for ep in problems]
+    meta = copy.deepcopy(meta)
+    refine = meta["refine"]
+    if len(problems) > 1:
         den = np.linalg.norm(values[1])
         meta["ref_err_estimate"] = float(np.linalg.norm(values[0] - values[1]) / den) if den > 0 else 0.0
         rden = np.linalg.norm(reactions[1])
