@@ -38,13 +38,12 @@ def references_ahead(private_cache):
     test that checks a solve itself asks for its own (``use_cache=False`` or a scene of its own)."""
     if not _SESSION["slow"]:
         return
-    from verification.prefetch import solve_references
-    from verification.runner import P1_OWN_MESH, REFERENCE_DEFAULTS
+    from verification.prefetch import scene_jobs, solve_references
     from verification.scene import load_scene
     from verification.stability import FAILED_REFERENCES, reference_jobs
 
-    jobs = [(load_scene(name), opts) for name in SUITE_REFERENCES for opts in (REFERENCE_DEFAULTS, P1_OWN_MESH)]
-    FAILED_REFERENCES.update(solve_references(jobs + reference_jobs(load_scene("cantilever"))))
+    jobs = scene_jobs([load_scene(name) for name in SUITE_REFERENCES]) + reference_jobs(load_scene("cantilever"))
+    FAILED_REFERENCES.update(solve_references(jobs))
 
 
 @pytest.fixture

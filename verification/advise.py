@@ -27,7 +27,7 @@ import numpy as np
 from realtime import MODELS, NotConvergedError
 
 from .progress import Progress
-from .runner import REFERENCE_DEFAULTS, reference_result
+from .runner import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from .runs import cached_compare
 from .scene import Scene, SceneError, builtin_scenes
 from .sweep import sweep
@@ -283,7 +283,7 @@ def propose_mesh(scene: Scene, rows: list[dict], metric: str, tol: float, rate: 
     e0 = budgets[0]["mesh"]
     truth = reference_result(scene, **REFERENCE_DEFAULTS)
     fine = scene.refined(1)
-    p1 = reference_result(fine, degree=1, refine=0, estimate=False, own_mesh=True)
+    p1 = reference_result(fine, **P1_OWN_MESH)
     n = scene.mesh.n_vertices  # nested: the base vertices come first on the refined mesh
     scale = float(np.linalg.norm(truth.displacement))
     e1 = float(np.linalg.norm(p1.displacement[:, :n] - truth.displacement) / scale)

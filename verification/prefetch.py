@@ -15,7 +15,7 @@ import concurrent.futures
 import multiprocessing
 import os
 
-from .runner import log, reference_path
+from .runner import P1_OWN_MESH, REFERENCE_DEFAULTS, log, reference_path
 from .scene import Scene
 
 
@@ -30,6 +30,12 @@ def _solve(scene: Scene, options: dict) -> str | None:
     except ReferenceSolveError as exc:
         return str(exc)
     return None
+
+
+def scene_jobs(scenes: list[Scene]) -> list[tuple[Scene, dict]]:
+    """What a sweep, compare or advice on each scene asks for first: its P2 reference with the estimate and
+    its P1 solution on its own mesh (the error budget's mesh part)."""
+    return [(scene, options) for scene in scenes for options in (REFERENCE_DEFAULTS, P1_OWN_MESH)]
 
 
 def solve_references(jobs: list[tuple[Scene, dict]], workers: int | None = None) -> dict[str, str]:

@@ -41,7 +41,7 @@ from .advise import FRAME_SHARE, _available_memory, _memory_bytes, frame_budget
 from .metrics import rel_l2
 from .plots import png, projected_shapes
 from .results import atomic_write_text
-from .runner import REFERENCE_DEFAULTS, cache_dir, log, reference_result, run_model
+from .runner import P1_OWN_MESH, REFERENCE_DEFAULTS, cache_dir, log, reference_result, run_model
 from .runs import largest_stable_fraction, run_key
 from .scene import SCENES_DIR, Scene, parse, resolve
 
@@ -586,7 +586,7 @@ def liver(size: Size) -> dict:
         estimates.append(est)
         mesh = scene.mesh
         extent = float(np.ptp(mesh.points, axis=0).max())
-        p1 = reference_result(scene, degree=1, refine=0, estimate=False, own_mesh=True).displacement[0]
+        p1 = reference_result(scene, **P1_OWN_MESH).displacement[0]
         row = {
             "liver": scene.name,
             "n_vertices": mesh.n_vertices,
@@ -1082,7 +1082,7 @@ def speedups(size: Size) -> dict:
     # have done once before its first frame
     for _ in range(2):
         t0 = time.perf_counter()
-        fem = reference_result(scene, degree=1, refine=0, estimate=False, own_mesh=True, use_cache=False)
+        fem = reference_result(scene, **P1_OWN_MESH, use_cache=False)
         fem_s = time.perf_counter() - t0
     fem_err = rel_l2(fem.displacement[0], ref)
     rows = [{"model": "full FEM (dolfinx P1, Newton)", "update_s": fem_s, "answer_s": fem_s, "rel_l2": fem_err}]
