@@ -20,7 +20,11 @@ _SESSION = {"slow": False}
 def pytest_collection_modifyitems(config, items):
     """Tests marked run_last go after all the others (they inspect what the whole session loaded)."""
     items.sort(key=lambda item: item.get_closest_marker("run_last") is not None)
-    _SESSION["slow"] = any(item.get_closest_marker("slow") is not None for item in items)
+
+
+def pytest_collection_finish(session):
+    """Whether any slow test is left after -k and -m deselected theirs (modifyitems sees them all)."""
+    _SESSION["slow"] = any(item.get_closest_marker("slow") is not None for item in session.items)
 
 
 @pytest.fixture(scope="session", autouse=True)
