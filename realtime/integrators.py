@@ -242,10 +242,12 @@ def _precondition(factored, fac, cm, mass, r, z):
 @nb.njit(**_JIT)
 def _run_implicit_euler(
     n, dt, t0, force, data, linear, points, mass, free, fext, tools, alpha, beta, bound, tol, maxit,
-    factored, fac, u, v, work,
+    factored, fac, u, v, work, budget,
 ):  # fmt: skip
-    """n steps of linearised implicit Euler; returns (-1 or the failed step, total CG iterations, the
-    most CG iterations one step took).
+    """n steps of linearised implicit Euler; returns (status, the step it stopped after or -1, total CG
+    iterations, the most CG iterations one step took, the steps whose CG stopped at maxit). Status 0: all n steps done; 1: the step blew up;
+    2: its CG stopped at ``maxit`` above ``tol`` (the step is taken; the loop stops after it unless
+    ``budget``, a fixed iteration budget as real-time simulators run CG).
 
     (M (1 + dt alpha) + (dt beta + dt^2) K) dv = dt (f(u) + f_ext - alpha M v - (beta + dt) K v), K the
     tangent at u_n, solved by preconditioned CG on the free components to a relative residual
@@ -258,6 +260,7 @@ def _run_implicit_euler(
     ck = dt * beta + dt * dt
     total = 0
     worst = 0
+    spent = 0
     nv = u.shape[0]
     for s in range(n):
         force(data, u, f)
@@ -293,6 +296,8 @@ def _run_implicit_euler(
             it += 1
         total += it
         worst = max(worst, it)
+        unconverged = it >= maxit and np.sqrt(rr) > tol * r0
+        spent += unconverged
         ok = True
         for i in range(nv):
             for c in range(3):
@@ -303,8 +308,10 @@ def _run_implicit_euler(
                         ok = False
         _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
         if not ok:
-            return s, total, worst
-    return -1, total, worst
+            return 1, s, total, worst, spent
+        if unconverged and not budget:
+            return 2, s, total, worst, spent
+    return 0, -1, total, worst, spent
 
 
 def blowup_bound(model: Model) -> float:
@@ -453,10 +460,14 @@ class Integrator:
             self._prepared = _Prepared.of(model)
         return self._prepared
 
-    def _diverged(self, model, state, step, dt, dt_crit):
+    def _diverged(self, model, state, bad, dt, dt_crit):
+        """Raise DivergenceError for the step ``bad`` of this call, the last one the kernel took: the
+        state's time and step count first advance to it, as u and v have."""
+        state.t += (bad + 1) * dt
+        state.steps += bad + 1
         if dt_crit is None:
             dt_crit = self.critical_dt(model)
-        raise DivergenceError(model.name, step, dt, dt_crit, self.name, _blowup_reason(model, state.u))
+        raise DivergenceError(model.name, state.steps - 1, dt, dt_crit, self.name, _blowup_reason(model, state.u))
 
 
 class SymplecticEuler(Integrator):
@@ -472,7 +483,7 @@ class SymplecticEuler(Integrator):
             p.tools, self.alpha, self.beta, p.bound, state.u, state.v, p.f, p.w,
         )  # fmt: skip
         if bad >= 0:
-            self._diverged(model, state, state.steps + bad, dt, dt_crit)
+            self._diverged(model, state, bad, dt, dt_crit)
         state.t += n * dt
         state.steps += n
         return state
@@ -497,7 +508,7 @@ class CentralDifference(Integrator):
             lo.external_force, p.tools, self.alpha, self.beta, p.bound, state.u, state.v, acc, p.f, p.w,
         )  # fmt: skip
         if bad >= 0:
-            self._diverged(model, state, state.steps + bad, dt, dt_crit)
+            self._diverged(model, state, bad, dt, dt_crit)
         state.t += n * dt
         state.steps += n
         return state
@@ -565,15 +576,24 @@ class ImplicitEuler(Integrator):
 
     Attributes: alpha, beta (Rayleigh), tol (CG relative residual), maxit (CG iterations per step),
     preconditioner, iterations (CG iterations of the last ``step`` call, all its steps together),
-    worst_iterations (the most one step of it took; equal to maxit when CG stopped unconverged).
+    worst_iterations (the most one step of it took). A step whose CG stops at maxit above tol raises
+    NotConvergedError after it, unless ``budget``: maxit is then a fixed iteration budget per step (as a
+    real-time simulator runs CG), and ``unconverged`` counts the steps that used it all.
     """
 
     name = "implicit-euler"
 
     def __init__(
-        self, alpha: float = 0.0, beta: float = 0.0, tol: float = 1e-10, maxit: int = 5000, preconditioner: str = "auto"
+        self,
+        alpha: float = 0.0,
+        beta: float = 0.0,
+        tol: float = 1e-10,
+        maxit: int = 5000,
+        preconditioner: str = "auto",
+        budget: bool = False,
     ):
         super().__init__(alpha=alpha, beta=beta)
+        self.budget, self.unconverged = budget, 0
         if preconditioner not in PRECONDITIONERS:
             raise InputError(f"preconditioner = {preconditioner!r}: must be one of {', '.join(PRECONDITIONERS)}")
         self.tol, self.maxit, self.iterations, self.worst_iterations = tol, maxit, 0, 0
@@ -602,15 +622,23 @@ class ImplicitEuler(Integrator):
         factored = self.preconditioner_for(model) == "factored"
         fac = self._factored(model, dt) if factored else _NO_FACTOR
         work = tuple(np.zeros_like(state.u) for _ in range(9))
-        bad, its, worst = _run_implicit_euler(
+        status, last, its, worst, spent = _run_implicit_euler(
             n, dt, state.t, model.force_kernel, model.data, model.linear, model.points, model.mass, lo.free,
             lo.external_force, p.tools, self.alpha, self.beta, p.bound, self.tol,
-            self.maxit, factored, fac, state.u, state.v, work,
+            self.maxit, factored, fac, state.u, state.v, work, self.budget,
         )  # fmt: skip
         self.iterations, self.worst_iterations = int(its), int(worst)
-        if bad >= 0:
-            raise DivergenceError(
-                model.name, state.steps + bad, dt, math.inf, self.name, _blowup_reason(model, state.u)
+        self.unconverged += int(spent)
+        if status == 1:
+            self._diverged(model, state, last, dt, math.inf)
+        if status == 2:
+            state.t += (last + 1) * dt
+            state.steps += last + 1
+            raise NotConvergedError(
+                f"{model.name} with implicit-euler: CG stopped at maxit = {self.maxit} iterations above its "
+                f"tolerance {self.tol:.1e} at step {state.steps - 1} (dt = {dt:.4g} s): (M + dt^2 K) is too "
+                f"ill-conditioned for the {self.preconditioner_for(model)} preconditioner; raise maxit, take a "
+                "smaller dt, or pass budget=True to take maxit as a fixed iteration budget"
             )
         state.t += n * dt
         state.steps += n
@@ -749,13 +777,7 @@ def solve_static_implicit(
     residual = best = np.inf
     since_best = 0
     for k in range(1, max_steps + 1):
-        integ.step(model, state, dt, 1)
-        if integ.worst_iterations >= integ.maxit:
-            raise NotConvergedError(
-                f"{model.name}: implicit Euler's CG did not converge in {integ.maxit} iterations at step {k} "
-                f"(dt = {dt:.3g} s): (M + dt^2 K) is too ill-conditioned for the "
-                f"{integ.preconditioner_for(model)} preconditioner; a smaller dt or a stronger preconditioner is needed"
-            )
+        integ.step(model, state, dt, 1)  # raises NotConvergedError when CG stops short (unless a budget)
         if state.t < arrived:
             continue
         r = (model.internal_force(state.u) + lo.external_force) * lo.free

@@ -12,6 +12,7 @@ from realtime import (
     ImplicitEuler,
     Loading,
     Material,
+    NotConvergedError,
     State,
     SymplecticEuler,
     build_model,
@@ -122,9 +123,13 @@ def test_stable_below_and_diverging_above_the_critical_step(cls, model_name, rng
     # bounded: both schemes conserve a modified energy below dt_crit; 100x the start is far from it
     assert np.abs(state.u).max() < 100 * np.abs(perturbation).max()
     state = State(u=perturbation.copy(), v=np.zeros_like(perturbation))
+    state.steps, state.t = 7, 7 * 1.2 * dt_crit  # a state that has run before
     with pytest.raises(DivergenceError, match=r"diverged at step \d+: dt = .* critical dt") as info:
         integ.step(model, state, 1.2 * dt_crit, 10_000)
     assert info.value.dt_crit == pytest.approx(dt_crit)
+    # u and v went through the failed step: the state's clock says so too (it stayed behind before)
+    assert state.steps == info.value.step + 1 > 7
+    assert state.t == pytest.approx(state.steps * 1.2 * dt_crit, rel=1e-12)
 
 
 def test_damping_lowers_the_critical_step():
@@ -267,9 +272,17 @@ def test_factored_implicit_euler_on_nearly_incompressible_statics():
     assert integ.worst_iterations <= 2  # an exact preconditioner: one iteration, two at round-off
     # the round-off floor: condition number ~1e8 times eps (measured 1.2e-10)
     assert np.linalg.norm(res.state.u.ravel() - static) / np.linalg.norm(static) < 1e-8
-    weak = ImplicitEuler(tol=1e-10, preconditioner="mass")
-    weak.step(model, State.at_rest(mesh.n_vertices), 0.01, 1)
-    assert weak.worst_iterations == weak.maxit  # stopped, unconverged
+    # a weak preconditioner at the same step: CG stops at maxit, and says so instead of returning an
+    # inexact step as if it were converged; the state has taken that step
+    weak = ImplicitEuler(tol=1e-10, maxit=50, preconditioner="mass")
+    state = State.at_rest(mesh.n_vertices)
+    with pytest.raises(NotConvergedError, match=r"CG stopped at maxit = 50 iterations .* at step 0 \(dt = 0.01 s\)"):
+        weak.step(model, state, 0.01, 3)
+    assert (state.steps, state.t, weak.worst_iterations) == (1, 0.01, 50)
+    # as a fixed budget (a real-time simulator's CG), the steps are taken and counted
+    budget = ImplicitEuler(tol=1e-10, maxit=50, preconditioner="mass", budget=True)
+    budget.step(model, state, 0.01, 3)
+    assert (state.steps, budget.unconverged) == (4, 3)
 
 
 def test_implicit_euler_is_first_order():
