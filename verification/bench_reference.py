@@ -50,23 +50,32 @@ def _solve_row(label: str, scene_ref, estimate: bool) -> dict:
     }
 
 
+#: The direct solver before issue 14: MUMPS's unsymmetric LU (the tangents are symmetric; LDL^T came after).
+CLASSIC_DIRECT = {"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}
+
+
 def run(cases=None, newton: str = "modified") -> dict:
     """Solve each case; ``newton`` "classic" is the solver before issue 14: Newton refactorising at
-    every iteration (fem.SLOW and fem.SLOW_DYNAMIC = inf) and MUMPS at every size (fem.DIRECT_LIMIT = inf)."""
+    every iteration (fem.SLOW and fem.SLOW_DYNAMIC = inf) with MUMPS's LU at every size
+    (fem.DIRECT_LIMIT = inf). Under ``mpirun -n N`` every case is solved on the N ranks."""
+    from mpi4py import MPI
+
     chosen = [c for c in CASES if cases is None or any(k in c[0] for k in cases)]
-    saved = fem.SLOW, fem.SLOW_DYNAMIC, fem.DIRECT_LIMIT
+    saved = fem.SLOW, fem.SLOW_DYNAMIC, fem.DIRECT_LIMIT, fem.DIRECT_OPTIONS
     if newton == "classic":
         fem.SLOW = fem.SLOW_DYNAMIC = fem.DIRECT_LIMIT = float("inf")
+        fem.DIRECT_OPTIONS = CLASSIC_DIRECT
     try:
         rows = [_solve_row(*c) for c in chosen]
     finally:
-        fem.SLOW, fem.SLOW_DYNAMIC, fem.DIRECT_LIMIT = saved
-    return {"machine": machine(), "newton": newton, "rows": rows}
+        fem.SLOW, fem.SLOW_DYNAMIC, fem.DIRECT_LIMIT, fem.DIRECT_OPTIONS = saved
+    return {"machine": machine(), "newton": newton, "ranks": MPI.COMM_WORLD.size, "rows": rows}
 
 
 def format_table(out: dict) -> str:
     lines = [
-        f"reference benchmark ({out['newton']} Newton) on {out['machine']['cpu']}, {out['machine']['cores']} cores"
+        f"reference benchmark ({out['newton']} Newton) on {out['machine']['cpu']}, {out['machine']['cores']} cores, "
+        f"{out.get('ranks', 1)} MPI rank(s)"
     ]
     lines.append(f"{'case':<44} {'dofs':>16} {'loads':>6} {'Newton':>7} {'factor.':>8} {'seconds':>9}")
     for r in out["rows"]:

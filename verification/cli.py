@@ -370,9 +370,13 @@ def cmd_gate(args) -> int:
 
 def cmd_bench(args) -> int:
     if args.reference:
+        from mpi4py import MPI
+
         from .bench_reference import format_table, run
 
         out = run(cases=args.cases, newton=args.newton)
+        if MPI.COMM_WORLD.rank:  # under mpirun every rank solved; the first reports
+            return 0
     else:
         from .bench import format_table, run
 
@@ -429,7 +433,7 @@ MESH_REFINE_HELP = "cut the scene's mesh uniformly K more times (h / 2^K; the re
 
 
 PETSC_HELP = (
-    "a PETSc option for the reference's linear solves, over the choice by size (MUMPS LU up to "
+    "a PETSc option for the reference's linear solves, over the choice by size (MUMPS LDL^T up to "
     "reference.fem.DIRECT_LIMIT dofs, GAMG above); a pc_type replaces the choice; repeatable"
 )
 

@@ -209,6 +209,15 @@ def _fmt(v, spec=".3g"):
     return html.escape(str(v))
 
 
+def _solver(options: dict) -> str:
+    """The reference's linear solver in words, from the PETSc options its metadata records."""
+    pc = options.get("pc_type", "?")
+    if options.get("ksp_type", "preonly") == "preonly":
+        kind = {"cholesky": "LDL^T", "lu": "LU"}.get(pc, pc)
+        return f"{kind} by {options.get('pc_factor_mat_solver_type', 'PETSc')}"
+    return f"{options['ksp_type'].upper()} preconditioned by {pc.upper()}"
+
+
 def _sweep_table(rows: list[dict]) -> str:
     head = (
         "<tr><th>model</th><th>integrator</th><th>dt (s)</th><th>dt / dt_crit</th><th>rel_l2</th>"
@@ -322,7 +331,7 @@ def scene_section(name: str, fractions: list[float]) -> tuple[str, dict]:
 edges {q["min_edge_m"] * 1e3:.2f} to {q["max_edge_m"] * 1e3:.2f} mm.{_repairs(mesh)}</p>
 <h3>Reference</h3>
 <p>dolfinx, law <b>{ref.meta["law"]}</b>, P{ref.meta["degree"]} at refinement {ref.meta["refine"]},
-LU by {html.escape(str((ref.meta.get("petsc_options") or {}).get("pc_factor_mat_solver_type", "?")))};
+linear solves {html.escape(_solver(ref.meta.get("petsc_options") or {}))};
 own error estimate <b>{_fmt(est)}</b> ({html.escape(ref.meta.get("estimate", ""))}).
 Solved at commit {html.escape(str(ref.meta.get("commit")))}, {html.escape(str(ref.meta.get("date")))}.</p>
 <ul>{ref_lines}</ul>

@@ -118,7 +118,7 @@ def reference_key(
     own_mesh: bool = False,
     petsc_options: dict | None = None,
 ) -> str:
-    from reference.fem import DIRECT_LIMIT, GAMG_OPTIONS, LU_OPTIONS
+    from reference.fem import DIRECT_LIMIT, DIRECT_OPTIONS, GAMG_OPTIONS
 
     return digest(
         {
@@ -128,7 +128,12 @@ def reference_key(
             "refine": refine,
             "estimate": estimate,
             "newton": list(newton),
-            "solver": {"lu": LU_OPTIONS, "gamg": GAMG_OPTIONS, "direct_limit": DIRECT_LIMIT, "user": petsc_options},
+            "solver": {
+                "direct": DIRECT_OPTIONS,
+                "gamg": GAMG_OPTIONS,
+                "direct_limit": DIRECT_LIMIT,
+                "user": petsc_options,
+            },
             "version": REFERENCE_VERSION,
             "code": code_digest(REFERENCE_CODE),
         }
