@@ -39,9 +39,9 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
     vertices are vertices of every finer level), each model's error at each level's vertices against
     one P2 reference on the finest level, solved once, and the reference's own self-convergence (P1
     and P2 at each level against it). The geometry never changes, curved or not: refinement splits the
-    coarse mesh's own tetrahedra. Orders are fitted against h."""
-    from reference.driver import solve_static as reference_static
-
+    coarse mesh's own tetrahedra. Orders are fitted against h. The reference solves come first, one
+    process per core (``prefetch.static_displacements``), then the model runs."""
+    from .prefetch import static_displacements
     from .runner import run_model
 
     if scene.time.mode != "static":
@@ -55,10 +55,16 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
     h0 = scene.mesh.mean_edge()
     hs = [h0 / 2**k for k in range(levels)]
     progress = Progress(1 + levels * (len(models) + 2), f"converge {scene.name}")
-    fine = reference_static(
-        scene.mesh, scene.material, scene.problem, degree=2, refine=levels - 1, estimate=False, points=meshes[-1].points
-    )["displacement"]
-    progress.step("truth: P2 on the finest level")
+    base = dict(mesh=scene.mesh, material=scene.material, problem=scene.problem, estimate=False)
+    # the truth (P2 on the finest level, at its vertices) and P1 and P2 at each level but that one
+    jobs = [dict(base, degree=2, refine=levels - 1, points=meshes[-1].points)]
+    jobs += [dict(base, degree=d, refine=k, points=meshes[k].points) for k in range(levels) for d in (1, 2)]
+    del jobs[-1]  # P2 on the finest level is the truth itself
+    solved = static_displacements(
+        jobs, done=lambda job: progress.step(f"level {job['refine']} reference P{job['degree']}")
+    )
+    fine, own = solved[0], iter(solved[1:])
+    progress.step("the truth is P2 on the finest level")
     series = {m: [] for m in list(models) + ["reference P1", "reference P2"]}
     for k, mesh in enumerate(meshes):
         truth = fine[: mesh.n_vertices]  # nested: level k's vertices come first at every finer level
@@ -72,11 +78,7 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
             if k == levels - 1 and deg == 2:
                 series["reference P2"].append(None)  # the truth itself
             else:
-                u = reference_static(
-                    scene.mesh, scene.material, scene.problem, degree=deg, refine=k, estimate=False, points=mesh.points
-                )["displacement"]
-                series[f"reference P{deg}"].append(float(np.linalg.norm(u - truth) / scale))
-            progress.step(f"level {k} reference P{deg}")
+                series[f"reference P{deg}"].append(float(np.linalg.norm(next(own) - truth) / scale))
     out = {"scene": scene.name, "kind": "space", "h": hs, "series": []}
     for label, errs in series.items():
         pts = [(h, e) for h, e in zip(hs, errs, strict=True) if e]

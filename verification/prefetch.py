@@ -32,6 +32,42 @@ def _solve(scene: Scene, options: dict) -> str | None:
     return None
 
 
+def _static(job: dict):
+    """One static reference's displacements (in a worker process)."""
+    from reference.driver import solve_static
+
+    return solve_static(**job)["displacement"]
+
+
+def static_displacements(jobs: list[dict], workers: int | None = None, done=None) -> list:
+    """``reference.driver.solve_static(**job)["displacement"]`` for each of ``jobs``, in their order,
+    solved ``workers`` at a time (default: the cores this process may use) in spawned processes, the
+    largest first; ``done(job)`` is called as each finishes. Nothing is cached (the convergence study's
+    solves at given points). Under mpirun, with one worker or one job, they are solved here in turn
+    (under mpirun each solve is distributed over the ranks)."""
+    from mpi4py import MPI
+
+    done = done or (lambda job: None)
+    workers = workers or len(os.sched_getaffinity(0))
+    if workers < 2 or len(jobs) < 2 or MPI.COMM_WORLD.size > 1:
+        out = []
+        for job in jobs:
+            out.append(_static(job))
+            done(job)
+        return out
+    cost = [job["mesh"].n_tets * 8 ** job.get("refine", 0) * (4 if job.get("degree", 2) == 2 else 1) for job in jobs]
+    order = sorted(range(len(jobs)), key=lambda i: -cost[i])
+    out = [None] * len(jobs)
+    context = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=context) as pool:
+        futures = {pool.submit(_static, jobs[i]): i for i in order}
+        for future in concurrent.futures.as_completed(futures):
+            i = futures[future]
+            out[i] = future.result()
+            done(jobs[i])
+    return out
+
+
 def scene_jobs(scenes: list[Scene]) -> list[tuple[Scene, dict]]:
     """What a sweep, compare or advice on each scene asks for first: its P2 reference with the estimate and
     its P1 solution on its own mesh (the error budget's mesh part)."""
