@@ -222,6 +222,15 @@ class Condensed:
         u[self.free_r] = sla.cho_solve(self.chol, self.f_star[self.free_r] - self.K_fc @ held_values)
         return u
 
+    def reaction(self, tool_vertex: np.ndarray, tool_mask: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Total force (3,) N the tools exert, from the retained displacements in ``u`` (N, 3) m alone
+        (``QuasiStatic.step`` leaves the interior at zero): on a held retained dof the condensed equation
+        reads R = K* u_r - f*, exact whatever the interior holds. ``tool_vertex`` (P,) int64 and
+        ``tool_mask`` (P, 3) float64 as in Loading."""
+        r = np.zeros(3 * self.n)
+        r[self.retained] = self.K_star @ np.ascontiguousarray(u, dtype=float).ravel()[self.retained] - self.f_star
+        return np.sum(r.reshape(-1, 3)[tool_vertex] * tool_mask, axis=0)
+
     def full(self, u_r: np.ndarray) -> np.ndarray:
         """All displacements (N, 3) m: the interior recovered from the retained ones."""
         u = np.zeros(3 * self.n)
