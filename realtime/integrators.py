@@ -33,7 +33,7 @@ import scipy.sparse.linalg as spla
 
 from .errors import InputError
 from .geometry import shape_gradients
-from .model import Model, State, _tool_value
+from .model import TOOL_ROTATION, Model, State, _tool_value
 from .tensor_mass import TensorMass, assemble_blocks, element_elasticity
 
 _JIT = dict(nogil=True, cache=True)
@@ -413,15 +413,18 @@ def element_critical_dt(model: Model) -> float:
 
 @dataclass
 class _Prepared:
-    """Per-model arrays of the step kernels (see Integrator._prepare)."""
+    """Per-model arrays of the step kernels (see Integrator._prepare): the integrator's workspace, which
+    also holds what a simulator changes between frames (``set_forces``, ``set_tool``)."""
 
     model: Model
     inv_mass: np.ndarray  # (N,) 1/kg
     per_dof: np.ndarray  # (3N, 3): free mask, free mask / m (1/kg), free f_ext / m (m/s^2)
-    tools: tuple
+    fext: np.ndarray  # (N, 3) N, the external forces applied: the Loading's until set_forces
+    tools: tuple  # the Loading's tool arrays, with the targets (vector, angle, ramp) copied for set_tool
     bound: float  # m, the blow-up bound
     f: np.ndarray  # (N, 3) force buffer
     w: np.ndarray  # (N, 3) buffer for u + beta v
+    version: int = 0  # set_forces calls: a stored acceleration from an older version is stale
 
     @staticmethod
     def of(model: Model) -> _Prepared:
@@ -429,11 +432,12 @@ class _Prepared:
         inv_mass = 1.0 / model.mass
         free = lo.free.reshape(-1)
         im = np.repeat(inv_mass, 3) * free
-        per_dof = np.ascontiguousarray(np.stack([free, im, lo.external_force.reshape(-1) * im], axis=1))
+        fext = lo.external_force.copy()
+        per_dof = np.ascontiguousarray(np.stack([free, im, fext.reshape(-1) * im], axis=1))
+        vert, mask, tid, kind, vector, axis, center, angle, ramp, shape = lo.tools_tuple()
+        tools = (vert, mask, tid, kind, vector.copy(), axis, center, angle.copy(), ramp.copy(), shape)
         n = model.n_vertices
-        return _Prepared(
-            model, inv_mass, per_dof, lo.tools_tuple(), blowup_bound(model), np.empty((n, 3)), np.empty((n, 3))
-        )
+        return _Prepared(model, inv_mass, per_dof, fext, tools, blowup_bound(model), np.empty((n, 3)), np.empty((n, 3)))
 
 
 @dataclass
@@ -460,6 +464,35 @@ class Integrator:
             self._prepared = _Prepared.of(model)
         return self._prepared
 
+    def set_forces(self, model: Model, forces: np.ndarray) -> None:
+        """Apply the external nodal forces ``forces`` (N, 3) float64, N, from the next step on, in place of
+        the model's ``loading.external_force`` (the model does not change; the forces live in this
+        integrator's workspace for this model, and every integrator reads them the same way)."""
+        f = _frame_array("forces", forces, (model.n_vertices, 3))
+        p = self._prepare(model)
+        p.fext[:] = f
+        p.per_dof[:, 2] = p.fext.reshape(-1) * p.per_dof[:, 1]
+        p.version += 1
+
+    def set_tool(self, model: Model, tool: int, translation=None, angle: float | None = None) -> None:
+        """Hold tool ``tool`` at a new target from the next step on, without a ramp: ``translation``
+        (3,) m for a translating tool, ``angle`` (rad, about its axis through its centre) for a rotating
+        one. The vertices jump there in one step, their velocity the jump over dt, as a haptic device's
+        frame moves them."""
+        p = self._prepare(model)
+        kind = p.tools[3]
+        if not isinstance(tool, (int, np.integer)) or not 0 <= tool < len(kind):
+            raise InputError(f"set_tool: tool = {tool!r}: must be an index in 0..{len(kind) - 1}")
+        if kind[tool] == TOOL_ROTATION:
+            if translation is not None or angle is None or not math.isfinite(float(angle)):
+                raise InputError(f"set_tool: tool {tool} rotates: give a finite angle (rad), got angle = {angle!r}")
+            p.tools[7][tool] = float(angle)
+        else:
+            if angle is not None or translation is None:
+                raise InputError(f"set_tool: tool {tool} translates: give translation (3,) m, got angle = {angle!r}")
+            p.tools[4][tool] = _frame_array("translation", translation, (3,))
+        p.tools[8][tool] = 0.0  # held at the target from now on
+
     def _diverged(self, model, state, bad, dt, dt_crit):
         """Raise DivergenceError for the step ``bad`` of this call, the last one the kernel took: the
         state's time and step count first advance to it, as u and v have."""
@@ -468,6 +501,20 @@ class Integrator:
         if dt_crit is None:
             dt_crit = self.critical_dt(model)
         raise DivergenceError(model.name, state.steps - 1, dt, dt_crit, self.name, _blowup_reason(model, state.u))
+
+
+def _frame_array(name: str, value, shape: tuple) -> np.ndarray:
+    """``value`` as a finite float64 array of ``shape``, or InputError naming ``name`` and what it got."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: must be a {shape} array of numbers, got {type(value).__name__}") from None
+    if a.shape != shape:
+        raise InputError(f"{name}: must have shape {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        bad = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
+        raise InputError(f"{name}{list(bad)}: must be finite, got {a[bad]}")
+    return a
 
 
 class SymplecticEuler(Integrator):
@@ -499,13 +546,15 @@ class CentralDifference(Integrator):
         p = self._prepare(model)
         lo = model.loading
         acc = state.acc
-        if acc is None or acc.shape != state.u.shape:
+        key = (id(p), p.version)  # the acceleration is stale after set_forces (or from another model)
+        if acc is None or acc.shape != state.u.shape or state.acc_key not in (None, key):
             f0 = model.internal_force(state.u + self.beta * state.v)
-            acc = (f0 + lo.external_force) * p.inv_mass[:, None] * lo.free
+            acc = (f0 + p.fext) * p.inv_mass[:, None] * lo.free
             state.acc = acc
+        state.acc_key = key
         bad = _run_central_difference(
             n, dt, state.t, model.force_kernel, model.data, model.points, p.inv_mass, lo.free,
-            lo.external_force, p.tools, self.alpha, self.beta, p.bound, state.u, state.v, acc, p.f, p.w,
+            p.fext, p.tools, self.alpha, self.beta, p.bound, state.u, state.v, acc, p.f, p.w,
         )  # fmt: skip
         if bad >= 0:
             self._diverged(model, state, bad, dt, dt_crit)
@@ -624,7 +673,7 @@ class ImplicitEuler(Integrator):
         work = tuple(np.zeros_like(state.u) for _ in range(9))
         status, last, its, worst, spent = _run_implicit_euler(
             n, dt, state.t, model.force_kernel, model.data, model.linear, model.points, model.mass, lo.free,
-            lo.external_force, p.tools, self.alpha, self.beta, p.bound, self.tol,
+            p.fext, p.tools, self.alpha, self.beta, p.bound, self.tol,
             self.maxit, factored, fac, state.u, state.v, work, self.budget,
         )  # fmt: skip
         self.iterations, self.worst_iterations = int(its), int(worst)

@@ -152,6 +152,8 @@ class State:
         steps: number of steps taken.
         acc: (N, 3) float64 acceleration, m/s^2, kept by integrators that need it between calls
             (central difference); None until the first step. Set it to None after changing u or v.
+        acc_key: which integrator workspace and forces ``acc`` was computed with (set_forces makes it
+            stale); None when unknown.
     """
 
     u: np.ndarray
@@ -159,6 +161,7 @@ class State:
     t: float = 0.0
     steps: int = 0
     acc: np.ndarray | None = None
+    acc_key: tuple | None = None
 
     @staticmethod
     def at_rest(n_vertices: int) -> State:
@@ -166,7 +169,7 @@ class State:
 
     def copy(self) -> State:
         acc = None if self.acc is None else self.acc.copy()
-        return State(self.u.copy(), self.v.copy(), self.t, self.steps, acc)
+        return State(self.u.copy(), self.v.copy(), self.t, self.steps, acc, self.acc_key)
 
 
 @dataclass(frozen=True)

@@ -250,6 +250,18 @@ class QuasiStatic:
     def critical_dt(self, model: Model, omega2: float | None = None) -> float:
         return np.inf  # unconditionally stable: there is no time integration
 
+    def set_forces(self, model: Model, forces) -> None:
+        raise InputError(
+            f"set_forces: {model.name} precomputed its response to the loads when it was built; build it "
+            "again with the new external_force"
+        )
+
+    def set_tool(self, model: Model, tool: int, translation=None, angle=None) -> None:
+        raise InputError(
+            f"set_tool: {model.name} follows the tools' ramps (its update is a function of the tools' "
+            "displacements); build it again with the new targets"
+        )
+
     def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None) -> State:
         solver = model.extra["quasistatic"]
         t = state.t + n * dt
