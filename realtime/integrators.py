@@ -245,9 +245,10 @@ def _run_implicit_euler(
     factored, fac, u, v, work, budget,
 ):  # fmt: skip
     """n steps of linearised implicit Euler; returns (status, the step it stopped after or -1, total CG
-    iterations, the most CG iterations one step took, the steps whose CG stopped at maxit). Status 0: all n steps done; 1: the step blew up;
-    2: its CG stopped at ``maxit`` above ``tol`` (the step is taken; the loop stops after it unless
-    ``budget``, a fixed iteration budget as real-time simulators run CG).
+    iterations, the most CG iterations one step took, the steps whose CG stopped at maxit). Status 0:
+    all n steps done; 1: the step blew up; 2: its CG stopped at ``maxit`` above ``tol`` (the step is
+    taken; the loop stops after it unless ``budget``, a fixed iteration budget as real-time simulators
+    run CG).
 
     (M (1 + dt alpha) + (dt beta + dt^2) K) dv = dt (f(u) + f_ext - alpha M v - (beta + dt) K v), K the
     tangent at u_n, solved by preconditioned CG on the free components to a relative residual
@@ -484,9 +485,9 @@ class Integrator:
         if not isinstance(tool, (int, np.integer)) or not 0 <= tool < len(kind):
             raise InputError(f"set_tool: tool = {tool!r}: must be an index in 0..{len(kind) - 1}")
         if kind[tool] == TOOL_ROTATION:
-            if translation is not None or angle is None or not math.isfinite(float(angle)):
-                raise InputError(f"set_tool: tool {tool} rotates: give a finite angle (rad), got angle = {angle!r}")
-            p.tools[7][tool] = float(angle)
+            if translation is not None or angle is None:
+                raise InputError(f"set_tool: tool {tool} rotates: give angle (rad), got translation = {translation!r}")
+            p.tools[7][tool] = float(_frame_array("angle", angle, ()))
         else:
             if angle is not None or translation is None:
                 raise InputError(f"set_tool: tool {tool} translates: give translation (3,) m, got angle = {angle!r}")

@@ -394,6 +394,20 @@ def test_frame_inputs_are_checked_with_one_line_errors():
         integ.set_tool(model, 0, angle=0.1)
     with pytest.raises(InputError, match=r"translation: must have shape \(3,\), got \(2,\)"):
         integ.set_tool(model, 0, translation=[0.0, 1e-3])
+    # a rotating tool takes an angle, and holds its vertices turned by it about its axis from the next step
+    import dataclasses
+
+    turning = dataclasses.replace(load, tool_kind=np.ones(1, dtype=np.int64))
+    model = build_model("linear-tm", mesh.points, mesh.tets, MAT, turning)
+    with pytest.raises(InputError, match=r"set_tool: tool 0 rotates: give angle \(rad\), got translation"):
+        integ.set_tool(model, 0, translation=[0.0, 0.0, 1e-3])
+    with pytest.raises(InputError, match=r"angle: must be a \(\) array of numbers, got str"):
+        integ.set_tool(model, 0, angle="a quarter turn")
+    integ.set_tool(model, 0, angle=0.01)
+    state = integ.step(model, State.at_rest(n), 1e-7, 1)
+    x = mesh.points[load.tool_vertex]
+    turned = x @ np.array([[np.cos(0.01), -np.sin(0.01), 0.0], [np.sin(0.01), np.cos(0.01), 0.0], [0, 0, 1]]).T
+    np.testing.assert_allclose(state.u[load.tool_vertex], turned - x, rtol=0, atol=1e-15)
     condensed = build_model("condensed", mesh.points, mesh.tets, MAT, load)
     with pytest.raises(InputError, match="set_forces: condensed precomputed its response to the loads"):
         QuasiStatic().set_forces(condensed, np.zeros((n, 3)))
