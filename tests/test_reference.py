@@ -291,7 +291,9 @@ ramp = 0.01
         self._assemble_raw = lambda form=None: norms.append(assemble(self, form)) or norms[-1]
         res = solve(self, *args, **kwargs)
         del self._assemble_raw
-        steps.append((res["scale"], norms[0], norms[1][0], norms[-1][1]))  # the load's norms, the first
+        at = 0 if steps else 1  # the first step also assembles the load, which no later step changes
+        load = norms[0] if at else (0.0, 0.0)
+        steps.append((res["scale"], load, norms[at][0], norms[-1][1]))  # the load's norms, the first
         return res  # iterate's free residual, the last one's reaction
 
     monkeypatch.setattr(fem.Newton, "solve", recorded)
