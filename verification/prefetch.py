@@ -32,6 +32,26 @@ def _solve(scene: Scene, options: dict) -> str | None:
     return None
 
 
+def _workers(workers: int | None, n_jobs: int) -> int:
+    """How many processes ``n_jobs`` jobs run on: ``workers`` (default the cores this process may use)
+    at most, and 0 when they should run here instead (one worker, one job, or under mpirun, where the
+    ranks already share each solve)."""
+    from mpi4py import MPI
+
+    workers = min(workers or len(os.sched_getaffinity(0)), n_jobs)
+    return 0 if workers < 2 or MPI.COMM_WORLD.size > 1 else workers
+
+
+def _spawned(fn, jobs: list[tuple], workers: int):
+    """Run ``fn(*job)`` for each of ``jobs``, in that order of submission, on ``workers`` spawned
+    processes (a fresh interpreter: no MPI or PETSc state forked); yields (index, result) as each ends."""
+    context = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+        futures = {pool.submit(fn, *job): i for i, job in enumerate(jobs)}
+        for future in concurrent.futures.as_completed(futures):
+            yield futures[future], future.result()
+
+
 def _static(job: dict):
     """One static reference's displacements (in a worker process)."""
     from reference.driver import solve_static
@@ -45,11 +65,9 @@ def static_displacements(jobs: list[dict], workers: int | None = None, done=None
     largest first; ``done(job)`` is called as each finishes. Nothing is cached (the convergence study's
     solves at given points). Under mpirun, with one worker or one job, they are solved here in turn
     (under mpirun each solve is distributed over the ranks)."""
-    from mpi4py import MPI
-
     done = done or (lambda job: None)
-    workers = workers or len(os.sched_getaffinity(0))
-    if workers < 2 or len(jobs) < 2 or MPI.COMM_WORLD.size > 1:
+    workers = _workers(workers, len(jobs))
+    if not workers:
         out = []
         for job in jobs:
             out.append(_static(job))
@@ -58,13 +76,9 @@ def static_displacements(jobs: list[dict], workers: int | None = None, done=None
     cost = [job["mesh"].n_tets * 8 ** job.get("refine", 0) * (4 if job.get("degree", 2) == 2 else 1) for job in jobs]
     order = sorted(range(len(jobs)), key=lambda i: -cost[i])
     out = [None] * len(jobs)
-    context = multiprocessing.get_context("spawn")
-    with concurrent.futures.ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=context) as pool:
-        futures = {pool.submit(_static, jobs[i]): i for i in order}
-        for future in concurrent.futures.as_completed(futures):
-            i = futures[future]
-            out[i] = future.result()
-            done(jobs[i])
+    for k, result in _spawned(_static, [(jobs[i],) for i in order], workers):
+        out[order[k]] = result
+        done(jobs[order[k]])
     return out
 
 
@@ -82,26 +96,20 @@ def solve_references(jobs: list[tuple[Scene, dict]], workers: int | None = None)
     study that would solve them again can skip them. With one worker, one job, or under mpirun, nothing
     is solved here and the study solves as it goes.
     """
-    from mpi4py import MPI
-
-    workers = workers or len(os.sched_getaffinity(0))
     todo, seen = [], set()
     for scene, options in jobs:
         path = reference_path(scene, **options)
         if path not in seen and not path.exists():
             seen.add(path)
             todo.append((scene, options))
-    if workers < 2 or len(todo) < 2 or MPI.COMM_WORLD.size > 1:
+    workers = _workers(workers, len(todo))
+    if not workers:
         return {}
     # the finest solves first, so that the last to finish is a small one
     todo.sort(key=lambda job: -job[0].mesh.n_vertices * (8 if job[1].get("estimate", True) else 1))
-    log(f"references: solving {len(todo)} on {min(workers, len(todo))} processes before the runs")
+    log(f"references: solving {len(todo)} on {workers} processes before the runs")
     failed = {}
-    context = multiprocessing.get_context("spawn")  # a fresh interpreter: no MPI or PETSc state forked
-    with concurrent.futures.ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=context) as pool:
-        futures = {pool.submit(_solve, scene, options): scene for scene, options in todo}
-        for future in concurrent.futures.as_completed(futures):
-            reason = future.result()
-            if reason is not None:
-                failed[futures[future].sha256()] = reason
+    for k, reason in _spawned(_solve, todo, workers):
+        if reason is not None:
+            failed[todo[k][0].sha256()] = reason
     return failed
