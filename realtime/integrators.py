@@ -79,6 +79,31 @@ def _apply_tools(points, tools, t, dt, u, v, tmp):
 
 
 @nb.njit(**_JIT)
+def _tool_velocities(tools, v, vt):
+    """vt (P, 3) = the velocities of the tool vertices, before a step moves them."""
+    vert = tools[0]
+    for p in range(vert.shape[0]):
+        for c in range(3):
+            vt[p, c] = v[vert[p], c]
+
+
+@nb.njit(**_JIT)
+def _tool_reaction(tools, mass, f, fext, v, vt, alpha, dt, out):
+    """out (L, 3) N = the force each tool exerts on the body, from the equation of motion on its
+    prescribed components: R = m (v - vt) / dt + alpha m v - f - f_ext, with v their velocity after the
+    step, vt before it, and f the internal force (N, 3) the integrator used for it (damping included).
+    This is what holds the vertices on the tool's path, inertia included: what a haptic device renders
+    (with the opposite sign: the body's force on the tool). At rest it is model.reaction's static force."""
+    vert, mask, tid = tools[0], tools[1], tools[2]
+    out[:] = 0.0
+    for p in range(vert.shape[0]):
+        i, k = vert[p], tid[p]
+        for c in range(3):
+            if mask[p, c] != 0.0:
+                out[k, c] += mass[i] * ((v[i, c] - vt[p, c]) / dt + alpha * v[i, c]) - f[i, c] - fext[i, c]
+
+
+@nb.njit(**_JIT)
 def _damped_arg(u, v, beta, w):
     """w = u + beta v: where the internal force is evaluated (Rayleigh stiffness damping)."""
     for i in range(u.shape[0]):
@@ -87,8 +112,12 @@ def _damped_arg(u, v, beta, w):
 
 
 @nb.njit(**_JIT)
-def _run_symplectic_euler(n, dt, t0, force, data, points, per_dof, tools, alpha, beta, bound, u, v, f, w):
+def _run_symplectic_euler(
+    n, dt, t0, force, data, scratch, points, per_dof, mass, fext, tools, alpha, beta, bound, u, v, f, w, vt, reaction
+):  # fmt: skip
     """n steps of v = (v + dt a(u)) / (1 + dt alpha); u += dt v. Returns -1 or the index of the step that blew up.
+    ``reaction`` (L, 3) N: the tools' force on the body in the last step (_tool_reaction), with the
+    scheme's own discrete equation m (v_new - v_old) / dt = f(u_old) + f_ext - alpha m v_new + R.
 
     per_dof (3N, 3): per component, the free mask, the free mask / m (1/kg) and the external
     acceleration f_ext / m on free components (m/s^2). Constrained components keep v = 0 and do not
@@ -100,11 +129,12 @@ def _run_symplectic_euler(n, dt, t0, force, data, points, per_dof, tools, alpha,
     u1, v1, f1 = u.reshape(-1), v.reshape(-1), f.reshape(-1)
     damp = 1.0 / (1.0 + dt * alpha)  # mass damping treated implicitly: stable for any alpha
     for s in range(n):
+        _tool_velocities(tools, v, vt)
         if beta != 0.0:
             _damped_arg(u, v, beta, w)
-            force(data, w, f)
+            force(data, scratch, w, f)
         else:
-            force(data, u, f)
+            force(data, scratch, u, f)
         out = 0
         for k in range(u1.shape[0]):
             vk = (per_dof[k, 0] * v1[k] + dt * (per_dof[k, 1] * f1[k] + per_dof[k, 2])) * damp
@@ -115,14 +145,18 @@ def _run_symplectic_euler(n, dt, t0, force, data, points, per_dof, tools, alpha,
         _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
         if out:
             return s
+    _tool_reaction(tools, mass, f, fext, v, vt, alpha, dt, reaction)
     return -1
 
 
 @nb.njit(**_JIT)
 def _run_central_difference(
-    n, dt, t0, force, data, points, inv_mass, free, fext, tools, alpha, beta, bound, u, v, a, f, w
-):
+    n, dt, t0, force, data, scratch, points, mass, inv_mass, free, fext, tools, alpha, beta, bound, u, v, a, f, w,
+    vt, reaction,
+):  # fmt: skip
     """n steps of velocity Verlet (central difference): half kick, drift, force, half kick.
+    ``reaction`` (L, 3) N: the tools' force on the body at the end of the last step (_tool_reaction, with
+    the force at the new u and the tools' last velocity increment).
 
     a (N, 3) holds the undamped acceleration (f_int + f_ext) / m at entry and at exit. Mass damping
     -alpha v is explicit in the first half kick and implicit in the second, v <- (v (1 - h alpha) +
@@ -136,6 +170,7 @@ def _run_central_difference(
     keep = 1.0 - h * alpha
     damp = 1.0 / (1.0 + h * alpha)
     for s in range(n):
+        _tool_velocities(tools, v, vt)
         for i in range(u.shape[0]):
             for c in range(3):
                 if free[i, c] != 0.0:
@@ -144,9 +179,9 @@ def _run_central_difference(
         _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
         if beta != 0.0:
             _damped_arg(u, v, beta, w)
-            force(data, w, f)
+            force(data, scratch, w, f)
         else:
-            force(data, u, f)
+            force(data, scratch, u, f)
         ok = True
         for i in range(u.shape[0]):
             im = inv_mass[i]
@@ -159,14 +194,15 @@ def _run_central_difference(
                         ok = False
         if not ok:
             return s
+    _tool_reaction(tools, mass, f, fext, v, vt, alpha, dt, reaction)
     return -1
 
 
 @nb.njit(**_JIT)
-def _tangent_product(force, data, u, y, linear, out, t1, t2):
+def _tangent_product(force, data, scratch, u, y, linear, out, t1, t2):
     """out = K(u) y: -f(y) for a linear model, else -(f(u + h y) - f(u - h y)) / (2 h)."""
     if linear:
-        force(data, y, out)
+        force(data, scratch, y, out)
         for i in range(y.shape[0]):
             for c in range(3):
                 out[i, c] = -out[i, c]
@@ -184,11 +220,11 @@ def _tangent_product(force, data, u, y, linear, out, t1, t2):
     for i in range(y.shape[0]):
         for c in range(3):
             t1[i, c] = u[i, c] + h * y[i, c]
-    force(data, t1, out)
+    force(data, scratch, t1, out)
     for i in range(y.shape[0]):
         for c in range(3):
             t1[i, c] = u[i, c] - h * y[i, c]
-    force(data, t1, t2)
+    force(data, scratch, t1, t2)
     for i in range(y.shape[0]):
         for c in range(3):
             out[i, c] = -(out[i, c] - t2[i, c]) / (2.0 * h)
@@ -241,8 +277,8 @@ def _precondition(factored, fac, cm, mass, r, z):
 
 @nb.njit(**_JIT)
 def _run_implicit_euler(
-    n, dt, t0, force, data, linear, points, mass, free, fext, tools, alpha, beta, bound, tol, maxit,
-    factored, fac, u, v, work, budget,
+    n, dt, t0, force, data, scratch, linear, points, mass, free, fext, tools, alpha, beta, bound, tol, maxit,
+    factored, fac, u, v, work, budget, vt, reaction,
 ):  # fmt: skip
     """n steps of linearised implicit Euler; returns (status, the step it stopped after or -1, total CG
     iterations, the most CG iterations one step took, the steps whose CG stopped at maxit). Status 0:
@@ -253,7 +289,11 @@ def _run_implicit_euler(
     (M (1 + dt alpha) + (dt beta + dt^2) K) dv = dt (f(u) + f_ext - alpha M v - (beta + dt) K v), K the
     tangent at u_n, solved by preconditioned CG on the free components to a relative residual
     ``tol`` (the preconditioner: the factored system with the rest stiffness if ``factored``, else
-    the mass term); then v += dv, u += dt v.
+    the mass term); then v += dv, u += dt v. ``reaction`` (L, 3) N: the tools' force on the body in the
+    last step, from the same equation on their components: m (v_new - v_old) / dt + alpha m v_new +
+    (beta + dt) K v - f(u_old) - f_ext, with K v one more tangent product (at the step's u_old) of the
+    velocities the solve used (the new ones on the free components, the tools' old ones: the solve
+    moved the tools' neighbours with those), so that the body's momentum balance closes.
     """
     f, kv, r, z, p, ap, x, t1, t2 = work[0], work[1], work[2], work[3], work[4], work[5], work[6], work[7], work[8]
     tmp = np.empty(3)
@@ -264,8 +304,9 @@ def _run_implicit_euler(
     spent = 0
     nv = u.shape[0]
     for s in range(n):
-        force(data, u, f)
-        _tangent_product(force, data, u, v, linear, kv, t1, t2)
+        _tool_velocities(tools, v, vt)
+        force(data, scratch, u, f)
+        _tangent_product(force, data, scratch, u, v, linear, kv, t1, t2)
         for i in range(nv):
             for c in range(3):
                 r[i, c] = dt * (f[i, c] + fext[i, c] - alpha * mass[i] * v[i, c] - (beta + dt) * kv[i, c]) * free[i, c]
@@ -277,7 +318,7 @@ def _run_implicit_euler(
         r0 = np.sqrt(rr)
         it = 0
         while it < maxit and np.sqrt(rr) > tol * r0 and rr > 0.0:
-            _tangent_product(force, data, u, p, linear, ap, t1, t2)
+            _tangent_product(force, data, scratch, u, p, linear, ap, t1, t2)
             pap = 0.0
             for i in range(nv):
                 for c in range(3):
@@ -300,6 +341,9 @@ def _run_implicit_euler(
         unconverged = it >= maxit and np.sqrt(rr) > tol * r0
         spent += unconverged
         ok = True
+        last = s == n - 1 or (unconverged and not budget)
+        if last:
+            z[:] = u  # u_old, where the step's tangent was taken
         for i in range(nv):
             for c in range(3):
                 if free[i, c] != 0.0:
@@ -307,9 +351,16 @@ def _run_implicit_euler(
                     u[i, c] += dt * v[i, c]
                     if not abs(u[i, c]) < bound:
                         ok = False
+        if last and ok:  # the implicit part of the step's force, with the velocities the solve used
+            _tangent_product(force, data, scratch, z, v, linear, kv, t1, t2)
+            for i in range(nv):
+                for c in range(3):
+                    f[i, c] -= (beta + dt) * kv[i, c]
         _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
         if not ok:
             return 1, s, total, worst, spent
+        if last:
+            _tool_reaction(tools, mass, f, fext, v, vt, alpha, dt, reaction)
         if unconverged and not budget:
             return 2, s, total, worst, spent
     return 0, -1, total, worst, spent
@@ -425,6 +476,9 @@ class _Prepared:
     bound: float  # m, the blow-up bound
     f: np.ndarray  # (N, 3) force buffer
     w: np.ndarray  # (N, 3) buffer for u + beta v
+    scratch: tuple  # the force kernel's own scratch (Model.new_scratch): this workspace's alone
+    vt: np.ndarray  # (P, 3) m/s, the tool vertices' velocities before the last step
+    reaction: np.ndarray  # (L, 3) N, the tools' force on the body in the last step
     version: int = 0  # set_forces calls: a stored acceleration from an older version is stale
 
     @staticmethod
@@ -438,7 +492,19 @@ class _Prepared:
         vert, mask, tid, kind, vector, axis, center, angle, ramp, shape = lo.tools_tuple()
         tools = (vert, mask, tid, kind, vector.copy(), axis, center, angle.copy(), ramp.copy(), shape)
         n = model.n_vertices
-        return _Prepared(model, inv_mass, per_dof, fext, tools, blowup_bound(model), np.empty((n, 3)), np.empty((n, 3)))
+        return _Prepared(
+            model,
+            inv_mass,
+            per_dof,
+            fext,
+            tools,
+            blowup_bound(model),
+            np.empty((n, 3)),
+            np.empty((n, 3)),
+            model.new_scratch(),
+            np.zeros((len(vert), 3)),
+            np.zeros((len(kind), 3)),
+        )
 
 
 @dataclass
@@ -460,7 +526,9 @@ class Integrator:
     def _prepare(self, model: Model) -> _Prepared:
         """What every call on ``model`` needs, computed on the first call and kept while the model
         stays the same object (a Model is immutable): a haptic loop calling ``step`` with n = 1 then
-        pays only the compiled call. One integrator per thread: the force buffers are shared."""
+        pays only the compiled call. Two threads may step one model, each with its own integrator: the
+        buffers and the kernel's scratch are the integrator's."""
+        model.check_current()
         if self._prepared is None or self._prepared.model is not model:
             self._prepared = _Prepared.of(model)
         return self._prepared
@@ -523,18 +591,19 @@ class SymplecticEuler(Integrator):
 
     name = "symplectic-euler"
 
-    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None):
-        """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up."""
+    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None) -> np.ndarray:
+        """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up. Returns the
+        tools' force on the body in the last step, (L, 3) float64 N (``_tool_reaction``)."""
         p = self._prepare(model)
         bad = _run_symplectic_euler(
-            n, dt, state.t, model.force_kernel, model.data, model.points, p.per_dof,
-            p.tools, self.alpha, self.beta, p.bound, state.u, state.v, p.f, p.w,
+            n, dt, state.t, model.force_kernel, model.data, p.scratch, model.points, p.per_dof, model.mass,
+            p.fext, p.tools, self.alpha, self.beta, p.bound, state.u, state.v, p.f, p.w, p.vt, p.reaction,
         )  # fmt: skip
         if bad >= 0:
             self._diverged(model, state, bad, dt, dt_crit)
         state.t += n * dt
         state.steps += n
-        return state
+        return p.reaction.copy()
 
 
 class CentralDifference(Integrator):
@@ -542,8 +611,9 @@ class CentralDifference(Integrator):
 
     name = "central-difference"
 
-    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None):
-        """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up."""
+    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None) -> np.ndarray:
+        """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up. Returns the
+        tools' force on the body at the end of the last step, (L, 3) float64 N (``_tool_reaction``)."""
         p = self._prepare(model)
         lo = model.loading
         acc = state.acc
@@ -554,14 +624,15 @@ class CentralDifference(Integrator):
             state.acc = acc
         state.acc_key = key
         bad = _run_central_difference(
-            n, dt, state.t, model.force_kernel, model.data, model.points, p.inv_mass, lo.free,
-            p.fext, p.tools, self.alpha, self.beta, p.bound, state.u, state.v, acc, p.f, p.w,
+            n, dt, state.t, model.force_kernel, model.data, p.scratch, model.points, model.mass, p.inv_mass,
+            lo.free, p.fext, p.tools, self.alpha, self.beta, p.bound, state.u, state.v, acc, p.f, p.w, p.vt,
+            p.reaction,
         )  # fmt: skip
         if bad >= 0:
             self._diverged(model, state, bad, dt, dt_crit)
         state.t += n * dt
         state.steps += n
-        return state
+        return p.reaction.copy()
 
 
 def rest_stiffness(model: Model) -> sp.csr_matrix:
@@ -665,17 +736,18 @@ class ImplicitEuler(Integrator):
     def critical_dt(self, model: Model, omega2: float | None = None) -> float:
         return math.inf  # A-stable for linear models; the non-linear ones are checked by the blow-up bound
 
-    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None):
-        """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up."""
+    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None) -> np.ndarray:
+        """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up. Returns the
+        tools' force on the body in the last step, (L, 3) float64 N (``_run_implicit_euler``)."""
         lo = model.loading
         p = self._prepare(model)
         factored = self.preconditioner_for(model) == "factored"
         fac = self._factored(model, dt) if factored else _NO_FACTOR
         work = tuple(np.zeros_like(state.u) for _ in range(9))
         status, last, its, worst, spent = _run_implicit_euler(
-            n, dt, state.t, model.force_kernel, model.data, model.linear, model.points, model.mass, lo.free,
-            p.fext, p.tools, self.alpha, self.beta, p.bound, self.tol,
-            self.maxit, factored, fac, state.u, state.v, work, self.budget,
+            n, dt, state.t, model.force_kernel, model.data, p.scratch, model.linear, model.points, model.mass,
+            lo.free, p.fext, p.tools, self.alpha, self.beta, p.bound, self.tol,
+            self.maxit, factored, fac, state.u, state.v, work, self.budget, p.vt, p.reaction,
         )  # fmt: skip
         self.iterations, self.worst_iterations = int(its), int(worst)
         self.unconverged += int(spent)
@@ -692,7 +764,7 @@ class ImplicitEuler(Integrator):
             )
         state.t += n * dt
         state.steps += n
-        return state
+        return p.reaction.copy()
 
 
 INTEGRATORS = {cls.name: cls for cls in (SymplecticEuler, CentralDifference, ImplicitEuler)}

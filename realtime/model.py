@@ -4,9 +4,10 @@ A ``Model`` is built once (``realtime.build_model``) and never changes during a 
 tetrahedra, lumped masses, the material, the model's force kernel with its precomputed data, and the
 ``Loading`` (constraints, external forces, tools). A ``State`` is what an integrator advances:
 displacements, velocities, time. Nothing in a Model refers to a State, so one model can drive many
-states in turn (a sweep over time steps). The element kernels keep their scratch blocks in the model's
-data and an integrator keeps its force buffers, so that a step allocates nothing: two threads that
-step at the same time (a haptic loop beside a visual one) each need their own model and integrator.
+states in turn (a sweep over time steps). Nothing a step writes lives in a Model either: the element
+kernels' scratch blocks (``Model.new_scratch``) and the force buffers belong to the integrator's
+workspace, so that a step allocates nothing and two threads can step two states on one model at
+once (a haptic loop beside a visual one), each with its own integrator.
 """
 
 from __future__ import annotations
@@ -17,11 +18,21 @@ from dataclasses import dataclass, field
 import numba as nb
 import numpy as np
 
-from .errors import LoadingError
+from .errors import InputError, LoadingError
 from .geometry import check_tets, lumped_volumes
 from .material import Material
 
 _JIT = dict(nogil=True, cache=True)
+
+#: The scratch tuple of the force kernels that write nothing besides their output (linear tensor-mass,
+#: springs): every force kernel takes one, so that the integrators call them all alike.
+NO_SCRATCH = (np.zeros(0),)
+
+
+def no_scratch() -> tuple:
+    """Model.new_scratch of those kernels: NO_SCRATCH (shared; they never write it)."""
+    return NO_SCRATCH
+
 
 TOOL_TRANSLATION = 0
 TOOL_ROTATION = 1
@@ -183,11 +194,13 @@ class Model:
         material: the Material.
         mass: (N,) float64 lumped masses, kg (rho V / 4 from each tetrahedron).
         loading: constraints and loads.
-        force_kernel: numba function ``force(data, u, f)`` writing the internal force (N, 3), N.
+        force_kernel: numba function ``force(data, scratch, u, f)`` writing the internal force (N, 3), N.
         energy_kernel: numba function ``energy(data, u) -> float`` elastic energy, J.
-        data: the tuple of arrays the kernels take.
+        data: the tuple of read-only arrays the kernels take.
         linear: True if the internal force is linear in u (the stiffness never changes).
         extra: model-specific objects (for example the TensorMass, for cutting).
+        new_scratch: a function returning a fresh tuple of the arrays ``force_kernel`` writes besides
+            its output (each caller that steps the model at the same time as another needs its own).
     """
 
     name: str
@@ -201,16 +214,28 @@ class Model:
     data: tuple
     linear: bool
     extra: dict = field(default_factory=dict)
+    new_scratch: Callable[[], tuple] = no_scratch
 
     @property
     def n_vertices(self) -> int:
         return len(self.points)
 
     def internal_force(self, u: np.ndarray) -> np.ndarray:
-        """Internal elastic force (N, 3) float64, N, at displacement u (N, 3) m."""
+        """Internal elastic force (N, 3) float64, N, at displacement u (N, 3) m (with scratch of its own:
+        safe beside any other call)."""
         f = np.empty_like(u, dtype=float)
-        self.force_kernel(self.data, np.ascontiguousarray(u, dtype=float), f)
+        self.force_kernel(self.data, self.new_scratch(), np.ascontiguousarray(u, dtype=float), f)
         return f
+
+    def check_current(self) -> None:
+        """Raise InputError if this model was cut since it was built (``realtime.cut`` returned its
+        successor, which shares and has changed its stiffness tensors)."""
+        tensors = self.extra.get("tensors")
+        if tensors is not None and tensors.generation != self.extra.get("generation", tensors.generation):
+            raise InputError(
+                f"{self.name}: this model was cut {tensors.generation - self.extra['generation']} time(s) since it "
+                "was built; step the model realtime.cut returned"
+            )
 
     def elastic_energy(self, u: np.ndarray) -> float:
         """Elastic energy, J, at displacement u (N, 3) m."""
@@ -226,21 +251,27 @@ class Model:
         _tool_displacements(self.points, self.loading.tools_tuple(), t, out)
         return out
 
-    def reaction(self, u: np.ndarray) -> np.ndarray:
-        """Total force (3,) N the tools exert on the body at static equilibrium.
+    def tool_reactions(self, u: np.ndarray) -> np.ndarray:
+        """Force (L, 3) N each tool exerts on the body at static equilibrium at displacement u (N, 3) m.
 
-        On a prescribed component the body's equation reads 0 = f_int + f_ext + R, so the tools'
-        force is R = -(f_int + f_ext) summed over their components. (In a dynamic run this is the
-        quasi-static reaction; the tool's own inertia term m a is left out.)
+        On a prescribed component the body's equation reads 0 = f_int + f_ext + R, so a tool's force is
+        R = -(f_int + f_ext) summed over its components. In a dynamic run this is the quasi-static part;
+        the force with inertia and damping is what the integrators' ``step`` returns.
         """
         lo = self.loading
+        out = np.zeros((len(lo.tool_kind), 3))
         if len(lo.tool_vertex) == 0:
-            return np.zeros(3)
+            return out
         own = self.extra.get("quasistatic")
-        if own is not None and hasattr(own, "reaction"):  # condensed: the state holds the surface only
-            return own.reaction(lo.tool_vertex, lo.tool_mask, u)
+        if own is not None and hasattr(own, "tool_reactions"):  # condensed: the state holds the surface only
+            return own.tool_reactions(self, u)
         f = self.internal_force(u) + lo.external_force
-        return -np.sum(f[lo.tool_vertex] * lo.tool_mask, axis=0)
+        np.add.at(out, lo.tool_id, -f[lo.tool_vertex] * lo.tool_mask)
+        return out
+
+    def reaction(self, u: np.ndarray) -> np.ndarray:
+        """Total force (3,) N the tools exert on the body at static equilibrium (tool_reactions summed)."""
+        return self.tool_reactions(u).sum(axis=0)
 
 
 def lumped_masses(points: np.ndarray, tets: np.ndarray, density: float) -> np.ndarray:

@@ -13,14 +13,16 @@ import numpy as np
 from .errors import InputError
 from .geometry import signed_volumes, unique_edges
 from .material import Material
-from .model import Loading, Model, lumped_masses, prepare_mesh
+from .model import Loading, Model, lumped_masses, no_scratch, prepare_mesh
 from .nonlinear import (
-    BLOCK,
     block_data,
+    block_scratch,
     corotational_energy,
     corotational_force,
+    corotational_scratch,
     hybrid_energy,
     hybrid_force,
+    hybrid_scratch,
     law_params,
     spring_energy,
     spring_force,
@@ -48,6 +50,7 @@ def build_linear_tm(points, tets, material: Material, loading: Loading | None = 
         tm.kernel_data(),
         True,
         tensors=tm,
+        generation=tm.generation,
     )
 
 
@@ -58,9 +61,11 @@ def cut(model: Model, which) -> Model:
     cut to the next.
 
     The vertex and edge tensors of the removed tetrahedra's vertices and edges are updated in place
-    (cost proportional to the cut, not to the mesh), and the lumped masses too; a vertex left with no
-    tetrahedron is held fixed. Returns the new Model; the old one shares the updated tensors and must
-    not be used again.
+    (cost proportional to the cut, not to the mesh: a haptic frame can afford it), and the lumped
+    masses too; a vertex left with no tetrahedron is held fixed. Returns the new Model. The old one
+    shares the updated tensors but not the new masses and constraints: every integrator refuses to
+    step it from then on (InputError), so a thread still holding it fails at once instead of running a
+    model that is half the old and half the new.
     """
     tm = model.extra.get("tensors")
     if model.name != "linear-tm" or tm is None:
@@ -78,10 +83,11 @@ def cut(model: Model, which) -> Model:
     free[orphan] = 0.0
     mass[orphan] = 1.0  # never used: orphans do not move; keeps 1/m finite
     loading = Loading(**{**model.loading.__dict__, "free": free})
-    return Model(**{**model.__dict__, "tets": alive_tets, "mass": mass, "loading": loading})
+    extra = {**model.extra, "generation": tm.generation}
+    return Model(**{**model.__dict__, "tets": alive_tets, "mass": mass, "loading": loading, "extra": extra})
 
 
-def _model(name, points, tets, material, loading, force, energy, data, linear, **extra) -> Model:
+def _model(name, points, tets, material, loading, force, energy, data, linear, scratch=no_scratch, **extra) -> Model:
     if loading is not None:
         loading.check(len(points))
     return Model(
@@ -94,6 +100,7 @@ def _model(name, points, tets, material, loading, force, energy, data, linear, *
         force_kernel=force,
         energy_kernel=energy,
         data=data,
+        new_scratch=scratch,
         linear=linear,
         extra=extra,
     )
@@ -104,8 +111,8 @@ def build_stvk_tm(points, tets, material: Material, loading: Loading | None = No
     the volume penalty when ``material.volume_penalty`` > 0. Rotation invariant."""
     points, tets = prepare_mesh(points, tets)
     btets, geo = block_data(points, tets, material)
-    data = (btets, geo, law_params(material), np.zeros(9 * BLOCK), np.ones(len(btets), dtype=np.bool_))
-    return _model("stvk-tm", points, tets, material, loading, stvk_force, stvk_energy, data, False)
+    data = (btets, geo, law_params(material), np.ones(len(btets), dtype=np.bool_))
+    return _model("stvk-tm", points, tets, material, loading, stvk_force, stvk_energy, data, False, block_scratch)
 
 
 def build_corotational_tm(points, tets, material: Material, loading: Loading | None = None) -> Model:
@@ -120,10 +127,18 @@ def build_corotational_tm(points, tets, material: Material, loading: Loading | N
         )
     points, tets = prepare_mesh(points, tets)
     btets, geo = block_data(points, tets, material)
-    scratch = (np.zeros(9 * BLOCK), np.zeros(10 * BLOCK), np.ones(len(btets), dtype=np.bool_))
-    data = (btets, geo, law_params(material), *scratch)
+    data = (btets, geo, law_params(material), np.ones(len(btets), dtype=np.bool_))
     return _model(
-        "corotational-tm", points, tets, material, loading, corotational_force, corotational_energy, data, False
+        "corotational-tm",
+        points,
+        tets,
+        material,
+        loading,
+        corotational_force,
+        corotational_energy,
+        data,
+        False,
+        corotational_scratch,
     )
 
 
@@ -143,16 +158,8 @@ def build_hybrid_tm(
     if not threshold >= 0.0:
         raise InputError(f"hybrid-tm: threshold = {threshold!r} must be >= 0 m")
     btets, geo = block_data(points, tets, material)
-    data = (
-        tm.kernel_data(),
-        btets,
-        geo,
-        law_params(material),
-        np.zeros(9 * BLOCK),
-        np.array([float(threshold)]),
-        np.zeros(len(points), dtype=np.bool_),
-        np.zeros(len(btets), dtype=np.bool_),
-    )
+    data = (tm.kernel_data(), btets, geo, law_params(material), np.array([float(threshold)]))
+    n_points, n_padded = len(points), len(btets)
     return _model(
         "hybrid-tm",
         points,
@@ -163,6 +170,7 @@ def build_hybrid_tm(
         hybrid_energy,
         data,
         False,
+        lambda: hybrid_scratch(n_points, n_padded),
         tensors=tm,
         threshold=float(threshold),
     )

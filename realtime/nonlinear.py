@@ -13,8 +13,10 @@ P1 StVK residual. The kernels evaluate blocks of tetrahedra at once, vectorised 
 block section below); the corotational polar iteration runs on a whole block until its slowest
 tetrahedron has converged.
 
-Data tuples are documented at each kernel; all arrays are float64 unless said, and scratch arrays
-passed in the tuple keep the kernels free of allocation.
+Every force kernel is ``force(data, scratch, u, f)``: ``data`` the model's read-only arrays, ``scratch``
+the arrays it writes besides f, which belong to the caller (an integrator's workspace: two threads
+stepping one model each pass their own) and keep the kernels free of allocation. Both tuples are
+documented at each kernel; all arrays are float64 unless said.
 """
 
 from __future__ import annotations
@@ -263,15 +265,21 @@ def _stvk_block(W, geo, gb, prm, minus_linear):
         _lane_out(W, q, v, (p00, p01, p02, p10, p11, p12, p20, p21, p22), g)
 
 
+def block_scratch() -> tuple:
+    """The scratch of stvk_force: W (9 BLOCK,) float64, one block's displacement differences and forces."""
+    return (np.zeros(9 * BLOCK),)
+
+
 @nb.njit(**_HOT)
-def stvk_force(data, u, f):
+def stvk_force(data, scratch, u, f):
     """StVK tensor-mass force (Picinbono et al. 2003), with fibre terms and the volume penalty.
 
     data: (tets (P, 4) int64 and geo (GEO_ROWS P,) from block_data, prm (5,) law_params,
-           W (9 BLOCK,) float64 scratch, everywhere (P,) bool all True)
+           everywhere (P,) bool all True).   scratch: block_scratch().
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
     """
-    tets, geo, prm, W, everywhere = data
+    tets, geo, prm, everywhere = data
+    W = scratch[0]
     f[:] = 0.0
     for b in range(tets.shape[0] // BLOCK):
         _gather(tets, b * BLOCK, u, W)
@@ -443,16 +451,23 @@ def _corotational_block(W, R, geo, gb, lam, mu):
         _lane_out(W, q, v, _corotated_pk1(_plus_identity(H), _lane_rows(R, _ROW[0], q), lam, mu), g)
 
 
+def corotational_scratch() -> tuple:
+    """The scratch of corotational_force: W (9 BLOCK,) as block_scratch, R (10 BLOCK,) float64 the
+    block's rotations and last polar changes."""
+    return (np.zeros(9 * BLOCK), np.zeros(10 * BLOCK))
+
+
 @nb.njit(**_HOT)
-def corotational_force(data, u, f):
+def corotational_force(data, scratch, u, f):
     """Corotational linear force: f_a -= V R sigma(sym(R^T F) - I) g_a, R the polar rotation of F.
 
     This is the exact gradient of W(F) = lam/2 tr(S - I)^2 + mu |S - I|^2, S = R^T F the polar stretch
     (the "corotated" energy; SOFA's TetrahedronFEMForceField, method "polar").
     data: (tets (P, 4) int64 and geo (GEO_ROWS P,) from block_data, prm (5,) law_params,
-           scratch: W (9 BLOCK,), R (10 BLOCK,) float64, everywhere (P,) bool all True)
+           everywhere (P,) bool all True).   scratch: corotational_scratch().
     """
-    tets, geo, prm, W, R, everywhere = data
+    tets, geo, prm, everywhere = data
+    W, R = scratch
     f[:] = 0.0
     for b in range(tets.shape[0] // BLOCK):
         _gather(tets, b * BLOCK, u, W)
@@ -480,8 +495,14 @@ def corotational_energy(data, u):
 # hybrid: linear tensor-mass everywhere, corrected to StVK on the tetrahedra that moved
 
 
+def hybrid_scratch(n_vertices: int, n_padded: int) -> tuple:
+    """The scratch of hybrid_force on N vertices and P (padded) tetrahedra: W (9 BLOCK,) float64 as
+    block_scratch, moved (N,) bool, flags (P,) bool."""
+    return (np.zeros(9 * BLOCK), np.zeros(n_vertices, dtype=np.bool_), np.zeros(n_padded, dtype=np.bool_))
+
+
 @nb.njit(**_HOT)
-def hybrid_force(data, u, f):
+def hybrid_force(data, scratch, u, f):
     """f = f_linear-tm(u) + sum over flagged tetrahedra of (f_stvk,e(u) - f_linear,e(u)).
 
     A tetrahedron is non-linear when one of its vertices moved more than ``threshold`` (m) from rest
@@ -489,11 +510,11 @@ def hybrid_force(data, u, f):
     round-off). Threshold infinity: none, exactly the linear-tm force. Blocks with no flagged
     tetrahedron cost only the flag test.
     data: (linear-tm data tuple, tets (P, 4) int64 and geo (GEO_ROWS P,) from block_data, prm (5,)
-           law_params, W (9 BLOCK,) float64 scratch, threshold (1,) m, scratch: moved (N,) bool,
-           flags (P,) bool)
+           law_params, threshold (1,) m).   scratch: hybrid_scratch(N, P).
     """
-    lin, tets, geo, prm, W, threshold, moved, flags = data
-    linear_tm_force(lin, u, f)
+    lin, tets, geo, prm, threshold = data
+    W, moved, flags = scratch
+    linear_tm_force(lin, scratch, u, f)  # which takes no scratch
     thr2 = threshold[0] * threshold[0]
     for i in range(u.shape[0]):
         moved[i] = u[i, 0] * u[i, 0] + u[i, 1] * u[i, 1] + u[i, 2] * u[i, 2] > thr2
@@ -515,7 +536,7 @@ def hybrid_energy(data, u):
     """Energy of the same split, with the flags of the current u: the linear tensor-mass energy plus,
     on the flagged tetrahedra, V (W_stvk + W_penalty - W_linear)."""
     lin, tets, geo, prm = data[0], data[1], data[2], data[3]
-    thr2 = data[5][0] * data[5][0]
+    thr2 = data[4][0] * data[4][0]
     w = linear_tm_energy(lin, u)
     for e in range(tets.shape[0]):
         moved = False
@@ -538,10 +559,11 @@ def hybrid_energy(data, u):
 
 
 @nb.njit(**_HOT)
-def spring_force(data, u, f):
+def spring_force(data, scratch, u, f):
     """Edge springs: f_i += k_ij (|x_j - x_i| - L_ij) (x_j - x_i) / |x_j - x_i| (Delingette 1998).
 
-    data: (points (N,3) m, edges (E,2) int64, stiffness (E,) N/m, rest_length (E,) m)
+    data: (points (N,3) m, edges (E,2) int64, stiffness (E,) N/m, rest_length (E,) m).
+    scratch: model.NO_SCRATCH (unused).
     """
     X, edges, k, L = data
     f[:] = 0.0

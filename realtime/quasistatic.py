@@ -44,15 +44,26 @@ def _stiffness(model: Model) -> sp.csr_matrix:
     return model.extra["tensors"].matrix()
 
 
-def _tool_targets(model: Model, t: float) -> tuple[np.ndarray, np.ndarray]:
-    """Prescribed dofs (D,) int64 and their displacements (D,) m at time t."""
-    lo = model.loading
-    disp = model.tool_displacement(t)
-    mask = lo.tool_mask != 0.0
-    dofs = (3 * lo.tool_vertex[:, None] + np.arange(3)[None, :])[mask]
-    vals = disp[mask]
-    dofs, first = np.unique(dofs, return_index=True)
-    return dofs, vals[first]
+class _Targets:
+    """The tools' prescribed dofs of a model, worked out once: ``dofs`` (D,) int64, sorted, and
+    ``tools`` (D,) int64 the tool that prescribes each (the first, where two hold one dof)."""
+
+    def __init__(self, model: Model):
+        lo = model.loading
+        self.mask = lo.tool_mask != 0.0
+        dofs = (3 * lo.tool_vertex[:, None] + np.arange(3)[None, :])[self.mask]
+        self.dofs, self.first = np.unique(dofs, return_index=True)
+        self.tools = np.broadcast_to(lo.tool_id[:, None], self.mask.shape)[self.mask][self.first]
+
+    def values(self, model: Model, t: float) -> np.ndarray:
+        """The prescribed dofs' displacements (D,) m at time t."""
+        return model.tool_displacement(t)[self.mask][self.first]
+
+
+def _per_tool(model: Model, dofs: np.ndarray, tools: np.ndarray, forces: np.ndarray) -> np.ndarray:
+    """The forces (D,) N on the prescribed dofs (D,) summed by tool (D,): (L, 3) N."""
+    n_tools = len(model.loading.tool_kind)
+    return np.bincount(3 * tools + dofs % 3, weights=forces, minlength=3 * n_tools).reshape(n_tools, 3)
 
 
 class Precomputed:
@@ -60,6 +71,7 @@ class Precomputed:
 
     Attributes:
         free_dofs: (F,) int64 free dofs (not fixed by the scene's fixed regions).
+        targets: the tools' prescribed dofs (_Targets).
         surface_dofs: (S,) int64 free dofs of surface vertices, the columns of T.
         T: (F, S) float64, m/N: responses of all free dofs to unit forces at the surface dofs.
         u0: (3N,) float64, m: response to the constant loads.
@@ -78,6 +90,7 @@ class Precomputed:
         if len(lo.tool_vertex):
             tool[lo.tool_vertex] = lo.tool_mask != 0.0
         held = (fixed & ~tool).ravel()  # held by fixed regions; tool dofs stay free here
+        self.targets = _Targets(model)
         self.free_dofs = np.flatnonzero(~held)
         surf = _surface_vertices(model.tets)
         sdofs = (3 * surf[:, None] + np.arange(3)).ravel()
@@ -159,6 +172,9 @@ class Condensed:
     Attributes:
         retained: (R,) int64 retained dofs (surface and constrained vertices), interior: (I,) int64.
         K_star: (R, R) float64, N/m, the Schur complement; f_star: (R,) float64, N.
+        targets: the tools' prescribed dofs (_Targets); K_tool (D, R) and f_tool (D,): the rows of K_star
+            and f_star of those dofs, whose product with the retained displacements less f_tool is the
+            force that holds them.
     """
 
     model_name = "condensed"
@@ -196,10 +212,13 @@ class Condensed:
         self.n = n
         # Bro-Nielsen's precomputation: the free retained response to the loads (z0) and to unit
         # displacements of the tool dofs (G), so that an update is z0 + G d, a (F x 3P) product
-        tool_dofs, _ = _tool_targets(model, np.inf)
+        self.targets = _Targets(model)
+        tool_dofs, self.tool_ids = self.targets.dofs, self.targets.tools
         pos = {int(d): k for k, d in enumerate(self.retained)}
         self.tool_cols = np.array([np.flatnonzero(self.held_r == pos[int(d)])[0] for d in tool_dofs], dtype=np.int64)
         self.tool_dofs = tool_dofs
+        tool_rows = self.held_r[self.tool_cols]
+        self.K_tool, self.f_tool = self.K_star[tool_rows], self.f_star[tool_rows]  # (D, R), (D,)
         self.z0 = sla.cho_solve(self.chol, self.f_star[self.free_r])
         self.G = (
             -sla.cho_solve(self.chol, self.K_fc[:, self.tool_cols])
@@ -222,14 +241,13 @@ class Condensed:
         u[self.free_r] = sla.cho_solve(self.chol, self.f_star[self.free_r] - self.K_fc @ held_values)
         return u
 
-    def reaction(self, tool_vertex: np.ndarray, tool_mask: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Total force (3,) N the tools exert, from the retained displacements in ``u`` (N, 3) m alone
-        (``QuasiStatic.step`` leaves the interior at zero): on a held retained dof the condensed equation
-        reads R = K* u_r - f*, exact whatever the interior holds. ``tool_vertex`` (P,) int64 and
-        ``tool_mask`` (P, 3) float64 as in Loading."""
-        r = np.zeros(3 * self.n)
-        r[self.retained] = self.K_star @ np.ascontiguousarray(u, dtype=float).ravel()[self.retained] - self.f_star
-        return np.sum(r.reshape(-1, 3)[tool_vertex] * tool_mask, axis=0)
+    def tool_reactions(self, model: Model, u: np.ndarray) -> np.ndarray:
+        """Force (L, 3) N each tool exerts on the body, from the retained displacements in ``u`` (N, 3) m
+        alone (``QuasiStatic.step`` leaves the interior at zero): on a tool's dof the condensed equation
+        reads K* u_r = f* + R, so R = K* u_r - f* on those rows (a (D x R) product), exact whatever the
+        interior holds."""
+        u_r = np.ascontiguousarray(u, dtype=float).ravel()[self.retained]
+        return _per_tool(model, self.tool_dofs, self.tool_ids, self.K_tool @ u_r - self.f_tool)
 
     def full(self, u_r: np.ndarray) -> np.ndarray:
         """All displacements (N, 3) m: the interior recovered from the retained ones."""
@@ -262,26 +280,32 @@ class QuasiStatic:
             "displacements); build it again with the new targets"
         )
 
-    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None) -> State:
+    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None) -> np.ndarray:
+        """Jump ``state`` to the equilibrium with the tools where they are at t + n dt. Returns the
+        force (L, 3) float64 N each tool exerts on the body there (Model.tool_reactions: static, as the
+        model is)."""
+        model.check_current()
         solver = model.extra["quasistatic"]
         t = state.t + n * dt
-        dofs, vals = _tool_targets(model, t)
+        dofs, tools, vals = solver.targets.dofs, solver.targets.tools, solver.targets.values(model, t)
         if isinstance(solver, Precomputed):
-            u, _ = solver.solve(dofs, vals)
+            u, forces = solver.solve(dofs, vals)
+            state.u[:] = u
+            out = _per_tool(model, dofs, tools, forces)
         else:
-            u = np.zeros(model.n_vertices * 3)
-            u[solver.retained] = solver.update(vals)
-            u = u.reshape(-1, 3)
-        state.u[:] = u
+            u_r = solver.update(vals)
+            state.u[:] = 0.0
+            state.u.reshape(-1)[solver.retained] = u_r
+            out = _per_tool(model, dofs, tools, solver.K_tool @ u_r - solver.f_tool)
         state.v[:] = 0.0
         state.t = t
         state.steps += n
-        return state
+        return out
 
     def equilibrium(self, model: Model, t: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """Displacement (N, 3) m at equilibrium (all vertices) and the tools' total force (3,) N."""
         solver = model.extra["quasistatic"]
-        dofs, vals = _tool_targets(model, t)
+        dofs, vals = solver.targets.dofs, solver.targets.values(model, t)
         if isinstance(solver, Precomputed):
             u, F = solver.solve(dofs, vals)
             R = np.zeros(3)

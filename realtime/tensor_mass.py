@@ -84,6 +84,7 @@ class TensorMass:
         edge_tensors: (E, 3, 3) float64, N/m: T_ij for edge (i, j), i < j.
         tet_edges: (M, 6) int64, the edge index of each local edge (LOCAL_EDGES order).
         ke: (M, 4, 4, 3, 3) float64, the element blocks, kept for local updates (cutting).
+        generation: the number of cuts made (``remove`` calls).
     """
 
     def __init__(self, points: np.ndarray, tets: np.ndarray, material: Material):
@@ -96,6 +97,7 @@ class TensorMass:
         self.vertex_tensors = np.zeros((self.n_vertices, 3, 3))
         self.edge_tensors = np.zeros((len(self.edges), 3, 3))
         self._scatter(np.arange(len(self.tets)), +1.0)
+        self.generation = 0  # cuts made: a model built at an older generation holds outdated masses
 
     def _scatter(self, which: np.ndarray, sign: float) -> None:
         """Add (sign=+1) or remove (sign=-1) the blocks of tetrahedra ``which`` (K,) int."""
@@ -118,6 +120,7 @@ class TensorMass:
             raise InputError(f"cut: tetrahedron {bad} was already removed")
         self._scatter(which, -1.0)
         alive[which] = False
+        self.generation += 1
 
     @property
     def alive(self) -> np.ndarray:
@@ -149,12 +152,13 @@ class TensorMass:
 
 
 @nb.njit(**_HOT)
-def linear_tm_force(data, u, f):
+def linear_tm_force(data, scratch, u, f):
     """f = -K u from vertex and edge tensors, in one pass over the vertices.
 
     Vertex i gathers -T_ii u_i - sum_j T_ij u_j over its edges (i, j > i) in registers and scatters
     -T_ij^T u_i to each j; f_i is written once. Each edge tensor is loaded once into registers.
     data: (vertex_tensors (N,3,3) N/m, cols (E,) int64, edge_tensors (E,3,3) N/m, row_start (N+1,) int64)
+    scratch: model.NO_SCRATCH (unused).
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 output force, N (overwritten).
     """
     vt, cols, et, row_start = data

@@ -404,7 +404,8 @@ def test_frame_inputs_are_checked_with_one_line_errors():
     with pytest.raises(InputError, match=r"angle: must be a \(\) array of numbers, got str"):
         integ.set_tool(model, 0, angle="a quarter turn")
     integ.set_tool(model, 0, angle=0.01)
-    state = integ.step(model, State.at_rest(n), 1e-7, 1)
+    state = State.at_rest(n)
+    integ.step(model, state, 1e-7, 1)
     x = mesh.points[load.tool_vertex]
     turned = x @ np.array([[np.cos(0.01), -np.sin(0.01), 0.0], [np.sin(0.01), np.cos(0.01), 0.0], [0, 0, 1]]).T
     np.testing.assert_allclose(state.u[load.tool_vertex], turned - x, rtol=0, atol=1e-15)

@@ -293,8 +293,10 @@ def test_quasi_static_models_equal_the_static_linear_solution(name):
     assert np.linalg.norm(reaction - model.reaction(exact)) / np.linalg.norm(reaction) < 1e-8
     # the state a step leaves (condensed: the surface only, the interior at zero) gives the same
     # reaction through the model's own method (it was 586% off for condensed)
-    state = QuasiStatic().step(model, State.at_rest(mesh.n_vertices), 1e6, 1)  # past the ramp
+    state = State.at_rest(mesh.n_vertices)
+    tools = QuasiStatic().step(model, state, 1e6, 1)  # past the ramp
     assert np.linalg.norm(model.reaction(state.u) - reaction) / np.linalg.norm(reaction) < 1e-8
+    assert np.linalg.norm(tools.sum(axis=0) - reaction) / np.linalg.norm(reaction) < 1e-8  # what step returns
 
 
 def test_precomputed_tool_force_equals_the_full_update():
@@ -339,7 +341,7 @@ def test_stvk_element_loop_compiles_to_simd():
     model = build_model("stvk-tm", mesh.points, mesh.tets, FIBRE)
     kernel = numba.njit(**{**nonlinear._HOT, "cache": False})(nonlinear.stvk_force.py_func)
     f = np.zeros_like(mesh.points)
-    kernel(model.data, np.zeros_like(mesh.points), f)
+    kernel(model.data, model.new_scratch(), np.zeros_like(mesh.points), f)
     asm = kernel.inspect_asm(kernel.signatures[0])
     packed = len(re.findall(r"vfmadd\w*pd\s+%[yz]mm", asm))
     assert packed >= 50, f"{packed} packed FMAs: the StVK element loop is no longer vectorised"
