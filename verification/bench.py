@@ -8,6 +8,10 @@ its back under gravity, at rest plus a small random displacement so that the non
 work (the hybrid row: a tenth of the vertices moved past its threshold). The "haptic loop" rows call
 step with n = 1, once per step, as a 1000 Hz device loop does: the cost of a whole call, Python and
 numba's dispatch included. Speed is never asserted in the tests: this command reports it.
+
+Each row with a fixed amount of work (linear-tm, stvk-tm, mass-spring, scipy's product) also gets its
+roofline (verification.roofline): the least time its flops and bytes allow at this core's measured FMA
+peak and at the triad bandwidth for data of its size, and the fraction of that bound the row achieves.
 """
 
 from __future__ import annotations
@@ -21,9 +25,11 @@ import numpy as np
 from meshes import stored_mesh
 from meshes.store import STORED
 from realtime import Loading, Material, State, SymplecticEuler, build_model
+from realtime.geometry import unique_edges
 from realtime.models import nonlinear_fraction
 from realtime.quasistatic import QuasiStatic
 
+from .roofline import Roofline, bsr_work, step_work
 from .runner import git_commit, log, versions
 
 MESHES = ("liver", "liver-x10")
@@ -96,8 +102,20 @@ def _step_case(integ, model, state, dt, n, calls=1):
     return fn
 
 
+def _place_on_roofline(roof: Roofline, row: dict, work: tuple[float, float] | None) -> None:
+    """Write the row's roofline bound (microseconds per step, and which ceiling) and achieved fraction."""
+    if work is None or row.get("step_us") is None:
+        return
+    bound, limit = roof.bound_us(*work)
+    row.update(
+        flops=work[0], bytes=work[1], roofline_us=bound, roofline_limit=limit, roofline_fraction=bound / row["step_us"]
+    )
+
+
 def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
     rows = []
+    log("bench: measuring this core's FMA peak and triad bandwidths (the roofline)")
+    roof = Roofline()
     iso = Material(2.8e4, 0.4, 1000.0, law="stvk")
     fibre = Material(2.8e4, 0.4, 1000.0, law="stvk", fiber=(1.0, 0.0, 0.0), young_fiber=6e4, volume_penalty=5e4)
     rng = np.random.default_rng(0)
@@ -236,15 +254,31 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                 )
         log(f"bench: {name} timing {len(cases)} cases x {repeats} rounds")
         _time_round_robin(cases, repeats)
+        n_edges = len(unique_edges(mesh.tets))
         for c in cases:
             c.pop("fn")
             c.update(c.pop("probe", dict)())
+            if c["name"] == "scipy-bsr-matvec":
+                work = bsr_work(c["nnz_blocks"], mesh.n_vertices)
+            elif c["name"] == c["model"] or c["name"].startswith(f"{c['model']}, one step"):
+                work = step_work(c["model"], mesh.n_vertices, mesh.n_tets, n_edges)
+            else:  # a variant (fibres, penalty) does more than the counted kernel
+                work = None
+            _place_on_roofline(roof, c, work)
             rows.append(c)
-    return {"machine": machine(), "results": rows, "meshes": {m: STORED[m] for m in meshes}}
+    return {
+        "machine": {**machine(), "roofline": roof.summary()},
+        "results": rows,
+        "meshes": {m: STORED[m] for m in meshes},
+    }
 
 
 def format_table(out: dict) -> str:
-    lines = [f"machine: {out['machine']['cpu']}, {out['machine']['cores']} cores, numba {out['machine']['numba']}"]
+    m = out["machine"]
+    lines = [f"machine: {m['cpu']}, {m['cores']} cores, numba {m['numba']}"]
+    if "roofline" in m:
+        bw = ", ".join(f"{int(k) / 1e6:.3g} MB {v:.0f}" for k, v in m["roofline"]["triad_gbs"].items())
+        lines.append(f"one core: FMA peak {m['roofline']['fma_gflops']:.0f} GFLOP/s; triad GB/s by data size: {bw}")
     for mesh in dict.fromkeys(r["mesh"] for r in out["results"]):
         rows = [r for r in out["results"] if r["mesh"] == mesh]
         lines.append(f"\n{mesh}: {rows[0]['n_vertices']} vertices, {rows[0]['n_tets']} tetrahedra")
@@ -256,6 +290,10 @@ def format_table(out: dict) -> str:
                 lines.append(f"  {r['name']:<52} skipped: {r['skipped']}")
                 continue
             note = f"  ({r['nonlinear_fraction']:.0%} of tetrahedra non-linear)" if "nonlinear_fraction" in r else ""
+            if "roofline_us" in r:
+                note += (
+                    f"  roofline {r['roofline_us']:.1f} us ({r['roofline_limit']}): {r['roofline_fraction']:.0%} of it"
+                )
             lines.append(
                 f"  {r['name']:<52} {r['step_us']:>10.1f} us  ({r['step_us_min']:.1f} - {r['step_us_max']:.1f})"
                 f"  x{r['step_us'] / lin:5.2f} linear-tm  x{r['step_us'] / bsr:5.2f} bsr{note}"

@@ -1,0 +1,170 @@
+"""The roofline of one core, measured on the machine the benchmark runs on, and each kernel's place on it.
+
+A step cannot take less than the larger of its floating-point work at the core's peak rate and its
+memory traffic at the bandwidth of the cache level its data lives in (Williams, Waterman & Patterson,
+"Roofline", CACM 2009). Both ceilings are measured here, in the same run as the kernels, by two small
+numba loops:
+
+- ``fma_peak``: eight independent degree-16 polynomial chains per SIMD lane on an L1-resident array,
+  Horner's rule, so that the loop is nothing but fused multiply-adds with enough independence to fill
+  both FMA pipes. GFLOP/s, an FMA counted as two flops.
+- ``bandwidth``: STREAM's triad a = b + s c (McCalpin), counted as STREAM counts it (24 bytes per
+  element: read b and c, write a), on three arrays whose total size is the data a kernel touches in a
+  step, so that the ceiling is that of the cache level (L2, L3 or memory) where that data lives.
+
+The work of each model's step (``step_work``) is counted from its kernel's source, per element, and
+the update of symplectic Euler added (the benchmark times force and update together). Flops: + - *
+and FMA halves, a square root or a division as one (they cost more: the count is a floor). Bytes:
+the arrays streamed once per step (element geometry, tensors, connectivity, the integrator's per-dof
+arrays, u, v and f); gathers of u and scatters to f that hit the cache again are not counted, so the
+roofline is optimistic, as it should be: its fraction is an upper bound on what is left to gain.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numba as nb
+import numpy as np
+
+from realtime.nonlinear import GEO_ROWS
+
+_FAST = dict(nogil=True, cache=True, fastmath=True)
+#: fma_peak's independent chains per SIMD lane (enough FMAs in flight for two pipes of latency 4) and
+#: the degree of each chain's polynomial (_horner).
+_CHAINS = 8
+_DEGREE = 16
+
+
+@nb.njit(inline="always", **_FAST)
+def _horner(v):
+    """A degree-16 polynomial of v by Horner's rule: 16 dependent fused multiply-adds."""
+    p = v * 0.5 + 0.25
+    p = p * v + 0.25
+    p = p * v + 0.25
+    p = p * v + 0.25
+    p = p * v + 0.25
+    p = p * v + 0.25
+    p = p * v + 0.25
+    p = p * v + 0.25
+    p = p * v + 0.25
+    p = p * v + 0.25
+    p = p * v + 0.25
+    p = p * v + 0.25
+    p = p * v + 0.25
+    p = p * v + 0.25
+    p = p * v + 0.25
+    return p * v + 0.25
+
+
+@nb.njit(**_FAST)
+def _polynomials(x, reps):
+    """The sum over k = 0..7 and i of p(x[k, i]): eight independent chains in each iteration over i,
+    which the compiler vectorises (a sum, not stores: eight output streams would need more run-time
+    overlap checks than LLVM emits, and it would not vectorise), ``reps`` times."""
+    acc = 0.0
+    for _ in range(reps):
+        for i in range(x.shape[1]):
+            acc += (
+                _horner(x[0, i]) + _horner(x[1, i]) + _horner(x[2, i]) + _horner(x[3, i])
+                + _horner(x[4, i]) + _horner(x[5, i]) + _horner(x[6, i]) + _horner(x[7, i])
+            )  # fmt: skip
+    return acc
+
+
+def fma_peak(seconds: float = 0.3) -> float:
+    """The core's measured double-precision peak, GFLOP/s (best of several timed calls)."""
+    x = np.full((_CHAINS, 64), 0.5)  # 4 kB: L1
+    flops_per_rep = 2.0 * _DEGREE * x.size
+    _polynomials(x, 1)
+    reps = 1000
+    best = np.inf
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        t0 = time.perf_counter()
+        _polynomials(x, reps)
+        best = min(best, (time.perf_counter() - t0) / reps)
+    return flops_per_rep / best / 1e9
+
+
+@nb.njit(**_FAST)
+def _triad(a, b, c, s, reps):
+    for _ in range(reps):
+        for i in range(a.shape[0]):
+            a[i] = b[i] + s * c[i]
+
+
+def bandwidth(footprint_bytes: float, seconds: float = 0.2) -> float:
+    """STREAM triad bandwidth, GB/s (24 bytes an element), on three arrays of ``footprint_bytes`` in all."""
+    n = max(int(footprint_bytes / 24), 1024)
+    a, b, c = np.zeros(n), np.ones(n), np.ones(n)
+    _triad(a, b, c, 0.5, 1)
+    reps = max(1, int(2e7 // n))
+    best = np.inf
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        t0 = time.perf_counter()
+        _triad(a, b, c, 0.5, reps)
+        best = min(best, (time.perf_counter() - t0) / reps)
+    return 24.0 * n / best / 1e9
+
+
+#: Per-element work of each force kernel, counted from its source: (flops, streamed bytes) per
+#: tetrahedron ("tet"), vertex ("vertex") or edge ("edge"). stvk-tm (isotropic, no penalty):
+#: gather 9, H 45, Green-Lagrange strain 45, second Piola-Kirchhoff stress 12, P = (I + H) S 54,
+#: V P g 54, scatter 18 flops = 237; bytes: GEO_ROWS rows of geometry and 4 int64 vertex indices.
+#: linear-tm: 18 flops and 72 + 8 bytes (tensor, row start) a vertex plus 36 flops and 80 bytes
+#: (tensor, column) an edge. mass-spring: 30 flops and 32 bytes (two int64 ends, k, L) an edge.
+#: scipy's BSR product: 18 flops and 80 bytes (block, column index) a 3x3 block.
+KERNEL_WORK = {
+    "stvk-tm": {"tet": (237.0, 8.0 * GEO_ROWS + 32.0)},
+    "linear-tm": {"vertex": (18.0, 80.0), "edge": (36.0, 80.0)},
+    "mass-spring": {"edge": (30.0, 32.0)},
+}
+#: Symplectic Euler's update per vertex: 3 components of (2 FMA + 3 mul/add) flops; bytes: the per-dof
+#: table (3 float64), u and v read and written, f read: (3 + 2 + 2 + 1) x 8 x 3.
+UPDATE_WORK = (3 * 7.0, 3 * 8 * 8.0)
+#: Bytes of u and f a force evaluation reads and writes once per vertex.
+VERTEX_STATE_BYTES = 48.0
+
+
+def step_work(model_name: str, n_vertices: int, n_tets: int, n_edges: int) -> tuple[float, float] | None:
+    """(flops, bytes) of one symplectic Euler step of ``model_name``, or None where the work is not a
+    fixed count (corotational-tm's polar iterations, hybrid-tm's non-linear share)."""
+    work = KERNEL_WORK.get(model_name)
+    if work is None:
+        return None
+    counts = {"tet": n_tets, "vertex": n_vertices, "edge": n_edges}
+    flops = sum(f * counts[k] for k, (f, _) in work.items()) + UPDATE_WORK[0] * n_vertices
+    nbytes = sum(b * counts[k] for k, (_, b) in work.items())
+    nbytes += (VERTEX_STATE_BYTES + UPDATE_WORK[1]) * n_vertices
+    return flops, nbytes
+
+
+def bsr_work(n_blocks: int, n_vertices: int) -> tuple[float, float]:
+    """(flops, bytes) of scipy's BSR product y = K x with ``n_blocks`` 3x3 blocks."""
+    return 18.0 * n_blocks, 80.0 * n_blocks + 48.0 * n_vertices
+
+
+class Roofline:
+    """The measured ceilings of one core: ``peak`` GFLOP/s and a bandwidth (GB/s) per footprint."""
+
+    def __init__(self):
+        self.peak = fma_peak()
+        self._bandwidths: dict[int, float] = {}
+
+    def bandwidth(self, footprint: float) -> float:
+        """Triad bandwidth, GB/s, for data of ``footprint`` bytes (measured once per power of two)."""
+        key = int(2 ** round(np.log2(max(footprint, 1024.0))))
+        if key not in self._bandwidths:
+            self._bandwidths[key] = bandwidth(key)
+        return self._bandwidths[key]
+
+    def bound_us(self, flops: float, nbytes: float) -> tuple[float, str]:
+        """The least time, microseconds, of a step with this work, and which ceiling sets it."""
+        compute = flops / (self.peak * 1e3)
+        memory = nbytes / (self.bandwidth(nbytes) * 1e3)
+        return (compute, "compute") if compute >= memory else (memory, "memory")
+
+    def summary(self) -> dict:
+        return {"fma_gflops": self.peak, "triad_gbs": {str(k): v for k, v in sorted(self._bandwidths.items())}}
