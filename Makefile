@@ -14,7 +14,7 @@ export OMPI_ALLOW_RUN_AS_ROOT := 1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM := 1
 export OMPI_MCA_rmaps_base_oversubscribe := 1
 
-.PHONY: setup apt venv report test lint bench clean-cache
+.PHONY: setup apt venv report test lint bench bench-peers clean-cache
 
 setup: apt $(STAMP)
 
@@ -49,6 +49,15 @@ test: setup lint
 
 bench: setup
 	$(VENV)/bin/tissuebench bench
+
+# Optional, never part of `make test`: the engines users pick (NVIDIA newton, pbatoolkit) timed beside ours
+# in one run, in a venv of their own so that the project's never depends on them (numpy stays Debian's).
+PEERS_VENV := .venv-peers
+bench-peers: setup
+	[ -x $(PEERS_VENV)/bin/python ] || /usr/bin/python3 -m venv --system-site-packages $(PEERS_VENV)
+	$(PEERS_VENV)/bin/python -m pip install -q -c $(VENV)/constraints.txt -e . \
+	  $$($(PY) -c 'from verification.bench_peers import PEERS; print(*(f"{k}=={v}" for k, v in PEERS.items()))')
+	$(PEERS_VENV)/bin/python -m verification.bench_peers --out reports/bench-peers.json
 
 clean-cache:
 	rm -rf $${TISSUEBENCH_CACHE:-$$HOME/.cache/tissuebench}

@@ -49,3 +49,32 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     table = format_table(out)
     assert "FMA peak" in table and "triad GB/s by data size" in table
     assert len(re.findall(r"roofline [\d.]+ us \((compute|memory)\): \d+% of it", table)) == len(placed)
+
+
+def test_bench_peers_without_the_peers_says_how_to_get_them(capsys):
+    """The suite's venv has neither peer (they live in .venv-peers): the command names the missing one
+    and the make target in one line, and exits 2, instead of a traceback from an import."""
+    import importlib.util
+
+    if importlib.util.find_spec("newton") and importlib.util.find_spec("pbatoolkit"):
+        pytest.skip("both peers are installed here")
+    from verification.bench_peers import main
+
+    assert main([]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is not installed: run `make bench-peers`" in err[0]
+
+
+def test_the_structured_cube_is_the_peers_benchmark_mesh():
+    """11 cells a side, six positive tetrahedra a cell filling the unit cube: 1728 vertices, 7986
+    tetrahedra of volume 1 / 7986 each (to round-off), every interior face shared by two of them."""
+    from meshes.generators import structured_cube
+    from realtime.geometry import signed_volumes
+
+    mesh = structured_cube(11)
+    assert (mesh.n_vertices, mesh.n_tets) == (1728, 7986)
+    vol = signed_volumes(mesh.points, mesh.tets)
+    np.testing.assert_allclose(vol, 1.0 / 7986, rtol=1e-12)
+    faces = np.sort(mesh.tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
+    _, counts = np.unique(faces, axis=0, return_counts=True)
+    assert counts.max() == 2 and np.sum(counts == 1) == 6 * 11 * 11 * 2  # the boundary: two triangles a square

@@ -68,15 +68,19 @@ def _loading(mesh, density):
     return Loading(free=free, external_force=g)
 
 
-def _time_round_robin(cases: list[dict], repeats: int) -> None:
+def _time_round_robin(cases: list[dict], repeats: int, warm: bool = False) -> None:
     """Time every case's ``fn`` (which runs ``n`` steps) in turns, ``repeats`` rounds, after a warm-up
     call of each; write step_us (median), step_us_min and step_us_max (microseconds per step) into
-    the case. Rounds interleave the cases so that drift of the machine touches all of them alike."""
+    the case. Rounds interleave the cases so that drift of the machine touches all of them alike.
+    ``warm``: call each case once more, untimed, right before its timed call, so that its data is back
+    in the caches whatever the case before it evicted (cases of other libraries, with other footprints)."""
     for c in cases:
         c["fn"]()
     samples = [[] for _ in cases]
     for _ in range(repeats):
         for k, c in enumerate(cases):
+            if warm:
+                c["fn"]()
             t0 = time.perf_counter()
             c["fn"]()
             samples[k].append((time.perf_counter() - t0) / c["n"] * 1e6)
