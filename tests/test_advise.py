@@ -121,6 +121,33 @@ def test_the_reference_of_a_refined_scene_is_the_base_reference_at_its_vertices(
     assert err[1] < 0.6 * err[0]  # P1 converges at about order 2 in L2: a quarter, far below 0.6
 
 
+def test_a_refined_truth_asked_in_another_process_reuses_the_kept_base_solve(monkeypatch):
+    """The report solves its references in worker processes and the advice asks, in the main one, for
+    a refined scene's truth: the base solve with its estimate, evaluated at the refined vertices. The
+    base solve keeps its fields beside its result, so the main process rebuilds it (its spaces, checked
+    to number their dofs at the same points) instead of solving again: the same values and estimate as
+    the solve itself (1e-12: the same dofs evaluated at the same points), and no Newton iteration."""
+    from verification import runner
+
+    base = load_scene("block-press")
+    fine = base.refined(1)
+    runner._SOLVED.clear()
+    direct = reference_result(fine, use_cache=False)  # solved here: the truth to compare with
+    for path in (runner.reference_path(base), runner.reference_path(fine)):
+        path.unlink(missing_ok=True)
+    reference_result(base)  # the base with its estimate, solved: cached with its fields
+    assert runner._fields_path(runner.reference_path(base)).exists()
+    runner._SOLVED.clear()  # as in another process
+    monkeypatch.setattr("reference.driver.solve_static", _no_solve)
+    restored = reference_result(fine)
+    assert np.linalg.norm(restored.displacement - direct.displacement) <= 1e-12 * np.linalg.norm(direct.displacement)
+    assert restored.meta["ref_err_estimate"] == pytest.approx(direct.meta["ref_err_estimate"], rel=1e-12)
+
+
+def _no_solve(*args, **kwargs):
+    raise AssertionError("solved again: the kept fields were not used")
+
+
 def test_mesh_refine_key_is_checked(tmp_path):
     text = load_scene("block-press").path.read_text()
     for bad in ("-1", "9", "1.5", "true"):

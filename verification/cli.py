@@ -344,7 +344,12 @@ def cmd_advise(args) -> int:
     from .advise import advise, format_advice
 
     comm = _mpi_comm()
-    out = advise(_scene(args), tol=args.tol, rate=args.rate, metric=args.metric, use_cache=not args.no_cache, comm=comm)
+    scene = _scene(args)
+    if not args.no_cache:  # its three independent references on all the cores first (not under mpirun)
+        from .prefetch import advice_jobs, solve_references
+
+        solve_references(advice_jobs([scene]))
+    out = advise(scene, tol=args.tol, rate=args.rate, metric=args.metric, use_cache=not args.no_cache, comm=comm)
     if _rank0(comm):
         _emit(args, out, format_advice)
     return 0

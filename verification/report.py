@@ -29,7 +29,7 @@ from .advise import advise, refined_times  # noqa: E402
 from .converge import converge_manufactured, converge_time  # noqa: E402
 from .plots import img as _img  # noqa: E402
 from .plots import png as _png  # noqa: E402
-from .prefetch import scene_jobs, solve_references  # noqa: E402
+from .prefetch import advice_jobs, solve_references  # noqa: E402
 from .results import atomic_write_text  # noqa: E402
 from .runner import REFERENCE_DEFAULTS, git_commit, log, reference_result, run_model, versions  # noqa: E402
 from .scene import SceneError, load_scene  # noqa: E402
@@ -469,7 +469,7 @@ def write_report(
     studies = default if studies is None else studies
     name, outdir = report_dir(scenes, out)
     t0 = time.perf_counter()
-    jobs = scene_jobs([load_scene(s) for s in scenes])
+    jobs = advice_jobs([load_scene(s) for s in scenes])  # every scene's section ends with advice
     if studies:
         jobs += reference_jobs(load_scene(STABILITY_SCENE))
     FAILED_REFERENCES.update(solve_references(jobs))  # the stability study does not solve these again
