@@ -3,6 +3,7 @@
 Imports only numpy, scipy and numba, so that it can be embedded in a simulator on its own.
 """
 
+from . import jitcache as _jitcache
 from .errors import InputError, LoadingError
 from .integrators import (
     INTEGRATORS,
@@ -19,6 +20,8 @@ from .integrators import (
 from .material import Material, MaterialError
 from .model import TOOL_ROTATION, TOOL_TRANSLATION, Loading, Model, State
 from .models import MODELS, build_model
+
+_jitcache.guard()
 
 __all__ = [
     "INTEGRATORS",

@@ -1,6 +1,7 @@
 """Contract tests every real-time model passes, and each model's own promise (docs/architecture.md section 7)."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -371,3 +372,32 @@ def test_corotational_rotations_against_numpy_svd(rng):
     f = np.zeros_like(u)
     np.add.at(f, mesh.tets, -vol[:, None, None] * np.einsum("eij,eaj->eai", P, g))
     assert np.linalg.norm(model.internal_force(u) - f) / np.linalg.norm(f) < 1e-13
+
+
+def test_the_engines_numba_cache_is_cleared_when_any_of_its_sources_changes(tmp_path):
+    """numba checks a cached function against its own file only; the step loops take the kernels as
+    arguments, so their index kept one pickled copy of every version of every kernel (59 after a few
+    edits) and saving it then failed with "underlying object has vanished". The engine's cache files
+    are kept under a stamp of all its sources: a change anywhere clears them, and nothing else."""
+    from realtime import jitcache
+
+    src = tmp_path / "src"
+    src.mkdir()
+    kernel = src / "kernel.py"
+    kernel.write_text("x = 1\n")
+    cache = tmp_path / "cache"
+    assert not jitcache.clear_if_stale(cache, [kernel])  # first use: stamped, nothing to clear
+    for name in ("steppers.run-10.py311.nbi", "steppers.run-10.py311.1.nbc", "other.txt"):
+        (cache / name).write_text("compiled")
+    assert not jitcache.clear_if_stale(cache, [kernel])  # same sources: kept
+    assert len(list(cache.iterdir())) == 4
+    kernel.write_text("x = 2\n")
+    assert jitcache.clear_if_stale(cache, [kernel])
+    assert sorted(p.name for p in cache.iterdir()) == ["other.txt", jitcache.STAMP]
+    # importing the engine stamps the directory numba caches its step loops in
+    import realtime  # noqa: F401
+    from realtime.integrators import _run_symplectic_euler
+
+    stamp = Path(_run_symplectic_euler._cache.cache_path) / jitcache.STAMP
+    sources = sorted(Path(jitcache.__file__).parent.glob("*.py"))
+    assert stamp.read_text() == jitcache.sources_digest(sources)
