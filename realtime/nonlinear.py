@@ -353,9 +353,11 @@ def _polar_step(r, scaled):
     return n, change
 
 
-#: A Newton step that changes R by less than 1e-9 (Frobenius) ends the polar iteration: convergence is
-#: quadratic, so the iterate is then at round-off. Scaling stops below a change of 1e-2.
-_POLAR_DONE = 1e-18
+#: A Newton step that changes R by less than 1e-6 (Frobenius; the constants are squared changes) ends
+#: the polar iteration: convergence is quadratic, so the new iterate is within about 1e-12 of the
+#: rotation (a 1e-9 test took one more step, 10% of corotational-tm's force, to confirm round-off).
+#: Scaling stops below a change of 1e-2.
+_POLAR_DONE = 1e-12
 _POLAR_SCALED = 1e-4
 
 
@@ -417,44 +419,51 @@ def _corotated_pk1(F, r, lam, mu):
 
 
 @nb.njit(inline="always", **_HOT)
-def _corotational_block(W, R, geo, gb, lam, mu):
+def _corotational_block(W, R, Fb, geo, gb, lam, mu):
     """Element forces of one block, in place in W (as _stvk_block), for the corotated law.
 
     The polar iteration runs on all the block's tetrahedra at once, with the rotations in the scratch
-    R (10 BLOCK,) float64 (rows 0..8 the rotation, row 9 the last change), until the slowest has
-    converged; those that converged earlier take a few more steps at round-off. Inverted ones start
-    from R = I (which stays put) and take the SVD afterwards, one at a time.
+    R (10 BLOCK,) float64 (rows 0..8 the rotation), until the slowest has converged; those that
+    converged earlier take a few more steps at round-off. The steps are scaled while the block's largest
+    change is above _POLAR_SCALED (a block-wide choice, so that unscaled steps take no roots). Inverted
+    ones start
+    from R = I (which stays put) and take the SVD afterwards, one at a time. Fb (9 BLOCK,) keeps each
+    lane's F for the stress, which reads it back instead of forming it again (45 flops a tetrahedron).
     """
     inverted = 0
     for q in range(_UBLOCK):
         F = _plus_identity(_lane_in(W, geo, gb, q)[0])
+        _lane_store(Fb, q, F)
         ok = _det(F) > 1e-12
         _lane_store(R, q, F if ok else (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
-        R[_ROW[9] + q] = 1.0
         inverted += not ok
+    scaled = True  # one decision for the whole block: a branch per lane would keep both paths' roots
     for _ in range(30):
         active = 0
+        far = 0  # lanes still far from orthogonal (an integer count: a max would not vectorise)
         for q in range(_UBLOCK):
-            n, change = _polar_step(_lane_rows(R, _ROW[0], q), R[_ROW[9] + q] > _POLAR_SCALED)
+            n, change = _polar_step(_lane_rows(R, _ROW[0], q), scaled)
             _lane_store(R, q, n)
-            R[_ROW[9] + q] = change
             active += change >= _POLAR_DONE
+            far += change > _POLAR_SCALED
         if active == 0:
             break
+        scaled = far > 0
     if inverted:
         for q in range(_UBLOCK):
-            F = _plus_identity(_lane_in(W, geo, gb, q)[0])
+            F = _lane_rows(Fb, _ROW[0], q)
             if _det(F) <= 1e-12:
                 _lane_store(R, q, _polar(F))
     for q in range(_UBLOCK):
-        H, g, v = _lane_in(W, geo, gb, q)
-        _lane_out(W, q, v, _corotated_pk1(_plus_identity(H), _lane_rows(R, _ROW[0], q), lam, mu), g)
+        g = _lane_rows(geo, gb, q)
+        v = geo[gb + _ROW[9] + q]
+        _lane_out(W, q, v, _corotated_pk1(_lane_rows(Fb, _ROW[0], q), _lane_rows(R, _ROW[0], q), lam, mu), g)
 
 
 def corotational_scratch() -> tuple:
     """The scratch of corotational_force: W (9 BLOCK,) as block_scratch, R (10 BLOCK,) float64 the
-    block's rotations and last polar changes."""
-    return (np.zeros(9 * BLOCK), np.zeros(10 * BLOCK))
+    block's rotations and last polar changes, Fb (9 BLOCK,) float64 its deformation gradients."""
+    return (np.zeros(9 * BLOCK), np.zeros(10 * BLOCK), np.zeros(9 * BLOCK))
 
 
 @nb.njit(**_HOT)
@@ -467,11 +476,11 @@ def corotational_force(data, scratch, u, f):
            everywhere (P,) bool all True).   scratch: corotational_scratch().
     """
     tets, geo, prm, everywhere = data
-    W, R = scratch
+    W, R, Fb = scratch
     f[:] = 0.0
     for b in range(tets.shape[0] // BLOCK):
         _gather(tets, b * BLOCK, u, W)
-        _corotational_block(W, R, geo, np.uint64(b) * _GEO_ROWS, prm[0], prm[1])
+        _corotational_block(W, R, Fb, geo, np.uint64(b) * _GEO_ROWS, prm[0], prm[1])
         _scatter_block(tets, b * BLOCK, W, f, everywhere)
 
 
