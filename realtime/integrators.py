@@ -480,6 +480,7 @@ class _Prepared:
     vt: np.ndarray  # (P, 3) m/s, the tool vertices' velocities before the last step
     reaction: np.ndarray  # (L, 3) N, the tools' force on the body in the last step
     version: int = 0  # set_forces calls: a stored acceleration from an older version is stale
+    entries: dict = field(default_factory=dict)  # step loop -> its compiled entry point (_call)
 
     @staticmethod
     def of(model: Model) -> _Prepared:
@@ -572,6 +573,52 @@ class Integrator:
         raise DivergenceError(model.name, state.steps - 1, dt, dt_crit, self.name, _blowup_reason(model, state.u))
 
 
+def _check_step(model: Model, state: State, dt, n) -> tuple[float, int]:
+    """dt as a float and n as an int, after checking what a step is given: the State's u and v writable
+    C-contiguous (N, 3) float64 arrays of this model's N vertices (the kernels index them without bounds
+    checks, so a shorter array would be written past its end), its t a finite number, dt a positive
+    finite number of s and n a whole number of steps >= 0. Raises InputError naming what is wrong."""
+    shape = (model.n_vertices, 3)
+    for name in ("u", "v"):
+        a = getattr(state, name, None)
+        if not (
+            isinstance(a, np.ndarray)
+            and a.dtype == np.float64
+            and a.shape == shape
+            and a.flags.c_contiguous
+            and a.flags.writeable
+        ):
+            got = f"{a.shape} {a.dtype} array" if isinstance(a, np.ndarray) else type(a).__name__
+            if isinstance(a, np.ndarray) and a.shape == shape and a.dtype == np.float64:
+                got += " that is not C-contiguous and writable"
+            raise InputError(f"State.{name}: must be a writable C-contiguous {shape} float64 array, got a {got}")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+        raise InputError(f"step: n = {n!r}: must be a whole number of steps >= 0")
+    if isinstance(dt, bool) or not isinstance(dt, (int, float, np.number)) or not (math.isfinite(dt) and dt > 0):
+        raise InputError(f"step: dt = {dt!r}: must be a positive number of s")
+    if isinstance(state.t, bool) or not isinstance(state.t, (int, float, np.number)) or not math.isfinite(state.t):
+        raise InputError(f"State.t = {state.t!r}: must be a finite number of s")
+    return float(dt), int(n)
+
+
+def _call(p: _Prepared, loop, args: tuple):
+    """``loop(*args)`` through its compiled entry point once the first call has compiled it for these
+    argument types. numba's dispatcher types every argument on every call, 5 us for a step loop's twenty
+    (a haptic loop's per-call cost); the entry point only unboxes them. It is sound because nothing a
+    workspace passes changes type between calls: its own arrays are fixed, the State's are checked by
+    _check_step and every scalar is passed as float, int or bool. Where numba's internals differ from
+    what this relies on (Dispatcher.overloads, CompileResult.entry_point), every call dispatches."""
+    entry = p.entries.get(loop)
+    if entry is not None:
+        return entry(*args)
+    out = loop(*args)
+    try:
+        p.entries[loop] = loop.overloads[tuple(loop.typeof_pyval(a) for a in args)].entry_point
+    except (AttributeError, KeyError):
+        p.entries[loop] = loop
+    return out
+
+
 def _frame_array(name: str, value, shape: tuple) -> np.ndarray:
     """``value`` as a finite float64 array of ``shape``, or InputError naming ``name`` and what it got."""
     try:
@@ -595,10 +642,12 @@ class SymplecticEuler(Integrator):
         """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up. Returns the
         tools' force on the body in the last step, (L, 3) float64 N (``_tool_reaction``)."""
         p = self._prepare(model)
-        bad = _run_symplectic_euler(
-            n, dt, state.t, model.force_kernel, model.data, p.scratch, model.points, p.per_dof, model.mass,
-            p.fext, p.tools, self.alpha, self.beta, p.bound, state.u, state.v, p.f, p.w, p.vt, p.reaction,
-        )  # fmt: skip
+        dt, n = _check_step(model, state, dt, n)
+        bad = _call(p, _run_symplectic_euler, (
+            n, dt, float(state.t), model.force_kernel, model.data, p.scratch, model.points, p.per_dof, model.mass,
+            p.fext, p.tools, float(self.alpha), float(self.beta), p.bound, state.u, state.v, p.f, p.w, p.vt,
+            p.reaction,
+        ))  # fmt: skip
         if bad >= 0:
             self._diverged(model, state, bad, dt, dt_crit)
         state.t += n * dt
@@ -615,19 +664,27 @@ class CentralDifference(Integrator):
         """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up. Returns the
         tools' force on the body at the end of the last step, (L, 3) float64 N (``_tool_reaction``)."""
         p = self._prepare(model)
+        dt, n = _check_step(model, state, dt, n)
         lo = model.loading
         acc = state.acc
         key = (id(p), p.version)  # the acceleration is stale after set_forces (or from another model)
-        if acc is None or acc.shape != state.u.shape or state.acc_key not in (None, key):
+        usable = (
+            isinstance(acc, np.ndarray)
+            and acc.shape == state.u.shape
+            and acc.dtype == np.float64
+            and acc.flags.c_contiguous
+            and acc.flags.writeable
+        )
+        if not usable or state.acc_key not in (None, key):
             f0 = model.internal_force(state.u + self.beta * state.v)
             acc = (f0 + p.fext) * p.inv_mass[:, None] * lo.free
             state.acc = acc
         state.acc_key = key
-        bad = _run_central_difference(
-            n, dt, state.t, model.force_kernel, model.data, p.scratch, model.points, model.mass, p.inv_mass,
-            lo.free, p.fext, p.tools, self.alpha, self.beta, p.bound, state.u, state.v, acc, p.f, p.w, p.vt,
-            p.reaction,
-        )  # fmt: skip
+        bad = _call(p, _run_central_difference, (
+            n, dt, float(state.t), model.force_kernel, model.data, p.scratch, model.points, model.mass, p.inv_mass,
+            lo.free, p.fext, p.tools, float(self.alpha), float(self.beta), p.bound, state.u, state.v, acc, p.f,
+            p.w, p.vt, p.reaction,
+        ))  # fmt: skip
         if bad >= 0:
             self._diverged(model, state, bad, dt, dt_crit)
         state.t += n * dt
@@ -741,14 +798,15 @@ class ImplicitEuler(Integrator):
         tools' force on the body in the last step, (L, 3) float64 N (``_run_implicit_euler``)."""
         lo = model.loading
         p = self._prepare(model)
+        dt, n = _check_step(model, state, dt, n)
         factored = self.preconditioner_for(model) == "factored"
         fac = self._factored(model, dt) if factored else _NO_FACTOR
         work = tuple(np.zeros_like(state.u) for _ in range(9))
-        status, last, its, worst, spent = _run_implicit_euler(
-            n, dt, state.t, model.force_kernel, model.data, p.scratch, model.linear, model.points, model.mass,
-            lo.free, p.fext, p.tools, self.alpha, self.beta, p.bound, self.tol,
-            self.maxit, factored, fac, state.u, state.v, work, self.budget, p.vt, p.reaction,
-        )  # fmt: skip
+        status, last, its, worst, spent = _call(p, _run_implicit_euler, (
+            n, dt, float(state.t), model.force_kernel, model.data, p.scratch, bool(model.linear), model.points,
+            model.mass, lo.free, p.fext, p.tools, float(self.alpha), float(self.beta), p.bound, float(self.tol),
+            int(self.maxit), bool(factored), fac, state.u, state.v, work, bool(self.budget), p.vt, p.reaction,
+        ))  # fmt: skip
         self.iterations, self.worst_iterations = int(its), int(worst)
         self.unconverged += int(spent)
         if status == 1:

@@ -284,7 +284,10 @@ class QuasiStatic:
         """Jump ``state`` to the equilibrium with the tools where they are at t + n dt. Returns the
         force (L, 3) float64 N each tool exerts on the body there (Model.tool_reactions: static, as the
         model is)."""
+        from .integrators import _check_step
+
         model.check_current()
+        dt, n = _check_step(model, state, dt, n)
         solver = model.extra["quasistatic"]
         t = state.t + n * dt
         dofs, tools, vals = solver.targets.dofs, solver.targets.tools, solver.targets.values(model, t)

@@ -198,3 +198,81 @@ def test_the_readmes_haptic_loop_runs_and_the_device_feels_the_liver_push_back(c
     fz = float(line.split("device force")[1].split()[2])
     assert fz > 0.1, line
     assert "300 frames: compute" in out and "jitter" in out
+
+
+@pytest.mark.parametrize("cls", [SymplecticEuler, CentralDifference, ImplicitEuler])
+def test_the_compiled_entry_point_steps_exactly_as_numbas_dispatcher(cls, monkeypatch):
+    """After its first call a workspace calls the step loop's compiled entry point, which skips numba's
+    typing of twenty arguments (5 us of a haptic loop's call). A run through it, with the tool moved
+    every frame, is bit for bit the run through the dispatcher."""
+    from realtime import integrators
+
+    mesh = stored_mesh("beam")
+    n = mesh.n_vertices
+    tip = np.flatnonzero(mesh.points[:, 0] > mesh.points[:, 0].max() - 1e-9).astype(np.int64)
+    free = np.ones((n, 3))
+    free[mesh.points[:, 0] < 1e-9] = 0.0
+    free[tip] = 0.0
+    load = Loading(
+        free=free,
+        external_force=np.zeros((n, 3)),
+        tool_vertex=tip,
+        tool_mask=np.ones((len(tip), 3)),
+        tool_id=np.zeros(len(tip), dtype=np.int64),
+        tool_kind=np.zeros(1, dtype=np.int64),
+        tool_vector=np.zeros((1, 3)),
+        tool_axis=np.array([[0.0, 0.0, 1.0]]),
+        tool_center=np.zeros((1, 3)),
+        tool_angle=np.zeros(1),
+        tool_ramp=np.zeros(1),
+    )
+    model = build_model("stvk-tm", mesh.points, mesh.tets, MAT, load)
+    dt = 0.5 * CentralDifference().critical_dt(model)
+
+    def run():
+        integ, state = cls(alpha=10.0), State.at_rest(n)
+        forces = []
+        for k in range(40):
+            integ.set_tool(model, 0, translation=[0.0, 0.0, 2e-5 * k])
+            forces.append(integ.step(model, state, dt, 2))
+        return state.u.copy(), np.array(forces), integ._prepared.entries
+
+    fast_u, fast_f, entries = run()
+    assert all(entry is not loop for loop, entry in entries.items())  # the entry point was taken
+    monkeypatch.setattr(integrators, "_call", lambda p, loop, args: loop(*args))
+    slow_u, slow_f, _ = run()
+    assert np.array_equal(fast_u, slow_u) and np.array_equal(fast_f, slow_f)
+
+
+@pytest.mark.parametrize("cls", [SymplecticEuler, CentralDifference, ImplicitEuler, "quasi-static"])
+def test_a_wrong_state_or_step_is_a_one_line_error_not_a_crash(cls):
+    """The kernels index u and v without bounds checks: a shorter array would be written past its end.
+    Every integrator checks what step is given and names it."""
+    from realtime.quasistatic import QuasiStatic
+
+    mesh = stored_mesh("beam")
+    n = mesh.n_vertices
+    name = "precomputed" if cls == "quasi-static" else "linear-tm"
+    model = build_model(name, mesh.points, mesh.tets, Material(5e5, 0.45, 1000.0))
+    integ = QuasiStatic() if cls == "quasi-static" else cls()
+    good = State.at_rest(n)
+    shape = rf"\({n}, 3\)"
+    cases = [
+        (
+            State(u=np.zeros((n - 1, 3)), v=np.zeros((n, 3))),
+            1e-6,
+            1,
+            rf"State.u: must be a writable C-contiguous {shape} float64 array, got a \({n - 1}, 3\) float64 array",
+        ),
+        (State(u=np.zeros((n, 3), np.float32), v=np.zeros((n, 3))), 1e-6, 1, "got a .* float32 array"),
+        (State(u=np.zeros((3, n)).T, v=np.zeros((n, 3))), 1e-6, 1, "that is not C-contiguous and writable"),
+        (State(u=np.zeros((n, 3)), v=[[0.0] * 3] * n), 1e-6, 1, "State.v: .* got a list"),
+        (State(u=np.zeros((n, 3)), v=np.zeros((n, 3)), t=float("nan")), 1e-6, 1, r"State.t = nan: must be a finite"),
+        (good, 0.0, 1, r"step: dt = 0.0: must be a positive number of s"),
+        (good, "1e-6", 1, r"step: dt = '1e-6'"),
+        (good, 1e-6, -1, r"step: n = -1: must be a whole number of steps >= 0"),
+        (good, 1e-6, 2.5, r"step: n = 2.5"),
+    ]
+    for state, dt, steps, message in cases:
+        with pytest.raises(InputError, match=message):
+            integ.step(model, state, dt, steps)
