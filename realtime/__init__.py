@@ -12,14 +12,13 @@ from .integrators import (
     ImplicitEuler,
     NotConvergedError,
     SymplecticEuler,
-    element_critical_dt,
     make_integrator,
-    max_eigenvalue,
-    solve_static,
 )
 from .material import Material, MaterialError
 from .model import TOOL_ROTATION, TOOL_TRANSLATION, Loading, Model, State
 from .models import MODELS, build_model
+from .spectra import element_critical_dt, max_eigenvalue
+from .statics import solve_static
 
 _jitcache.guard()
 

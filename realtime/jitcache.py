@@ -60,7 +60,7 @@ def clear_if_stale(cache_dir: Path, sources: list[Path]) -> bool:
 
 def guard() -> None:
     """clear_if_stale for the directory numba caches the engine's functions in (the step loops' own)."""
-    from .integrators import _run_symplectic_euler
+    from .steppers import _run_symplectic_euler
 
     cache = getattr(_run_symplectic_euler, "_cache", None)
     path = getattr(cache, "cache_path", None)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -50,6 +51,23 @@ def ramp_fraction(t: float, ramp: float, shape: int) -> float:
     if shape == 1:
         return s * s * s * (10.0 + s * (6.0 * s - 15.0))
     return s
+
+
+class Tools(NamedTuple):
+    """The tool arrays the compiled loops take, with the shapes and units of Loading's fields of the same
+    meaning (vertex: tool_vertex, mask: tool_mask, tool: tool_id, kind: tool_kind, vector: tool_vector,
+    axis: tool_axis, center: tool_center, angle: tool_angle, ramp: tool_ramp, shape: tool_ramp_shape)."""
+
+    vertex: np.ndarray
+    mask: np.ndarray
+    tool: np.ndarray
+    kind: np.ndarray
+    vector: np.ndarray
+    axis: np.ndarray
+    center: np.ndarray
+    angle: np.ndarray
+    ramp: np.ndarray
+    shape: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -136,9 +154,9 @@ class Loading:
         """No constraint and no load."""
         return Loading(free=np.ones((n_vertices, 3)), external_force=np.zeros((n_vertices, 3)))
 
-    def tools_tuple(self):
-        """The tool arrays in the order the integrator kernels take them."""
-        return (
+    def tools_tuple(self) -> Tools:
+        """The tool arrays as the compiled loops take them."""
+        return Tools(
             self.tool_vertex,
             self.tool_mask,
             self.tool_id,
@@ -201,6 +219,8 @@ class Model:
         extra: model-specific objects (for example the TensorMass, for cutting).
         new_scratch: a function returning a fresh tuple of the arrays ``force_kernel`` writes besides
             its output (each caller that steps the model at the same time as another needs its own).
+        rest_stiffness_of: the model's own ``rest_stiffness`` (a function of the model).
+        eigenvalue_bound_of: the model's own ``element_eigenvalue_bound`` (a function of the model).
     """
 
     name: str
@@ -215,6 +235,8 @@ class Model:
     linear: bool
     extra: dict = field(default_factory=dict)
     new_scratch: Callable[[], tuple] = no_scratch
+    rest_stiffness_of: Callable | None = None
+    eigenvalue_bound_of: Callable | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -226,6 +248,17 @@ class Model:
         f = np.empty_like(u, dtype=float)
         self.force_kernel(self.data, self.new_scratch(), np.ascontiguousarray(u, dtype=float), f)
         return f
+
+    def rest_stiffness(self):
+        """The stiffness at rest, scipy CSR (3N, 3N) N/m (dof 3 i + c), as the model defines it: the
+        springs' for mass-spring, the P1 linear stiffness of its material for the tetrahedral models
+        (the volume penalty left out). Implicit Euler's preconditioner and the slowest mode use it."""
+        return self.rest_stiffness_of(self)
+
+    def element_eigenvalue_bound(self) -> float:
+        """max over the model's elements of lambda_max(K_e, M_e), 1/s^2: an upper bound on omega_max^2
+        at rest (``spectra.element_critical_dt``)."""
+        return self.eigenvalue_bound_of(self)
 
     def check_current(self) -> None:
         """Raise InputError if this model was cut since it was built (``realtime.cut`` returned its
@@ -311,7 +344,9 @@ def _tool_value(X, kind, vector, axis, center, angle, ramp, shape, t, out):
 
 @nb.njit(**_JIT)
 def _tool_displacements(points, tools, t, out):
-    vert, mask, tid, kind, vector, axis, center, angle, ramp, shape = tools
-    for p in range(vert.shape[0]):
-        k = tid[p]
-        _tool_value(points[vert[p]], kind[k], vector[k], axis[k], center[k], angle[k], ramp[k], shape[k], t, out[p])
+    for p in range(tools.vertex.shape[0]):
+        k = tools.tool[p]
+        _tool_value(
+            points[tools.vertex[p]], tools.kind[k], tools.vector[k], tools.axis[k], tools.center[k],
+            tools.angle[k], tools.ramp[k], tools.shape[k], t, out[p],
+        )  # fmt: skip

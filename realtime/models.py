@@ -10,26 +10,16 @@ from collections.abc import Callable
 
 import numpy as np
 
+from .blocks import BlockData, block_data, block_scratch, law_params
+from .corotational import corotational_energy, corotational_force, corotational_scratch
 from .errors import InputError
-from .geometry import signed_volumes, unique_edges
+from .geometry import shape_gradients, signed_volumes, unique_edges
+from .hybrid import HybridData, hybrid_energy, hybrid_force, hybrid_scratch
 from .material import Material
 from .model import Loading, Model, lumped_masses, no_scratch, prepare_mesh
-from .nonlinear import (
-    block_data,
-    block_scratch,
-    corotational_energy,
-    corotational_force,
-    corotational_scratch,
-    hybrid_energy,
-    hybrid_force,
-    hybrid_scratch,
-    law_params,
-    spring_energy,
-    spring_force,
-    stvk_energy,
-    stvk_force,
-)
-from .tensor_mass import TensorMass, linear_tm_energy, linear_tm_force
+from .springs import SpringData, spring_energy, spring_force
+from .stvk import stvk_energy, stvk_force
+from .tensor_mass import TensorMass, assemble_blocks, element_elasticity, linear_tm_energy, linear_tm_force
 
 
 def build_linear_tm(points, tets, material: Material, loading: Loading | None = None) -> Model:
@@ -87,7 +77,64 @@ def cut(model: Model, which) -> Model:
     return Model(**{**model.__dict__, "tets": alive_tets, "mass": mass, "loading": loading, "extra": extra})
 
 
-def _model(name, points, tets, material, loading, force, energy, data, linear, scratch=no_scratch, **extra) -> Model:
+def tet_rest_stiffness(model: Model):
+    """The P1 linear stiffness of the model's material, scipy CSR (3N, 3N) N/m: linear-tm's own tensors,
+    or what the element models linearise to at rest (the volume penalty left out)."""
+    tm = model.extra.get("tensors") or TensorMass(model.points, model.tets, model.material)
+    return tm.matrix()
+
+
+def tet_eigenvalue_bound(model: Model) -> float:
+    """max over the tetrahedra of lambda_max(K_e, M_e), 1/s^2: K_e the P1 stiffness of the material's
+    rest linearisation (fibres and the volume penalty included), M_e = rho V / 4 at each vertex."""
+    m = model.material
+    grads, vol = shape_gradients(model.points, model.tets)
+    lam_max = 0.0
+    for start in range(0, len(vol), 4096):  # bounded memory: (4096, 12, 12) at a time
+        g, v = grads[start : start + 4096], vol[start : start + 4096]
+        C = element_elasticity(model.points, model.tets[start : start + 4096], m, extra_lam=m.volume_penalty)
+        ke = np.einsum("maj,mijkl,mbl->maibk", g, C, g).reshape(len(v), 12, 12) * v[:, None, None]
+        ev = np.linalg.eigvalsh(ke)[:, -1] / (m.density * v / 4.0)
+        lam_max = max(lam_max, float(ev.max()))
+    return lam_max
+
+
+def spring_rest_stiffness(model: Model):
+    """The springs' stiffness at rest, scipy CSR (3N, 3N) N/m: k e e^T on each edge of direction e."""
+    X, edges, k = model.data.points, model.data.edges, model.data.stiffness
+    d = X[edges[:, 1]] - X[edges[:, 0]]
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    b = k[:, None, None] * d[:, :, None] * d[:, None, :]
+    i, j = edges[:, 0], edges[:, 1]
+    rows = np.concatenate([i, j, i, j])
+    cols = np.concatenate([i, j, j, i])
+    return assemble_blocks(rows, cols, np.concatenate([b, b, -b, -b]), model.n_vertices)
+
+
+def spring_eigenvalue_bound(model: Model) -> float:
+    """max over the springs of k (1/m_a + 1/m_b), 1/s^2, each vertex's mass shared equally among its
+    springs (the element eigenvalue inequality with the springs as elements)."""
+    edges, k = model.data.edges, model.data.stiffness
+    degree = np.bincount(edges.ravel(), minlength=model.n_vertices)
+    share = model.mass / np.maximum(degree, 1)
+    return float(np.max(k * (1.0 / share[edges[:, 0]] + 1.0 / share[edges[:, 1]])))
+
+
+def _model(
+    name,
+    points,
+    tets,
+    material,
+    loading,
+    force,
+    energy,
+    data,
+    linear,
+    scratch=no_scratch,
+    rest=tet_rest_stiffness,
+    bound=tet_eigenvalue_bound,
+    **extra,
+) -> Model:
     if loading is not None:
         loading.check(len(points))
     return Model(
@@ -101,6 +148,8 @@ def _model(name, points, tets, material, loading, force, energy, data, linear, s
         energy_kernel=energy,
         data=data,
         new_scratch=scratch,
+        rest_stiffness_of=rest,
+        eigenvalue_bound_of=bound,
         linear=linear,
         extra=extra,
     )
@@ -111,7 +160,7 @@ def build_stvk_tm(points, tets, material: Material, loading: Loading | None = No
     the volume penalty when ``material.volume_penalty`` > 0. Rotation invariant."""
     points, tets = prepare_mesh(points, tets)
     btets, geo = block_data(points, tets, material)
-    data = (btets, geo, law_params(material), np.ones(len(btets), dtype=np.bool_))
+    data = BlockData(btets, geo, law_params(material), np.ones(len(btets), dtype=np.bool_))
     return _model("stvk-tm", points, tets, material, loading, stvk_force, stvk_energy, data, False, block_scratch)
 
 
@@ -127,7 +176,7 @@ def build_corotational_tm(points, tets, material: Material, loading: Loading | N
         )
     points, tets = prepare_mesh(points, tets)
     btets, geo = block_data(points, tets, material)
-    data = (btets, geo, law_params(material), np.ones(len(btets), dtype=np.bool_))
+    data = BlockData(btets, geo, law_params(material), np.ones(len(btets), dtype=np.bool_))
     return _model(
         "corotational-tm",
         points,
@@ -158,7 +207,7 @@ def build_hybrid_tm(
     if not threshold >= 0.0:
         raise InputError(f"hybrid-tm: threshold = {threshold!r} must be >= 0 m")
     btets, geo = block_data(points, tets, material)
-    data = (tm.kernel_data(), btets, geo, law_params(material), np.array([float(threshold)]))
+    data = HybridData(tm.kernel_data(), btets, geo, law_params(material), np.array([float(threshold)]))
     n_points, n_padded = len(points), len(btets)
     return _model(
         "hybrid-tm",
@@ -211,8 +260,21 @@ def build_mass_spring(points, tets, material: Material, loading: Loading | None 
     edges = unique_edges(tets)
     k = spring_stiffness(points, tets, edges, material)
     rest = np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)
-    data = (points, edges, k, rest)
-    return _model("mass-spring", points, tets, material, loading, spring_force, spring_energy, data, False, stiffness=k)
+    data = SpringData(points, edges, k, rest)
+    return _model(
+        "mass-spring",
+        points,
+        tets,
+        material,
+        loading,
+        spring_force,
+        spring_energy,
+        data,
+        False,
+        rest=spring_rest_stiffness,
+        bound=spring_eigenvalue_bound,
+        stiffness=k,
+    )
 
 
 def _with_quasistatic(model: Model, cls) -> Model:

@@ -18,6 +18,8 @@ subtracts exactly their contribution from the touched vertices and edges.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numba as nb
 import numpy as np
 import scipy.sparse as sp
@@ -28,7 +30,7 @@ from .laws import linear_elasticity_tensor
 from .material import Material
 
 _JIT = dict(nogil=True, cache=True)
-_HOT = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz", "arcp"})  # see nonlinear.py
+_HOT = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz", "arcp"})  # see blocks.HOT
 
 #: Local edges of a tetrahedron, in the order of TetraTensors.tet_edges' columns.
 LOCAL_EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
@@ -72,6 +74,17 @@ def assemble_blocks(rows: np.ndarray, cols: np.ndarray, blocks: np.ndarray, n: i
     r = (3 * rows[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
     c = (3 * cols[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
     return sp.coo_matrix((blocks.ravel(), (r.ravel(), c.ravel())), shape=(3 * n, 3 * n)).tocsr()
+
+
+class TensorData(NamedTuple):
+    """linear_tm_force's data: vertex_tensors (N, 3, 3) N/m, cols (E,) int64 (the larger end j of each edge),
+    edge_tensors (E, 3, 3) N/m, row_start (N + 1,) int64 (the edges (i, j > i) of vertex i are
+    row_start[i]:row_start[i + 1])."""
+
+    vertex_tensors: np.ndarray
+    cols: np.ndarray
+    edge_tensors: np.ndarray
+    row_start: np.ndarray
 
 
 class TensorMass:
@@ -137,13 +150,13 @@ class TensorMass:
         blocks = np.concatenate([self.vertex_tensors, self.edge_tensors, self.edge_tensors.transpose(0, 2, 1)])
         return assemble_blocks(i, j, blocks, n)
 
-    def kernel_data(self):
+    def kernel_data(self) -> TensorData:
         """The tuple the force kernel ``linear_tm_force`` takes, laid out for one forward pass:
         vertex tensors (N,3,3), cols (E,) int64 (the larger end j of each edge), edge tensors (E,3,3),
         and row_start (N+1,) int64: the edges (i, j > i) of vertex i are row_start[i]:row_start[i+1]
         (``edges`` is sorted by i). Contiguous arrays; no stride-2 index reads in the hot loop."""
         row_start = np.searchsorted(self.edges[:, 0], np.arange(self.n_vertices + 1)).astype(np.int64)
-        return (
+        return TensorData(
             np.ascontiguousarray(self.vertex_tensors),
             np.ascontiguousarray(self.edges[:, 1]),
             np.ascontiguousarray(self.edge_tensors),
@@ -157,8 +170,7 @@ def linear_tm_force(data, scratch, u, f):
 
     Vertex i gathers -T_ii u_i - sum_j T_ij u_j over its edges (i, j > i) in registers and scatters
     -T_ij^T u_i to each j; f_i is written once. Each edge tensor is loaded once into registers.
-    data: (vertex_tensors (N,3,3) N/m, cols (E,) int64, edge_tensors (E,3,3) N/m, row_start (N+1,) int64)
-    scratch: model.NO_SCRATCH (unused).
+    data: TensorData.   scratch: model.NO_SCRATCH (unused).
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 output force, N (overwritten).
     """
     vt, cols, et, row_start = data

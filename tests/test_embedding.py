@@ -22,8 +22,8 @@ from realtime import (
     SymplecticEuler,
     build_model,
 )
-from realtime.integrators import min_eigenvalue
 from realtime.models import cut
+from realtime.spectra import min_eigenvalue
 from verification.runner import model_for
 from verification.scene import load_scene
 

@@ -19,7 +19,6 @@ from realtime import (
     element_critical_dt,
     max_eigenvalue,
 )
-from realtime.integrators import rest_stiffness
 from realtime.model import TOOL_ROTATION
 from reference.problem import Displacement
 
@@ -65,7 +64,7 @@ def test_element_critical_step_is_a_lower_bound(mesh_name, model_name, material)
     mesh = stored_mesh(mesh_name)
     model = build_model(model_name, mesh.points, mesh.tets, material)
     if mesh.n_vertices <= 600:
-        K = rest_stiffness(model).toarray()
+        K = model.rest_stiffness().toarray()
         s = 1 / np.sqrt(np.repeat(model.mass, 3))
         omega2 = np.linalg.eigvalsh(s[:, None] * K * s[None, :]).max()
     else:  # Lanczos, tested against dense above to 1e-7
@@ -79,7 +78,7 @@ def test_min_eigenvalue_matches_dense(name, nu):
     """omega_1^2 by shift-invert on the rest stiffness (exact at rest for these models) against the
     dense eigenvalues of M^-1/2 K M^-1/2, K from the force kernel's finite differences at rest; the
     tolerance is the 1e-3 the time-step choice asks for."""
-    from realtime.integrators import min_eigenvalue
+    from realtime.spectra import min_eigenvalue
 
     mat = Material(5e5, nu, 1000.0, law="stvk")
     mesh, lin = clamped_beam(mat)
@@ -228,23 +227,23 @@ def test_factored_preconditioner_solves_the_rest_system(name, rng):
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
 
-    from realtime.integrators import _factor_solve, _factorise, rest_stiffness
+    from realtime.linsolve import factor_solve, factorise
 
     mesh, lin = clamped_beam()
     model = build_model(name, mesh.points, mesh.tets, MAT, lin.loading)
     dt, alpha, beta = 1e-3, 2.0, 1e-4
     cm, ck = 1 + dt * alpha, dt * beta + dt * dt
     free = model.loading.free.ravel() != 0.0
-    A = (sp.diags(cm * np.repeat(model.mass, 3)) + ck * rest_stiffness(model)).tocsr()[free][:, free]
+    A = (sp.diags(cm * np.repeat(model.mass, 3)) + ck * model.rest_stiffness()).tocsr()[free][:, free]
     r = rng.standard_normal((mesh.n_vertices, 3)) * model.loading.free
     z = np.full_like(r, np.nan)
-    _factor_solve(_factorise(model, cm, ck), r, z)
+    factor_solve(factorise(model, cm, ck), r, z)
     want = spla.spsolve(A.tocsc(), r.ravel()[free])
     assert np.linalg.norm(z.ravel()[free] - want) / np.linalg.norm(want) < 1e-12
     assert np.all(z.ravel()[~free] == 0.0)
     if name == "linear-tm":  # the rest stiffness of linear-tm is its own: -K0 u is its force
         u = rng.standard_normal(r.shape)
-        f = -(rest_stiffness(model) @ u.ravel())
+        f = -(model.rest_stiffness() @ u.ravel())
         assert np.linalg.norm(model.internal_force(u).ravel() - f) < 1e-12 * np.linalg.norm(f)
 
 
@@ -254,7 +253,7 @@ def test_factored_implicit_euler_on_nearly_incompressible_statics():
     solve reaches K u = f (a direct solve) to its round-off floor (condition number ~1e8)."""
     import scipy.sparse.linalg as spla
 
-    from realtime.integrators import solve_static_implicit
+    from realtime.statics import solve_static_implicit
 
     soft = Material(5e5, 0.4999, 1000.0, law="linear")
     mesh, model = clamped_beam(soft)

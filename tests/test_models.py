@@ -333,14 +333,14 @@ def test_stvk_element_loop_compiles_to_simd():
     import llvmlite.binding as llvm
     import numba
 
-    from realtime import nonlinear
+    from realtime import blocks, stvk
 
     features = llvm.get_host_cpu_features()
     if not (features.get("avx2") and features.get("fma")):
         pytest.skip("this CPU has no AVX2/FMA: nothing to vectorise to")
     mesh = cylinder()
     model = build_model("stvk-tm", mesh.points, mesh.tets, FIBRE)
-    kernel = numba.njit(**{**nonlinear._HOT, "cache": False})(nonlinear.stvk_force.py_func)
+    kernel = numba.njit(**{**blocks.HOT, "cache": False})(stvk.stvk_force.py_func)
     f = np.zeros_like(mesh.points)
     kernel(model.data, model.new_scratch(), np.zeros_like(mesh.points), f)
     asm = kernel.inspect_asm(kernel.signatures[0])
@@ -396,7 +396,7 @@ def test_the_engines_numba_cache_is_cleared_when_any_of_its_sources_changes(tmp_
     assert sorted(p.name for p in cache.iterdir()) == ["other.txt", jitcache.STAMP]
     # importing the engine stamps the directory numba caches its step loops in
     import realtime  # noqa: F401
-    from realtime.integrators import _run_symplectic_euler
+    from realtime.steppers import _run_symplectic_euler
 
     stamp = Path(_run_symplectic_euler._cache.cache_path) / jitcache.STAMP
     sources = sorted(Path(jitcache.__file__).parent.glob("*.py"))

@@ -323,12 +323,11 @@ def _engine_linear_solution(scene):
     its rest stiffness (N, 3) m: the settled model without the settling."""
     import scipy.sparse.linalg as spla
 
-    from realtime.integrators import rest_stiffness
     from verification.runner import model_for
 
     model = model_for(scene, "linear-tm")
     free = model.loading.free.ravel() > 0
-    k = rest_stiffness(model).tocsc()[free][:, free]
+    k = model.rest_stiffness().tocsc()[free][:, free]
     u = np.zeros(3 * model.n_vertices)
     u[free] = spla.spsolve(k, model.loading.external_force.ravel()[free])
     return u.reshape(-1, 3)

@@ -27,7 +27,7 @@ import time
 import numba as nb
 import numpy as np
 
-from realtime.nonlinear import GEO_ROWS
+from realtime.blocks import GEO_ROWS
 
 _FAST = dict(nogil=True, cache=True, fastmath=True)
 #: fma_peak's independent chains per SIMD lane (enough FMAs in flight for two pipes of latency 4) and

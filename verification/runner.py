@@ -24,9 +24,10 @@ import numpy as np
 
 import realtime
 from realtime import DivergenceError, ImplicitEuler, State, SymplecticEuler, build_model, make_integrator, solve_static
-from realtime.integrators import max_eigenvalue, min_eigenvalue, solve_static_implicit
 from realtime.models import QUASI_STATIC
 from realtime.quasistatic import QuasiStatic
+from realtime.spectra import max_eigenvalue, min_eigenvalue
+from realtime.statics import solve_static_implicit
 
 from .loading import build_loading
 from .metrics import compute

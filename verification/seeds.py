@@ -34,7 +34,6 @@ import numpy as np
 from meshes.store import get_mesh
 from realtime import Loading, Material, NotConvergedError, State, SymplecticEuler, build_model
 from realtime.geometry import signed_volumes
-from realtime.integrators import rest_stiffness
 from realtime.models import QUASI_STATIC, nonlinear_fraction
 
 from .advise import FRAME_SHARE, _available_memory, _memory_bytes, frame_budget
@@ -299,7 +298,7 @@ def global_rotation(size: Size) -> dict:
     x = mesh.points - centre
     volume = float(signed_volumes(mesh.points, mesh.tets).sum())
     # the slowest elastic mode sets the damping and the settling clock
-    k = rest_stiffness(models["linear-tm"]).toarray()
+    k = models["linear-tm"].rest_stiffness().toarray()
     minv = 1.0 / np.sqrt(np.repeat(mass, 3))
     eig = np.linalg.eigvalsh(minv[:, None] * k * minv[None, :])
     omega1 = math.sqrt(eig[eig > 1e-8 * eig[-1]][0])
@@ -855,7 +854,7 @@ def formula_dt(model) -> tuple[float, float]:
     """Liu 2002 / Delingette 98: K_c ~ M / (n pi^2 dt^2), read as the step at which a vertex of mass M
     (kg) with n springs of mean stiffness K (N/m) is critical: dt = sqrt(M / (n pi^2 K)), the smallest
     over the moving vertices. Returns (dt s, mean valence n of the moving vertices)."""
-    edges = model.data[1]
+    edges = model.data.edges
     k = model.extra["stiffness"]
     n = len(model.points)
     ksum = np.bincount(edges[:, 0], k, n) + np.bincount(edges[:, 1], k, n)

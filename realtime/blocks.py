@@ -1,0 +1,203 @@
+"""The element models' shared machinery: blocks of tetrahedra in struct-of-arrays layout.
+
+The element models (stvk-tm, corotational-tm, hybrid-tm) evaluate, on each tetrahedron e with rest shape-function gradients g_a and volume V_e,
+
+    H = sum_a u_a (x) g_a,   F = I + H,   f_a -= V_e P(F) g_a
+
+with P the first Piola-Kirchhoff stress of the model's law. This is the exact negative gradient of the
+P1 energy sum_e V_e W(F_e): for StVK it is the same force as Picinbono's non-linear tensor-mass (2003),
+whose vertex, edge, triangle and tetrahedron tensors are the expansion of this expression in powers
+of u; evaluating P per element is the cheaper way to the same numbers (about 130 flops a tetrahedron
+against a few hundred for the tensor sums), and the cross-solver test checks it against dolfinx's
+P1 StVK residual. The kernels evaluate blocks of tetrahedra at once, vectorised across tetrahedra (the
+layout below). The kernels are in ``realtime.stvk``, ``realtime.corotational`` and ``realtime.hybrid``;
+the springs' in ``realtime.springs``.
+
+Every force kernel is ``force(data, scratch, u, f)``: ``data`` the model's read-only arrays, ``scratch``
+the arrays it writes besides f, which belong to the caller (an integrator's workspace: two threads
+stepping one model each pass their own) and keep the kernels free of allocation. Both tuples are
+documented at each kernel; all arrays are float64 unless said.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numba as nb
+import numpy as np
+
+from .geometry import morton_order, shape_gradients
+from .material import Material
+
+JIT = dict(nogil=True, cache=True)
+
+
+#: The force kernels of the step loop: contraction to fused multiply-adds and reassociation change
+#: results at round-off level only (the cross-solver tests hold at 1e-10); no NaN/inf assumptions, so
+#: the blow-up check still sees a NaN. Division by zero gives inf as in numpy instead of raising, which
+#: would put a branch in the element loops and keep them from vectorising.
+HOT = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz", "arcp"}, error_model="numpy")
+
+
+class BlockData(NamedTuple):
+    """The element kernels' data (stvk_force, corotational_force): tets (P, 4) int64 and geo (GEO_ROWS P,)
+    float64 from block_data, prm (5,) float64 law_params, everywhere (P,) bool all True (the scatter's
+    mask)."""
+
+    tets: np.ndarray
+    geo: np.ndarray
+    prm: np.ndarray
+    everywhere: np.ndarray
+
+
+def tet_data(points: np.ndarray, tets: np.ndarray):
+    """tets (M, 4) int64, grads (M, 3, 3) (rows g_1..g_3; g_0 = -(g_1 + g_2 + g_3)), vol (M,) m^3."""
+    g, vol = shape_gradients(points, tets)
+    return np.ascontiguousarray(tets, dtype=np.int64), np.ascontiguousarray(g[:, 1:, :]), np.ascontiguousarray(vol)
+
+
+def law_params(material: Material) -> np.ndarray:
+    """(5,) float64: lam, mu, dlam, dmu, kappa, Pa. The fibre direction is per tetrahedron, in
+    ``block_data``'s geometry."""
+    return np.array([material.lam, material.mu, material.dlam, material.dmu, material.volume_penalty])
+
+
+# Blocks of tetrahedra in struct-of-arrays layout (StVK, corotational, hybrid)
+#
+# Each kernel walks the mesh in blocks of BLOCK tetrahedra, in three loops per block: gather the
+# displacement differences u_a - u_0 into a scratch block (indexed loads), evaluate the elements on
+# contiguous rows (no indexing: LLVM turns this loop into SIMD code over 8 tetrahedra at a time with
+# AVX-512, 4 with AVX2), scatter the forces (indexed stores). The element loop runs on uint64 offsets:
+# numba wraps negative signed indices with a select that LLVM cannot bound, and that alone stops the
+# vectoriser.
+
+
+#: Tetrahedra per block: a block's scratch (9 x 64 float64, 4.6 kB) and geometry stay in L1.
+BLOCK = 64
+#: Rows of geometry per tetrahedron: 9 shape-gradient components, the volume, the fibre direction.
+GEO_ROWS = 13
+ROW = tuple(np.uint64(k * BLOCK) for k in range(GEO_ROWS))
+GEO_ROWS_U = np.uint64(GEO_ROWS * BLOCK)
+UBLOCK = np.uint64(BLOCK)
+
+
+def block_data(points: np.ndarray, tets: np.ndarray, material: Material):
+    """The element kernels' geometry in blocks of BLOCK tetrahedra.
+
+    points (N, 3) float64 m; tets (M, 4) int64. Returns tets (P, 4) int64 and geo (GEO_ROWS P,)
+    float64, P = BLOCK ceil(M / BLOCK): the tetrahedra in Morton order (neighbours share blocks; the
+    kernels sum over all of them, so their order is internal), the last block padded with zero-volume
+    tetrahedra on vertex 0, which contribute nothing. Block b holds, for its tetrahedron q (row
+    b BLOCK + q of the returned tets), with G = GEO_ROWS:
+    geo[(G b + 3 a + c) BLOCK + q] = g_{a+1, c} (1/m, a, c = 0..2; g_0 = -(g_1 + g_2 + g_3)),
+    geo[(G b + 9) BLOCK + q] = V (m^3) and geo[(G b + 10 + c) BLOCK + q] = a_c, the material's unit
+    fibre direction at the centroid (zeros for an isotropic material).
+    """
+    t, g, vol = tet_data(points, tets[morton_order(points, tets)])
+    m = len(t)
+    p = BLOCK * -(-m // BLOCK)
+    tp = np.zeros((p, 4), dtype=np.int64)
+    tp[:m] = t
+    rows = np.zeros((GEO_ROWS, p))
+    rows[:9, :m] = g.reshape(m, 9).T
+    rows[9, :m] = vol
+    rows[10:13, :m] = material.fiber_directions(points[t].mean(axis=1)).T
+    geo = rows.reshape(GEO_ROWS, p // BLOCK, BLOCK).transpose(1, 0, 2).ravel()
+    return tp, np.ascontiguousarray(geo)
+
+
+def block_scratch() -> tuple:
+    """The scratch of stvk_force: W (9 BLOCK,) float64, one block's displacement differences and forces."""
+    return (np.zeros(9 * BLOCK),)
+
+
+@nb.njit(inline="always", **HOT)
+def gather(tets, e0, u, W):
+    """W[(3 r + a) BLOCK + q] = u[i_{a+1}, r] - u[i_0, r] for the tetrahedra e0 .. e0 + BLOCK - 1."""
+    for q in range(BLOCK):
+        e = e0 + q
+        i0, i1, i2, i3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+        for r in range(3):
+            x0 = u[i0, r]
+            W[(3 * r) * BLOCK + q] = u[i1, r] - x0
+            W[(3 * r + 1) * BLOCK + q] = u[i2, r] - x0
+            W[(3 * r + 2) * BLOCK + q] = u[i3, r] - x0
+
+
+@nb.njit(inline="always", **HOT)
+def scatter_block(tets, e0, W, f, mask):
+    """f_{a+1} -= W[(3 a + r) BLOCK + q], f_0 += their sum, for the tetrahedra whose mask is set."""
+    for q in range(BLOCK):
+        e = e0 + q
+        if not mask[e]:
+            continue
+        i0, i1, i2, i3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+        for r in range(3):
+            f1, f2, f3 = W[r * BLOCK + q], W[(3 + r) * BLOCK + q], W[(6 + r) * BLOCK + q]
+            f[i1, r] -= f1
+            f[i2, r] -= f2
+            f[i3, r] -= f3
+            f[i0, r] += f1 + f2 + f3
+
+
+@nb.njit(inline="always", **HOT)
+def lane_rows(A, off, q):
+    """Rows 0..8 of lane q of the block at uint64 offset ``off`` in A (a row-major 3x3 as a 9-tuple)."""
+    return (
+        A[off + ROW[0] + q], A[off + ROW[1] + q], A[off + ROW[2] + q],
+        A[off + ROW[3] + q], A[off + ROW[4] + q], A[off + ROW[5] + q],
+        A[off + ROW[6] + q], A[off + ROW[7] + q], A[off + ROW[8] + q],
+    )  # fmt: skip
+
+
+@nb.njit(inline="always", **HOT)
+def lane_store(A, q, r):
+    """Rows 0..8 of lane q of the block array A (offset 0) = the row-major 9-tuple r."""
+    A[ROW[0] + q], A[ROW[1] + q], A[ROW[2] + q] = r[0], r[1], r[2]
+    A[ROW[3] + q], A[ROW[4] + q], A[ROW[5] + q] = r[3], r[4], r[5]
+    A[ROW[6] + q], A[ROW[7] + q], A[ROW[8] + q] = r[6], r[7], r[8]
+
+
+@nb.njit(inline="always", **HOT)
+def lane_in(W, geo, gb, q):
+    """H = grad u = sum_a (u_a - u_0) (x) g_a of lane q (row-major 9-tuple, from the displacement
+    differences in W), its gradients g_1..g_3 (row-major 9-tuple, 1/m) and its volume V (m^3)."""
+    ax, bx, cx, ay, by, cy, az, bz, cz = lane_rows(W, ROW[0], q)
+    g = lane_rows(geo, gb, q)
+    g10, g11, g12, g20, g21, g22, g30, g31, g32 = g
+    H = (
+        ax * g10 + bx * g20 + cx * g30, ax * g11 + bx * g21 + cx * g31, ax * g12 + bx * g22 + cx * g32,
+        ay * g10 + by * g20 + cy * g30, ay * g11 + by * g21 + cy * g31, ay * g12 + by * g22 + cy * g32,
+        az * g10 + bz * g20 + cz * g30, az * g11 + bz * g21 + cz * g31, az * g12 + bz * g22 + cz * g32,
+    )  # fmt: skip
+    return H, g, geo[gb + ROW[9] + q]
+
+
+@nb.njit(inline="always", **HOT)
+def lane_out(W, q, v, P, g):
+    """W[(3 a + r) BLOCK + q] = V (P g_{a+1})_r: the element's forces, P and g row-major 9-tuples."""
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
+    g10, g11, g12, g20, g21, g22, g30, g31, g32 = g
+    W[ROW[0] + q] = v * (p00 * g10 + p01 * g11 + p02 * g12)
+    W[ROW[1] + q] = v * (p10 * g10 + p11 * g11 + p12 * g12)
+    W[ROW[2] + q] = v * (p20 * g10 + p21 * g11 + p22 * g12)
+    W[ROW[3] + q] = v * (p00 * g20 + p01 * g21 + p02 * g22)
+    W[ROW[4] + q] = v * (p10 * g20 + p11 * g21 + p12 * g22)
+    W[ROW[5] + q] = v * (p20 * g20 + p21 * g21 + p22 * g22)
+    W[ROW[6] + q] = v * (p00 * g30 + p01 * g31 + p02 * g32)
+    W[ROW[7] + q] = v * (p10 * g30 + p11 * g31 + p12 * g32)
+    W[ROW[8] + q] = v * (p20 * g30 + p21 * g31 + p22 * g32)
+
+
+@nb.njit(inline="always", **JIT)
+def block_grad_u(tets, geo, e, u):
+    """F = I + grad u (3, 3) on tetrahedron e of block_data's layout, its volume and fibre (3,)."""
+    b, q = e // BLOCK, e % BLOCK
+    F = np.eye(3)
+    for a in range(1, 4):
+        for r in range(3):
+            d = u[tets[e, a], r] - u[tets[e, 0], r]
+            for c in range(3):
+                F[r, c] += d * geo[(GEO_ROWS * b + 3 * (a - 1) + c) * BLOCK + q]
+    fibre = np.array([geo[(GEO_ROWS * b + 10 + c) * BLOCK + q] for c in range(3)])
+    return F, geo[(GEO_ROWS * b + 9) * BLOCK + q], fibre

@@ -1,0 +1,207 @@
+"""Corotational linear elasticity (polar rotation per tetrahedron, SOFA's "polar" method): the element
+kernel of ``corotational-tm`` on blocks of tetrahedra (``realtime.blocks``)."""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from .blocks import (
+    BLOCK,
+    GEO_ROWS_U,
+    HOT,
+    JIT,
+    ROW,
+    UBLOCK,
+    block_grad_u,
+    gather,
+    lane_in,
+    lane_out,
+    lane_rows,
+    lane_store,
+    scatter_block,
+)
+
+
+@nb.njit(inline="always", **HOT)
+def _polar_step(r, scaled):
+    """One scaled Newton step of the polar iteration R <- (g R + R^-T / g) / 2 (Higham 1986) on R
+    (9-tuple, row-major), with g = (|R^-1|_F / |R|_F)^(1/2) if ``scaled``, else 1 (near convergence g
+    -> 1, and it costs two roots). Returns the new R and |dR|_F^2."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
+    c00 = r11 * r22 - r12 * r21
+    c01 = r12 * r20 - r10 * r22
+    c02 = r10 * r21 - r11 * r20
+    c10 = r02 * r21 - r01 * r22
+    c11 = r00 * r22 - r02 * r20
+    c12 = r01 * r20 - r00 * r21
+    c20 = r01 * r12 - r02 * r11
+    c21 = r02 * r10 - r00 * r12
+    c22 = r00 * r11 - r01 * r10
+    det = r00 * c00 + r01 * c01 + r02 * c02
+    gam = 1.0
+    if scaled:
+        nr = r00 * r00 + r01 * r01 + r02 * r02 + r10 * r10 + r11 * r11 + r12 * r12 + r20 * r20 + r21 * r21 + r22 * r22
+        nc = c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12 + c20 * c20 + c21 * c21 + c22 * c22
+        gam = np.sqrt(np.sqrt(nc / (det * det * nr)))
+    a = 0.5 * gam
+    b = 0.5 / (gam * det)  # R^-T = cof(R) / det(R)
+    n = (
+        a * r00 + b * c00, a * r01 + b * c01, a * r02 + b * c02,
+        a * r10 + b * c10, a * r11 + b * c11, a * r12 + b * c12,
+        a * r20 + b * c20, a * r21 + b * c21, a * r22 + b * c22,
+    )  # fmt: skip
+    change = (
+        (n[0] - r00) ** 2 + (n[1] - r01) ** 2 + (n[2] - r02) ** 2
+        + (n[3] - r10) ** 2 + (n[4] - r11) ** 2 + (n[5] - r12) ** 2
+        + (n[6] - r20) ** 2 + (n[7] - r21) ** 2 + (n[8] - r22) ** 2
+    )  # fmt: skip
+    return n, change
+
+
+#: A Newton step that changes R by less than 1e-6 (Frobenius; the constants are squared changes) ends
+#: the polar iteration: convergence is quadratic, so the new iterate is within about 1e-12 of the
+#: rotation (a 1e-9 test took one more step, 10% of corotational-tm's force, to confirm round-off).
+#: Scaling stops below a change of 1e-2.
+_POLAR_DONE = 1e-12
+
+
+_POLAR_SCALED = 1e-4
+
+
+@nb.njit(inline="always", **HOT)
+def _polar(F):
+    """Rotation (9-tuple, row-major) of the polar decomposition F = R U, F a row-major 9-tuple.
+
+    Scaled Newton iteration (_polar_step): quadratic convergence for det F > 0, in registers. An
+    inverted or flat element (det F <= 1e-12) takes the SVD instead, with the sign of the smallest
+    singular direction flipped so that R stays a rotation (Irving, Teran & Fedkiw 2004).
+    """
+    if _det(F) <= 1e-12:
+        U, _, Vt = np.linalg.svd(np.array(F).reshape(3, 3))
+        if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
+            U[:, 2] = -U[:, 2]
+        Q = U @ Vt
+        return Q[0, 0], Q[0, 1], Q[0, 2], Q[1, 0], Q[1, 1], Q[1, 2], Q[2, 0], Q[2, 1], Q[2, 2]
+    r, change = F, 1.0
+    for _ in range(30):
+        r, change = _polar_step(r, change > _POLAR_SCALED)
+        if change < _POLAR_DONE:
+            break
+    return r
+
+
+@nb.njit(inline="always", **HOT)
+def _plus_identity(H):
+    """F = I + H, row-major 9-tuples."""
+    return (1.0 + H[0], H[1], H[2], H[3], 1.0 + H[4], H[5], H[6], H[7], 1.0 + H[8])
+
+
+@nb.njit(inline="always", **HOT)
+def _det(F):
+    """det of a row-major 9-tuple."""
+    f00, f01, f02, f10, f11, f12, f20, f21, f22 = F
+    return f00 * (f11 * f22 - f12 * f21) - f01 * (f10 * f22 - f12 * f20) + f02 * (f10 * f21 - f11 * f20)
+
+
+@nb.njit(inline="always", **HOT)
+def _corotated_pk1(F, r, lam, mu):
+    """P = R sigma(sym(R^T F) - I), R (row-major 9-tuple) the polar rotation of F: the stress of the
+    corotated energy lam/2 tr(S - I)^2 + mu |S - I|^2, S = R^T F."""
+    f00, f01, f02, f10, f11, f12, f20, f21, f22 = F
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
+    s00 = r00 * f00 + r10 * f10 + r20 * f20 - 1.0
+    s11 = r01 * f01 + r11 * f11 + r21 * f21 - 1.0
+    s22 = r02 * f02 + r12 * f12 + r22 * f22 - 1.0
+    s01 = 0.5 * (r00 * f01 + r10 * f11 + r20 * f21 + r01 * f00 + r11 * f10 + r21 * f20)
+    s02 = 0.5 * (r00 * f02 + r10 * f12 + r20 * f22 + r02 * f00 + r12 * f10 + r22 * f20)
+    s12 = 0.5 * (r01 * f02 + r11 * f12 + r21 * f22 + r02 * f01 + r12 * f11 + r22 * f21)
+    ltr = lam * (s00 + s11 + s22)
+    t00, t11, t22 = 2.0 * mu * s00 + ltr, 2.0 * mu * s11 + ltr, 2.0 * mu * s22 + ltr
+    t01, t02, t12 = 2.0 * mu * s01, 2.0 * mu * s02, 2.0 * mu * s12
+    return (
+        r00 * t00 + r01 * t01 + r02 * t02, r00 * t01 + r01 * t11 + r02 * t12, r00 * t02 + r01 * t12 + r02 * t22,
+        r10 * t00 + r11 * t01 + r12 * t02, r10 * t01 + r11 * t11 + r12 * t12, r10 * t02 + r11 * t12 + r12 * t22,
+        r20 * t00 + r21 * t01 + r22 * t02, r20 * t01 + r21 * t11 + r22 * t12, r20 * t02 + r21 * t12 + r22 * t22,
+    )  # fmt: skip
+
+
+@nb.njit(inline="always", **HOT)
+def _corotational_block(W, R, Fb, geo, gb, lam, mu):
+    """Element forces of one block, in place in W (as _stvk_block), for the corotated law.
+
+    The polar iteration runs on all the block's tetrahedra at once, with the rotations in the scratch
+    R (10 BLOCK,) float64 (rows 0..8 the rotation), until the slowest has converged; those that
+    converged earlier take a few more steps at round-off. The steps are scaled while the block's largest
+    change is above _POLAR_SCALED (a block-wide choice, so that unscaled steps take no roots). Inverted
+    ones start
+    from R = I (which stays put) and take the SVD afterwards, one at a time. Fb (9 BLOCK,) keeps each
+    lane's F for the stress, which reads it back instead of forming it again (45 flops a tetrahedron).
+    """
+    inverted = 0
+    for q in range(UBLOCK):
+        F = _plus_identity(lane_in(W, geo, gb, q)[0])
+        lane_store(Fb, q, F)
+        ok = _det(F) > 1e-12
+        lane_store(R, q, F if ok else (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
+        inverted += not ok
+    scaled = True  # one decision for the whole block: a branch per lane would keep both paths' roots
+    for _ in range(30):
+        active = 0
+        far = 0  # lanes still far from orthogonal (an integer count: a max would not vectorise)
+        for q in range(UBLOCK):
+            n, change = _polar_step(lane_rows(R, ROW[0], q), scaled)
+            lane_store(R, q, n)
+            active += change >= _POLAR_DONE
+            far += change > _POLAR_SCALED
+        if active == 0:
+            break
+        scaled = far > 0
+    if inverted:
+        for q in range(UBLOCK):
+            F = lane_rows(Fb, ROW[0], q)
+            if _det(F) <= 1e-12:
+                lane_store(R, q, _polar(F))
+    for q in range(UBLOCK):
+        g = lane_rows(geo, gb, q)
+        v = geo[gb + ROW[9] + q]
+        lane_out(W, q, v, _corotated_pk1(lane_rows(Fb, ROW[0], q), lane_rows(R, ROW[0], q), lam, mu), g)
+
+
+def corotational_scratch() -> tuple:
+    """The scratch of corotational_force: W (9 BLOCK,) as block_scratch, R (10 BLOCK,) float64 the
+    block's rotations and last polar changes, Fb (9 BLOCK,) float64 its deformation gradients."""
+    return (np.zeros(9 * BLOCK), np.zeros(10 * BLOCK), np.zeros(9 * BLOCK))
+
+
+@nb.njit(**HOT)
+def corotational_force(data, scratch, u, f):
+    """Corotational linear force: f_a -= V R sigma(sym(R^T F) - I) g_a, R the polar rotation of F.
+
+    This is the exact gradient of W(F) = lam/2 tr(S - I)^2 + mu |S - I|^2, S = R^T F the polar stretch
+    (the "corotated" energy; SOFA's TetrahedronFEMForceField, method "polar").
+    data: blocks.BlockData.   scratch: corotational_scratch().
+    """
+    tets, geo, prm, everywhere = data
+    W, R, Fb = scratch
+    f[:] = 0.0
+    for b in range(tets.shape[0] // BLOCK):
+        gather(tets, b * BLOCK, u, W)
+        _corotational_block(W, R, Fb, geo, np.uint64(b) * GEO_ROWS_U, prm[0], prm[1])
+        scatter_block(tets, b * BLOCK, W, f, everywhere)
+
+
+@nb.njit(**JIT)
+def corotational_energy(data, u):
+    """sum_e V_e (lam/2 tr(S - I)^2 + mu |S - I|^2), S = R^T F."""
+    tets, geo, prm = data.tets, data.geo, data.prm
+    lam, mu = prm[0], prm[1]
+    w = 0.0
+    for e in range(tets.shape[0]):
+        F, vol, _ = block_grad_u(tets, geo, e, u)
+        R = np.array(_polar((F[0, 0], F[0, 1], F[0, 2], F[1, 0], F[1, 1], F[1, 2], F[2, 0], F[2, 1], F[2, 2])))
+        S = R.reshape(3, 3).T @ F - np.eye(3)
+        S = 0.5 * (S + S.T)
+        tr = S[0, 0] + S[1, 1] + S[2, 2]
+        w += vol * (0.5 * lam * tr * tr + mu * np.sum(S * S))
+    return w

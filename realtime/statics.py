@@ -1,0 +1,158 @@
+"""Static equilibrium of a real-time model by damped dynamics: explicit (dynamic relaxation) or by
+implicit Euler steps.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .integrators import DivergenceError, ImplicitEuler, NotConvergedError, SymplecticEuler
+from .model import Model, State
+from .spectra import max_eigenvalue
+
+
+@dataclass
+class StaticResult:
+    """Outcome of ``solve_static``: state at equilibrium, steps taken, final relative residual."""
+
+    state: State
+    steps: int
+    residual: float
+    dt: float
+
+
+def solve_static(
+    model: Model,
+    dt: float | None = None,
+    rtol: float = 1e-10,
+    max_steps: int = 2_000_000,
+    chunk: int = 200,
+    safety: float = 0.9,
+) -> StaticResult:
+    """Static equilibrium under the full loads by damped explicit dynamics (dynamic relaxation).
+
+    Symplectic Euler with mass damping alpha = 2 omega_1, near critical for the slowest mode.
+    omega_1^2 is re-estimated every ``chunk`` steps by the Rayleigh quotient u_f.K u_f / u_f.M u_f
+    of the current free displacement, K the tangent stiffness at the current state (Underwood's adaptive dynamic relaxation): the displacement
+    under a static load is dominated by the lowest mode, so the quotient tends to it. The tools move
+    along their ramps from t = 0 (a load path: a large displacement imposed in one step would crush
+    the elements beside the tool before the rest of the body can follow) and then hold. Converged
+    when every tool has arrived and the free components' residual |f_int + f_ext| is below rtol
+    times the load scale (|f_ext| and the tools' reaction), or has stalled for 50 chunks on a
+    round-off floor below 1000 rtol (``StaticResult.residual`` says which).
+
+    With ``dt`` given, every step uses it, and a dt above the critical one raises DivergenceError as
+    any explicit run does. With dt = None the step adapts: ``safety`` x dt_crit at rest, and when a
+    non-linear model stiffens (tension, compression) and a chunk diverges, the solve returns to the
+    last good chunk, re-estimates omega_max there and goes on at ``safety`` times the new critical step.
+    ``StaticResult.dt`` is the step in use at the end.
+    """
+    n = model.n_vertices
+    state = State.at_rest(n)
+    lo = model.loading
+    arrived = float(lo.tool_ramp.max()) if len(lo.tool_ramp) else 0.0
+    free = lo.free
+    omega2 = max_eigenvalue(model)
+    dt_crit = 2.0 / math.sqrt(omega2)
+    adaptive = dt is None
+    dt = safety * dt_crit if adaptive else dt
+    integ = SymplecticEuler(alpha=0.0)
+    alpha = 2.0 * math.sqrt(omega2) * 1e-3
+    taken = 0
+    residual = best = np.inf
+    since_best = 0
+    fmag = float(np.linalg.norm(lo.external_force * free))
+    while taken < max_steps:
+        integ.alpha = alpha
+        good = state.copy()
+        n = min(chunk, max_steps - taken)  # the budget is a number of steps, not of chunks
+        try:
+            integ.step(model, state, dt, n, dt_crit=dt_crit)
+        except DivergenceError:
+            if not adaptive or model.linear:
+                raise
+            state = good
+            omega2 = max(omega2, max_eigenvalue(model, state.u))
+            new_crit = 2.0 / math.sqrt(omega2)
+            if new_crit >= dt_crit:  # the estimate did not move: halve instead of looping
+                new_crit = 0.5 * dt_crit
+            dt_crit = new_crit
+            dt = safety * dt_crit
+            state.v[:] = 0.0
+            continue
+        taken += n
+        f = model.internal_force(state.u)
+        r = (f + lo.external_force) * free
+        scale = max(fmag, float(np.linalg.norm(model.reaction(state.u))), 1e-300)
+        residual = float(np.linalg.norm(r)) / scale
+        if state.t >= arrived:
+            if residual < rtol:
+                break
+            if residual < 0.9 * best:
+                best, since_best = residual, 0
+            else:
+                since_best += 1
+            # a round-off floor (mass-spring lengths lose digits to |x_j - x_i| - L): accept a plateau
+            # within 1000 rtol that has not improved for 50 chunks; the residual reached is reported
+            if since_best >= 50 and best < 1e3 * rtol:
+                break
+        uf = state.u * free
+        den = float(np.sum(model.mass[:, None] * uf * uf))
+        if den > 0.0:
+            # u_f.K(u) u_f / u_f.M u_f with K(u) the tangent stiffness at the current state, applied to
+            # the free part alone (K_fp u_p is no stiffness of the free system): a central difference
+            # of the force along u_f, exact for a linear model
+            h = 1e-4 / max(float(np.abs(uf).max()), 1e-300) * float(np.abs(state.u).max() + 1e-12)
+            kuf = (model.internal_force(state.u - h * uf) - model.internal_force(state.u + h * uf)) / (2.0 * h)
+            rq = float(np.sum(kuf * uf)) / den
+            if rq > 0.0:
+                alpha = 2.0 * math.sqrt(min(rq, omega2))
+    else:
+        raise NotConvergedError(
+            f"{model.name}: damped dynamics reached a relative residual of {residual:.2e} "
+            f"(asked {rtol:.1e}) in {taken} steps of {dt:.3g} s"
+        )
+    state.v[:] = 0.0
+    state.steps = taken
+    return StaticResult(state=state, steps=taken, residual=residual, dt=dt)
+
+
+def solve_static_implicit(
+    model: Model, dt: float, rtol: float = 1e-10, max_steps: int = 20_000, integrator: ImplicitEuler | None = None
+) -> StaticResult:
+    """Static equilibrium by implicit Euler steps of dt (its numerical damping settles every mode a
+    large step resolves poorly): the tools follow their ramps, then the loop stops when the free
+    residual is below rtol times the load scale. Raises NotConvergedError past ``max_steps``."""
+    integ = integrator if integrator is not None else ImplicitEuler(tol=min(1e-10, rtol))
+    lo = model.loading
+    state = State.at_rest(model.n_vertices)
+    arrived = float(lo.tool_ramp.max()) if len(lo.tool_ramp) else 0.0
+    fmag = float(np.linalg.norm(lo.external_force * lo.free))
+    residual = best = np.inf
+    since_best = 0
+    for k in range(1, max_steps + 1):
+        integ.step(model, state, dt, 1)  # raises NotConvergedError when CG stops short (unless a budget)
+        if state.t < arrived:
+            continue
+        r = (model.internal_force(state.u) + lo.external_force) * lo.free
+        scale = max(fmag, float(np.linalg.norm(model.reaction(state.u))), 1e-300)
+        residual = float(np.linalg.norm(r)) / scale
+        if residual < 0.9 * best:
+            best, since_best = residual, 0
+        else:
+            since_best += 1
+        # a round-off floor (a nearly incompressible system, condition number 1e8, stalls near 4e-10):
+        # accept a plateau within 1000 rtol that has not improved for 50 steps, as solve_static does,
+        # and report the residual reached; a plateau above it will not come down either
+        if residual < rtol or (since_best >= 50 and best < 1e3 * rtol):
+            state.v[:] = 0.0
+            return StaticResult(state=state, steps=k, residual=residual, dt=dt)
+        if since_best >= 50:
+            break
+    raise NotConvergedError(
+        f"{model.name}: implicit Euler reached a relative residual of {best:.2e} "
+        f"(asked {rtol:.1e}) in {k} steps of {dt:.3g} s"
+    )

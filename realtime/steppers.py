@@ -1,0 +1,324 @@
+"""The compiled step loops of the integrators, and what they share: the tools, the tools' force, the
+tangent product and the preconditioner of implicit Euler's CG (``realtime.integrators`` calls them).
+
+Each loop advances u and v (N, 3) float64 in place by n steps, calls the model's force kernel
+``force(data, scratch, u, f)`` (taken as an argument: one compiled loop per kernel), moves the tools'
+vertices along their paths and returns where it stopped, so that a whole call runs in numba with the
+GIL released.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numba as nb
+import numpy as np
+
+from .linsolve import factor_solve
+from .model import _tool_value
+
+_JIT = dict(nogil=True, cache=True)
+
+
+class CG(NamedTuple):
+    """Implicit Euler's CG: relative tolerance ``tol``, at most ``maxit`` iterations a step, the
+    ``factored`` preconditioner (else the mass term), and ``budget`` (maxit is a fixed budget, not a
+    failure)."""
+
+    tol: float
+    maxit: int
+    factored: bool
+    budget: bool
+
+
+class CGWork(NamedTuple):
+    """Implicit Euler's (N, 3) float64 work arrays: the force f, K v, CG's r, z, p, A p and x, and two
+    for the tangent product."""
+
+    f: np.ndarray
+    kv: np.ndarray
+    r: np.ndarray
+    z: np.ndarray
+    p: np.ndarray
+    ap: np.ndarray
+    x: np.ndarray
+    t1: np.ndarray
+    t2: np.ndarray
+
+    @staticmethod
+    def like(u: np.ndarray) -> CGWork:
+        return CGWork(*(np.zeros_like(u) for _ in range(9)))
+
+
+@nb.njit(**_JIT)
+def _apply_tools(points, tools, t, dt, u, v, tmp):
+    """Set the prescribed components to their value at t and their velocity to the last increment."""
+    for p in range(tools.vertex.shape[0]):
+        k = tools.tool[p]
+        i = tools.vertex[p]
+        _tool_value(
+            points[i], tools.kind[k], tools.vector[k], tools.axis[k], tools.center[k], tools.angle[k],
+            tools.ramp[k], tools.shape[k], t, tmp,
+        )  # fmt: skip
+        for c in range(3):
+            if tools.mask[p, c] != 0.0:
+                v[i, c] = (tmp[c] - u[i, c]) / dt
+                u[i, c] = tmp[c]
+
+
+@nb.njit(**_JIT)
+def _tool_velocities(tools, v, vt):
+    """vt (P, 3) = the velocities of the tool vertices, before a step moves them."""
+    for p in range(tools.vertex.shape[0]):
+        for c in range(3):
+            vt[p, c] = v[tools.vertex[p], c]
+
+
+@nb.njit(**_JIT)
+def _tool_reaction(tools, mass, f, fext, v, vt, alpha, dt, out):
+    """out (L, 3) N = the force each tool exerts on the body, from the equation of motion on its
+    prescribed components: R = m (v - vt) / dt + alpha m v - f - f_ext, with v their velocity after the
+    step, vt before it, and f the internal force (N, 3) the integrator used for it (damping included).
+    This is what holds the vertices on the tool's path, inertia included: what a haptic device renders
+    (with the opposite sign: the body's force on the tool). At rest it is model.reaction's static force."""
+    out[:] = 0.0
+    for p in range(tools.vertex.shape[0]):
+        i, k = tools.vertex[p], tools.tool[p]
+        for c in range(3):
+            if tools.mask[p, c] != 0.0:
+                out[k, c] += mass[i] * ((v[i, c] - vt[p, c]) / dt + alpha * v[i, c]) - f[i, c] - fext[i, c]
+
+
+@nb.njit(**_JIT)
+def _damped_arg(u, v, beta, w):
+    """w = u + beta v: where the internal force is evaluated (Rayleigh stiffness damping)."""
+    for i in range(u.shape[0]):
+        for c in range(3):
+            w[i, c] = u[i, c] + beta * v[i, c]
+
+
+@nb.njit(**_JIT)
+def _run_symplectic_euler(
+    n, dt, t0, force, data, scratch, points, per_dof, mass, fext, tools, alpha, beta, bound, u, v, f, w, vt, reaction
+):  # fmt: skip
+    """n steps of v = (v + dt a(u)) / (1 + dt alpha); u += dt v. Returns -1 or the index of the step that blew up.
+    ``reaction`` (L, 3) N: the tools' force on the body in the last step (_tool_reaction), with the
+    scheme's own discrete equation m (v_new - v_old) / dt = f(u_old) + f_ext - alpha m v_new + R.
+
+    per_dof (3N, 3): per component, the free mask, the free mask / m (1/kg) and the external
+    acceleration f_ext / m on free components (m/s^2). Constrained components keep v = 0 and do not
+    move (tools overwrite theirs afterwards). The update is one branch-free loop over 3N components
+    that reads two arrays and writes two, which LLVM vectorises (more arrays, and it would need more
+    run-time overlap checks than it is willing to emit).
+    """
+    tmp = np.empty(3)
+    u1, v1, f1 = u.reshape(-1), v.reshape(-1), f.reshape(-1)
+    damp = 1.0 / (1.0 + dt * alpha)  # mass damping treated implicitly: stable for any alpha
+    for s in range(n):
+        _tool_velocities(tools, v, vt)
+        if beta != 0.0:
+            _damped_arg(u, v, beta, w)
+            force(data, scratch, w, f)
+        else:
+            force(data, scratch, u, f)
+        out = 0
+        for k in range(u1.shape[0]):
+            vk = (per_dof[k, 0] * v1[k] + dt * (per_dof[k, 1] * f1[k] + per_dof[k, 2])) * damp
+            uk = u1[k] + dt * vk
+            v1[k] = vk
+            u1[k] = uk
+            out += not abs(uk) < bound  # NaN counts too
+        _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
+        if out:
+            return s
+    _tool_reaction(tools, mass, f, fext, v, vt, alpha, dt, reaction)
+    return -1
+
+
+@nb.njit(**_JIT)
+def _run_central_difference(
+    n, dt, t0, force, data, scratch, points, mass, inv_mass, free, fext, tools, alpha, beta, bound, u, v, a, f, w,
+    vt, reaction,
+):  # fmt: skip
+    """n steps of velocity Verlet (central difference): half kick, drift, force, half kick.
+    ``reaction`` (L, 3) N: the tools' force on the body at the end of the last step (_tool_reaction, with
+    the force at the new u and the tools' last velocity increment).
+
+    a (N, 3) holds the undamped acceleration (f_int + f_ext) / m at entry and at exit. Mass damping
+    -alpha v is explicit in the first half kick and implicit in the second, v <- (v (1 - h alpha) +
+    h a), then v <- (v + h a) / (1 + h alpha): together the trapezoidal rule, second order like the
+    rest of the scheme (implicit in both halves, it was first order in alpha dt), and stable for any
+    alpha (spectral radius <= 1 for omega dt < 2 and every alpha dt >= 0, checked on the 2x2
+    amplification matrix).
+    """
+    tmp = np.empty(3)
+    h = 0.5 * dt
+    keep = 1.0 - h * alpha
+    damp = 1.0 / (1.0 + h * alpha)
+    for s in range(n):
+        _tool_velocities(tools, v, vt)
+        for i in range(u.shape[0]):
+            for c in range(3):
+                if free[i, c] != 0.0:
+                    v[i, c] = v[i, c] * keep + h * a[i, c]
+                    u[i, c] += dt * v[i, c]
+        _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
+        if beta != 0.0:
+            _damped_arg(u, v, beta, w)
+            force(data, scratch, w, f)
+        else:
+            force(data, scratch, u, f)
+        ok = True
+        for i in range(u.shape[0]):
+            im = inv_mass[i]
+            for c in range(3):
+                if free[i, c] != 0.0:
+                    ai = (f[i, c] + fext[i, c]) * im
+                    a[i, c] = ai
+                    v[i, c] = (v[i, c] + h * ai) * damp
+                    if not abs(u[i, c]) < bound:
+                        ok = False
+        if not ok:
+            return s
+    _tool_reaction(tools, mass, f, fext, v, vt, alpha, dt, reaction)
+    return -1
+
+
+@nb.njit(**_JIT)
+def _tangent_product(force, data, scratch, u, y, linear, out, t1, t2):
+    """out = K(u) y: -f(y) for a linear model, else -(f(u + h y) - f(u - h y)) / (2 h)."""
+    if linear:
+        force(data, scratch, y, out)
+        for i in range(y.shape[0]):
+            for c in range(3):
+                out[i, c] = -out[i, c]
+        return
+    ymax = 0.0
+    umax = 0.0
+    for i in range(y.shape[0]):
+        for c in range(3):
+            ymax = max(ymax, abs(y[i, c]))
+            umax = max(umax, abs(u[i, c]))
+    if ymax == 0.0:
+        out[:] = 0.0
+        return
+    h = 1e-7 * (umax + 1e-3) / ymax
+    for i in range(y.shape[0]):
+        for c in range(3):
+            t1[i, c] = u[i, c] + h * y[i, c]
+    force(data, scratch, t1, out)
+    for i in range(y.shape[0]):
+        for c in range(3):
+            t1[i, c] = u[i, c] - h * y[i, c]
+    force(data, scratch, t1, t2)
+    for i in range(y.shape[0]):
+        for c in range(3):
+            out[i, c] = -(out[i, c] - t2[i, c]) / (2.0 * h)
+
+
+@nb.njit(**_JIT)
+def _precondition(factored, fac, cm, mass, r, z):
+    """z = B^-1 r and returns r . z: B the factored rest-state system, or the mass term cm M."""
+    if factored:
+        factor_solve(fac, r, z)
+    else:
+        for i in range(r.shape[0]):
+            for c in range(3):
+                z[i, c] = r[i, c] / (cm * mass[i])
+    rz = 0.0
+    for i in range(r.shape[0]):
+        for c in range(3):
+            rz += r[i, c] * z[i, c]
+    return rz
+
+
+@nb.njit(**_JIT)
+def _run_implicit_euler(
+    n, dt, t0, force, data, scratch, linear, points, mass, free, fext, tools, alpha, beta, bound, cg, fac, u, v,
+    work, vt, reaction,
+):  # fmt: skip
+    """n steps of linearised implicit Euler; returns (status, the step it stopped after or -1, total CG
+    iterations, the most CG iterations one step took, the steps whose CG stopped at maxit). Status 0:
+    all n steps done; 1: the step blew up; 2: its CG stopped at ``maxit`` above ``tol`` (the step is
+    taken; the loop stops after it unless ``budget``, a fixed iteration budget as real-time simulators
+    run CG).
+
+    (M (1 + dt alpha) + (dt beta + dt^2) K) dv = dt (f(u) + f_ext - alpha M v - (beta + dt) K v), K the
+    tangent at u_n, solved by preconditioned CG on the free components to a relative residual
+    ``tol`` (the preconditioner: the factored system with the rest stiffness if ``factored``, else
+    the mass term); then v += dv, u += dt v. ``reaction`` (L, 3) N: the tools' force on the body in the
+    last step, from the same equation on their components: m (v_new - v_old) / dt + alpha m v_new +
+    (beta + dt) K v - f(u_old) - f_ext, with K v one more tangent product (at the step's u_old) of the
+    velocities the solve used (the new ones on the free components, the tools' old ones: the solve
+    moved the tools' neighbours with those), so that the body's momentum balance closes.
+    """
+    f, kv, r, z, p, ap, x, t1, t2 = work
+    tol, maxit, factored, budget = cg.tol, cg.maxit, cg.factored, cg.budget
+    tmp = np.empty(3)
+    cm = 1.0 + dt * alpha
+    ck = dt * beta + dt * dt
+    total = 0
+    worst = 0
+    spent = 0
+    nv = u.shape[0]
+    for s in range(n):
+        _tool_velocities(tools, v, vt)
+        force(data, scratch, u, f)
+        _tangent_product(force, data, scratch, u, v, linear, kv, t1, t2)
+        for i in range(nv):
+            for c in range(3):
+                r[i, c] = dt * (f[i, c] + fext[i, c] - alpha * mass[i] * v[i, c] - (beta + dt) * kv[i, c]) * free[i, c]
+                x[i, c] = 0.0
+        rr = _precondition(factored, fac, cm, mass, r, z)
+        for i in range(nv):
+            for c in range(3):
+                p[i, c] = z[i, c]
+        r0 = np.sqrt(rr)
+        it = 0
+        while it < maxit and np.sqrt(rr) > tol * r0 and rr > 0.0:
+            _tangent_product(force, data, scratch, u, p, linear, ap, t1, t2)
+            pap = 0.0
+            for i in range(nv):
+                for c in range(3):
+                    ap[i, c] = (cm * mass[i] * p[i, c] + ck * ap[i, c]) * free[i, c]
+                    pap += p[i, c] * ap[i, c]
+            a = rr / pap
+            for i in range(nv):
+                for c in range(3):
+                    x[i, c] += a * p[i, c]
+                    r[i, c] -= a * ap[i, c]
+            rr_new = _precondition(factored, fac, cm, mass, r, z)
+            b = rr_new / rr
+            rr = rr_new
+            for i in range(nv):
+                for c in range(3):
+                    p[i, c] = z[i, c] + b * p[i, c]
+            it += 1
+        total += it
+        worst = max(worst, it)
+        unconverged = it >= maxit and np.sqrt(rr) > tol * r0
+        spent += unconverged
+        ok = True
+        last = s == n - 1 or (unconverged and not budget)
+        if last:
+            z[:] = u  # u_old, where the step's tangent was taken
+        for i in range(nv):
+            for c in range(3):
+                if free[i, c] != 0.0:
+                    v[i, c] += x[i, c]
+                    u[i, c] += dt * v[i, c]
+                    if not abs(u[i, c]) < bound:
+                        ok = False
+        if last and ok:  # the implicit part of the step's force, with the velocities the solve used
+            _tangent_product(force, data, scratch, z, v, linear, kv, t1, t2)
+            for i in range(nv):
+                for c in range(3):
+                    f[i, c] -= (beta + dt) * kv[i, c]
+        _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
+        if not ok:
+            return 1, s, total, worst, spent
+        if last:
+            _tool_reaction(tools, mass, f, fext, v, vt, alpha, dt, reaction)
+        if unconverged and not budget:
+            return 2, s, total, worst, spent
+    return 0, -1, total, worst, spent

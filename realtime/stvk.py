@@ -1,0 +1,131 @@
+"""StVK tensor-mass (Picinbono, Delingette & Ayache 2003): the element kernel of ``stvk-tm``, with fibre
+terms and the volume penalty, on blocks of tetrahedra (``realtime.blocks``)."""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from .blocks import BLOCK, GEO_ROWS_U, HOT, JIT, ROW, UBLOCK, block_grad_u, gather, lane_in, lane_out, scatter_block
+from .laws import stvk_energy as stvk_density
+from .laws import volume_penalty_energy
+
+
+@nb.njit(inline="always", **HOT)
+def _pk2(e00, e11, e22, e01, e02, e12, lam, mu2, a0, a1, a2, dlam, dmu, fibre):
+    """S = lam tr(E) I + 2 mu E + dlam (a.Ea) a (x) a + dmu (a (x) Ea + Ea (x) a), the six components
+    (00, 11, 22, 01, 02, 12) of the StVK law (Picinbono et al. 2003, eq. 9) for the strain E."""
+    ltr = lam * (e00 + e11 + e22)
+    s00 = mu2 * e00 + ltr
+    s11 = mu2 * e11 + ltr
+    s22 = mu2 * e22 + ltr
+    s01 = mu2 * e01
+    s02 = mu2 * e02
+    s12 = mu2 * e12
+    if fibre:
+        q0 = e00 * a0 + e01 * a1 + e02 * a2
+        q1 = e01 * a0 + e11 * a1 + e12 * a2
+        q2 = e02 * a0 + e12 * a1 + e22 * a2
+        c = dlam * (a0 * q0 + a1 * q1 + a2 * q2)
+        s00 += c * a0 * a0 + 2.0 * dmu * a0 * q0
+        s11 += c * a1 * a1 + 2.0 * dmu * a1 * q1
+        s22 += c * a2 * a2 + 2.0 * dmu * a2 * q2
+        s01 += c * a0 * a1 + dmu * (a0 * q1 + q0 * a1)
+        s02 += c * a0 * a2 + dmu * (a0 * q2 + q0 * a2)
+        s12 += c * a1 * a2 + dmu * (a1 * q2 + q1 * a2)
+    return s00, s11, s22, s01, s02, s12
+
+
+@nb.njit(inline="always", **HOT)
+def stvk_block(W, geo, gb, prm, minus_linear):
+    """Element forces of one block, in place in W: the displacement differences in, and out
+    W[(3 a + r) BLOCK + q] = V (P g_{a+1})_r, with P = (I + H) S(E) + kappa (J - 1) cof F the StVK
+    stress; with ``minus_linear``, less the linear stress sigma(eps) of the same law (no penalty: the
+    linear tensor-mass has none), which is the hybrid model's correction.
+    W: (9 BLOCK,) float64 scratch; geo: block_data's geo; gb: uint64 offset of the block in geo.
+    """
+    lam, mu2, dlam, dmu, kappa = prm[0], 2.0 * prm[1], prm[2], prm[3], prm[4]
+    fibre = dlam != 0.0 or dmu != 0.0
+    for q in range(UBLOCK):
+        H, g, v = lane_in(W, geo, gb, q)
+        a0, a1, a2 = geo[gb + ROW[10] + q], geo[gb + ROW[11] + q], geo[gb + ROW[12] + q]
+        h00, h01, h02, h10, h11, h12, h20, h21, h22 = H
+        # Green-Lagrange E = (H + H^T + H^T H) / 2
+        e00 = h00 + 0.5 * (h00 * h00 + h10 * h10 + h20 * h20)
+        e11 = h11 + 0.5 * (h01 * h01 + h11 * h11 + h21 * h21)
+        e22 = h22 + 0.5 * (h02 * h02 + h12 * h12 + h22 * h22)
+        e01 = 0.5 * (h01 + h10 + h00 * h01 + h10 * h11 + h20 * h21)
+        e02 = 0.5 * (h02 + h20 + h00 * h02 + h10 * h12 + h20 * h22)
+        e12 = 0.5 * (h12 + h21 + h01 * h02 + h11 * h12 + h21 * h22)
+        s00, s11, s22, s01, s02, s12 = _pk2(e00, e11, e22, e01, e02, e12, lam, mu2, a0, a1, a2, dlam, dmu, fibre)
+        # P = (I + H) S
+        p00 = h00 * s00 + h01 * s01 + h02 * s02
+        p01 = h00 * s01 + h01 * s11 + h02 * s12
+        p02 = h00 * s02 + h01 * s12 + h02 * s22
+        p10 = h10 * s00 + h11 * s01 + h12 * s02
+        p11 = h10 * s01 + h11 * s11 + h12 * s12
+        p12 = h10 * s02 + h11 * s12 + h12 * s22
+        p20 = h20 * s00 + h21 * s01 + h22 * s02
+        p21 = h20 * s01 + h21 * s11 + h22 * s12
+        p22 = h20 * s02 + h21 * s12 + h22 * s22
+        if minus_linear:
+            l00, l11, l22, l01, l02, l12 = _pk2(
+                h00, h11, h22, 0.5 * (h01 + h10), 0.5 * (h02 + h20), 0.5 * (h12 + h21),
+                lam, mu2, a0, a1, a2, dlam, dmu, fibre,
+            )  # fmt: skip
+            s00, s11, s22, s01, s02, s12 = s00 - l00, s11 - l11, s22 - l22, s01 - l01, s02 - l02, s12 - l12
+        p00 += s00
+        p01 += s01
+        p02 += s02
+        p10 += s01
+        p11 += s11
+        p12 += s12
+        p20 += s02
+        p21 += s12
+        p22 += s22
+        if kappa != 0.0:
+            f00, f01, f02 = 1.0 + h00, h01, h02
+            f10, f11, f12 = h10, 1.0 + h11, h12
+            f20, f21, f22 = h20, h21, 1.0 + h22
+            c00 = f11 * f22 - f12 * f21
+            c01 = f12 * f20 - f10 * f22
+            c02 = f10 * f21 - f11 * f20
+            k = kappa * (f00 * c00 + f01 * c01 + f02 * c02 - 1.0)
+            p00 += k * c00
+            p01 += k * c01
+            p02 += k * c02
+            p10 += k * (f02 * f21 - f01 * f22)
+            p11 += k * (f00 * f22 - f02 * f20)
+            p12 += k * (f01 * f20 - f00 * f21)
+            p20 += k * (f01 * f12 - f02 * f11)
+            p21 += k * (f02 * f10 - f00 * f12)
+            p22 += k * (f00 * f11 - f01 * f10)
+        lane_out(W, q, v, (p00, p01, p02, p10, p11, p12, p20, p21, p22), g)
+
+
+@nb.njit(**HOT)
+def stvk_force(data, scratch, u, f):
+    """StVK tensor-mass force (Picinbono et al. 2003), with fibre terms and the volume penalty.
+
+    data: blocks.BlockData.   scratch: blocks.block_scratch().
+    u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
+    """
+    tets, geo, prm, everywhere = data
+    W = scratch[0]
+    f[:] = 0.0
+    for b in range(tets.shape[0] // BLOCK):
+        gather(tets, b * BLOCK, u, W)
+        stvk_block(W, geo, np.uint64(b) * GEO_ROWS_U, prm, False)
+        scatter_block(tets, b * BLOCK, W, f, everywhere)
+
+
+@nb.njit(**JIT)
+def stvk_energy(data, u):
+    """sum_e V_e W(F_e), J, W the StVK energy plus the volume penalty (laws.stvk_energy and
+    laws.volume_penalty_energy: the energy stvk_force differentiates)."""
+    tets, geo, prm = data.tets, data.geo, data.prm
+    w = 0.0
+    for e in range(tets.shape[0]):
+        F, vol, a = block_grad_u(tets, geo, e, u)
+        w += vol * (stvk_density(F, prm[0], prm[1], a, prm[2], prm[3]) + volume_penalty_energy(F, prm[4]))
+    return w
