@@ -49,19 +49,7 @@ def liver_with_a_tool(model_name: str, material: Material):
     top = surface[np.argmax(p[surface, 2])]
     contact = surface[np.linalg.norm(p[surface] - p[top], axis=1) < 0.008].astype(np.int64)
     free[contact] = 0.0
-    loading = Loading(
-        free=free,
-        external_force=np.zeros((mesh.n_vertices, 3)),
-        tool_vertex=contact,
-        tool_mask=np.ones((len(contact), 3)),
-        tool_id=np.zeros(len(contact), dtype=np.int64),
-        tool_kind=np.zeros(1, dtype=np.int64),
-        tool_vector=np.zeros((1, 3)),
-        tool_axis=np.array([[0.0, 0.0, 1.0]]),
-        tool_center=np.zeros((1, 3)),
-        tool_angle=np.zeros(1),
-        tool_ramp=np.zeros(1),
-    )
+    loading = Loading.translating_tool(free, np.zeros((mesh.n_vertices, 3)), contact)
     return build_model(model_name, p, mesh.tets, material, loading), len(contact)
 
 

@@ -150,6 +150,30 @@ class Loading:
             raise LoadingError(f"Loading.tool_ramp[{bad}] = {self.tool_ramp[bad]}: must be >= 0 s")
 
     @staticmethod
+    def translating_tool(
+        free: np.ndarray, external_force: np.ndarray, vertices, vector=(0.0, 0.0, 0.0), ramp: float = 0.0, mask=None
+    ) -> Loading:
+        """One translating tool on ``vertices`` (P,) int, moving them by ``vector`` (3,) m over ``ramp`` s
+        (linearly; 0: at once) on the components ``mask`` (P, 3) or (3,) float64 holds (default all three),
+        with the given ``free`` and ``external_force`` (the tool's components need not be cleared in
+        ``free``: the tools overwrite them)."""
+        vertices = np.asarray(vertices, dtype=np.int64)
+        mask = np.ones(3) if mask is None else np.asarray(mask, dtype=np.float64)
+        return Loading(
+            free=free,
+            external_force=external_force,
+            tool_vertex=vertices,
+            tool_mask=np.ascontiguousarray(np.broadcast_to(mask, (len(vertices), 3))),
+            tool_id=np.zeros(len(vertices), dtype=np.int64),
+            tool_kind=np.zeros(1, dtype=np.int64),
+            tool_vector=np.array([vector], dtype=np.float64),
+            tool_axis=np.array([[0.0, 0.0, 1.0]]),
+            tool_center=np.zeros((1, 3)),
+            tool_angle=np.zeros(1),
+            tool_ramp=np.array([float(ramp)]),
+        )
+
+    @staticmethod
     def free_body(n_vertices: int) -> Loading:
         """No constraint and no load."""
         return Loading(free=np.ones((n_vertices, 3)), external_force=np.zeros((n_vertices, 3)))

@@ -36,19 +36,8 @@ def _floating_block(model_name: str):
     mesh = box((0.02, 0.02, 0.02), 0.005)
     top = np.flatnonzero(mesh.points[:, 2] > 0.02 - 1e-9)
     n = mesh.n_vertices
-    load = Loading(
-        free=np.ones((n, 3)),
-        external_force=np.zeros((n, 3)),
-        tool_vertex=top.astype(np.int64),
-        tool_mask=np.tile([0.0, 0.0, 1.0], (len(top), 1)),  # the tool holds z only: x and y stay free
-        tool_id=np.zeros(len(top), dtype=np.int64),
-        tool_kind=np.zeros(1, dtype=np.int64),
-        tool_vector=np.array([[0.0, 0.0, 2e-3]]),
-        tool_axis=np.array([[0.0, 0.0, 1.0]]),
-        tool_center=np.zeros((1, 3)),
-        tool_angle=np.zeros(1),
-        tool_ramp=np.array([2e-3]),
-    )
+    # the tool holds z only: x and y stay free
+    load = Loading.translating_tool(np.ones((n, 3)), np.zeros((n, 3)), top, (0.0, 0.0, 2e-3), 2e-3, mask=[0, 0, 1])
     model = build_model(model_name, mesh.points, mesh.tets, MAT, load)
     gravity = model.mass[:, None] * np.array([0.0, 0.0, -9.81])
     return model, gravity
@@ -213,19 +202,7 @@ def test_the_compiled_entry_point_steps_exactly_as_numbas_dispatcher(cls, monkey
     free = np.ones((n, 3))
     free[mesh.points[:, 0] < 1e-9] = 0.0
     free[tip] = 0.0
-    load = Loading(
-        free=free,
-        external_force=np.zeros((n, 3)),
-        tool_vertex=tip,
-        tool_mask=np.ones((len(tip), 3)),
-        tool_id=np.zeros(len(tip), dtype=np.int64),
-        tool_kind=np.zeros(1, dtype=np.int64),
-        tool_vector=np.zeros((1, 3)),
-        tool_axis=np.array([[0.0, 0.0, 1.0]]),
-        tool_center=np.zeros((1, 3)),
-        tool_angle=np.zeros(1),
-        tool_ramp=np.zeros(1),
-    )
+    load = Loading.translating_tool(free, np.zeros((n, 3)), tip)
     model = build_model("stvk-tm", mesh.points, mesh.tets, MAT, load)
     dt = 0.5 * CentralDifference().critical_dt(model)
 

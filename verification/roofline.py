@@ -40,21 +40,9 @@ _DEGREE = 16
 def _horner(v):
     """A degree-16 polynomial of v by Horner's rule: 16 dependent fused multiply-adds."""
     p = v * 0.5 + 0.25
-    p = p * v + 0.25
-    p = p * v + 0.25
-    p = p * v + 0.25
-    p = p * v + 0.25
-    p = p * v + 0.25
-    p = p * v + 0.25
-    p = p * v + 0.25
-    p = p * v + 0.25
-    p = p * v + 0.25
-    p = p * v + 0.25
-    p = p * v + 0.25
-    p = p * v + 0.25
-    p = p * v + 0.25
-    p = p * v + 0.25
-    return p * v + 0.25
+    for _ in range(_DEGREE - 1):  # a constant trip count: LLVM unrolls it into the chain
+        p = p * v + 0.25
+    return p
 
 
 @nb.njit(**_FAST)
