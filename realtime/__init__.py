@@ -14,7 +14,7 @@ from .integrators import (
     SymplecticEuler,
     make_integrator,
 )
-from .material import Material, MaterialError
+from .material import Material, MaterialError, Materials
 from .model import TOOL_ROTATION, TOOL_TRANSLATION, Loading, Model, State
 from .models import MODELS, build_model
 from .spectra import element_critical_dt, max_eigenvalue
@@ -35,6 +35,7 @@ __all__ = [
     "LoadingError",
     "Material",
     "MaterialError",
+    "Materials",
     "Model",
     "NotConvergedError",
     "State",

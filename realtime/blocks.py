@@ -27,7 +27,7 @@ import numba as nb
 import numpy as np
 
 from .geometry import morton_order, shape_gradients
-from .material import Material
+from .material import Material, Materials
 
 JIT = dict(nogil=True, cache=True)
 
@@ -40,8 +40,8 @@ HOT = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz", "arcp
 
 
 class BlockData(NamedTuple):
-    """The element kernels' data (stvk_force, corotational_force): tets (P, 4) int64 and geo (GEO_ROWS P,)
-    float64 from block_data, prm (5,) float64 law_params, everywhere (P,) bool all True (the scatter's
+    """The element kernels' data (stvk_force, corotational_force): tets (P, 4) int64, geo (GEO_ROWS P,)
+    float64 and prm (P / BLOCK, 5) float64 from block_data, everywhere (P,) bool all True (the scatter's
     mask)."""
 
     tets: np.ndarray
@@ -81,29 +81,43 @@ GEO_ROWS_U = np.uint64(GEO_ROWS * BLOCK)
 UBLOCK = np.uint64(BLOCK)
 
 
-def block_data(points: np.ndarray, tets: np.ndarray, material: Material):
-    """The element kernels' geometry in blocks of BLOCK tetrahedra.
+def block_data(points: np.ndarray, tets: np.ndarray, material: Material | Materials):
+    """The element kernels' geometry and coefficients in blocks of BLOCK tetrahedra.
 
-    points (N, 3) float64 m; tets (M, 4) int64. Returns tets (P, 4) int64 and geo (GEO_ROWS P,)
-    float64, P = BLOCK ceil(M / BLOCK): the tetrahedra in Morton order (neighbours share blocks; the
-    kernels sum over all of them, so their order is internal), the last block padded with zero-volume
-    tetrahedra on vertex 0, which contribute nothing. Block b holds, for its tetrahedron q (row
-    b BLOCK + q of the returned tets), with G = GEO_ROWS:
+    points (N, 3) float64 m; tets (M, 4) int64; ``material`` a Material or Materials (one per
+    tetrahedron). Returns tets (P, 4) int64, geo (GEO_ROWS P,) float64 and prm (P / BLOCK, 5) float64.
+    The tetrahedra are grouped by material, each group in Morton order (neighbours share blocks; the
+    kernels sum over all of them, so their order is internal) and padded to whole blocks with
+    zero-volume tetrahedra on vertex 0, which contribute nothing: every block holds one material, whose
+    law_params are its row of prm, so the kernels read the coefficients once a block. Block b holds, for
+    its tetrahedron q (row b BLOCK + q of the returned tets), with G = GEO_ROWS:
     geo[(G b + 3 a + c) BLOCK + q] = g_{a+1, c} (1/m, a, c = 0..2; g_0 = -(g_1 + g_2 + g_3)),
     geo[(G b + 9) BLOCK + q] = V (m^3) and geo[(G b + 10 + c) BLOCK + q] = a_c, the material's unit
     fibre direction at the centroid (zeros for an isotropic material).
     """
-    t, g, vol = tet_data(points, tets[morton_order(points, tets)])
-    m = len(t)
-    p = BLOCK * -(-m // BLOCK)
-    tp = np.zeros((p, 4), dtype=np.int64)
-    tp[:m] = t
-    rows = np.zeros((GEO_ROWS, p))
-    rows[:9, :m] = g.reshape(m, 9).T
-    rows[9, :m] = vol
-    rows[10:13, :m] = material.fiber_directions(points[t].mean(axis=1)).T
-    geo = rows.reshape(GEO_ROWS, p // BLOCK, BLOCK).transpose(1, 0, 2).ravel()
-    return tp, np.ascontiguousarray(geo)
+    mats = Materials.of(material, len(tets))
+    order = morton_order(points, tets)
+    groups, prm = [], []
+    for k, m in enumerate(mats.materials):
+        mine = order[mats.index[order] == k]
+        if len(mine) == 0:
+            continue
+        t, g, vol = tet_data(points, tets[mine])
+        count = len(t)
+        p = BLOCK * -(-count // BLOCK)
+        rows = np.zeros((GEO_ROWS, p))
+        rows[:9, :count] = g.reshape(count, 9).T
+        rows[9, :count] = vol
+        rows[10:13, :count] = m.fiber_directions(points[t].mean(axis=1)).T
+        tp = np.zeros((p, 4), dtype=np.int64)
+        tp[:count] = t
+        groups.append((tp, rows.reshape(GEO_ROWS, p // BLOCK, BLOCK).transpose(1, 0, 2).ravel()))
+        prm.append(np.repeat(law_params(m)[None, :], p // BLOCK, axis=0))
+    if not groups:
+        return np.zeros((0, 4), dtype=np.int64), np.zeros(0), np.zeros((0, 5))
+    tp = np.concatenate([t for t, _ in groups])
+    geo = np.concatenate([g for _, g in groups])
+    return tp, np.ascontiguousarray(geo), np.ascontiguousarray(np.concatenate(prm))
 
 
 def block_scratch() -> tuple:

@@ -187,7 +187,7 @@ def corotational_force(data, scratch, u, f):
     f[:] = 0.0
     for b in range(tets.shape[0] // BLOCK):
         gather(tets, b * BLOCK, u, W)
-        _corotational_block(W, R, Fb, geo, np.uint64(b) * GEO_ROWS_U, prm[0], prm[1])
+        _corotational_block(W, R, Fb, geo, np.uint64(b) * GEO_ROWS_U, prm[b, 0], prm[b, 1])
         scatter_block(tets, b * BLOCK, W, f, everywhere)
 
 
@@ -195,9 +195,9 @@ def corotational_force(data, scratch, u, f):
 def corotational_energy(data, u):
     """sum_e V_e (lam/2 tr(S - I)^2 + mu |S - I|^2), S = R^T F."""
     tets, geo, prm = data.tets, data.geo, data.prm
-    lam, mu = prm[0], prm[1]
     w = 0.0
     for e in range(tets.shape[0]):
+        lam, mu = prm[e // BLOCK, 0], prm[e // BLOCK, 1]
         F, vol, _ = block_grad_u(tets, geo, e, u)
         R = np.array(_polar((F[0, 0], F[0, 1], F[0, 2], F[1, 0], F[1, 1], F[1, 2], F[2, 0], F[2, 1], F[2, 2])))
         S = R.reshape(3, 3).T @ F - np.eye(3)

@@ -58,7 +58,7 @@ def hybrid_force(data, scratch, u, f):
         if count == 0:
             continue
         gather(tets, e0, u, W)
-        stvk_block(W, geo, np.uint64(b) * GEO_ROWS_U, prm, True)
+        stvk_block(W, geo, np.uint64(b) * GEO_ROWS_U, prm[b], True)
         scatter_block(tets, e0, W, f, flags)
 
 
@@ -77,9 +77,10 @@ def hybrid_energy(data, u):
         if not moved:
             continue
         F, vol, a = block_grad_u(tets, geo, e, u)
+        c = prm[e // BLOCK]
         w += vol * (
-            stvk_density(F, prm[0], prm[1], a, prm[2], prm[3])
-            + volume_penalty_energy(F, prm[4])
-            - linear_density(F, prm[0], prm[1], a, prm[2], prm[3])
+            stvk_density(F, c[0], c[1], a, c[2], c[3])
+            + volume_penalty_energy(F, c[4])
+            - linear_density(F, c[0], c[1], a, c[2], c[3])
         )
     return w

@@ -243,3 +243,90 @@ class Material:
             "fiber_axis": list(self.fiber_axis) if self.fiber_axis is not None else None,
             "fiber_point": list(self.fiber_point),
         }
+
+
+#: The Material fields a tetrahedron's coefficient can be read from (``Materials.per_tet``).
+PER_TET = ("young", "poisson", "density", "lam", "mu", "dlam", "dmu", "volume_penalty", "wave_speed")
+
+
+@dataclass(frozen=True, eq=False)
+class Materials:
+    """Several materials in one body, one for each tetrahedron: a tumour in a liver, layered skin, fat
+    and muscle. Every engine model takes it wherever it takes a Material; a Material is one material
+    everywhere (``Materials.of``).
+
+    Attributes:
+        materials: the distinct materials, a tuple of K Material.
+        index: (M,) int64, the material of each tetrahedron of the mesh, in 0 .. K-1 (read-only).
+    """
+
+    materials: tuple
+    index: np.ndarray
+
+    def __post_init__(self) -> None:
+        materials = tuple(self.materials)
+        if not materials or not all(isinstance(m, Material) for m in materials):
+            raise MaterialError(f"materials: a non-empty sequence of Material, got {self.materials!r:.80}")
+        index = np.asarray(self.index)
+        if index.ndim != 1 or not (np.issubdtype(index.dtype, np.integer) or len(index) == 0):
+            raise MaterialError(
+                f"materials.index: a 1-D integer array (one per tetrahedron), got {index.dtype} {index.shape}"
+            )
+        index = index.astype(np.int64)
+        bad = np.flatnonzero((index < 0) | (index >= len(materials)))
+        if len(bad):
+            raise MaterialError(
+                f"materials.index[{bad[0]}] = {index[bad[0]]}: tetrahedron {bad[0]} names no material "
+                f"(there are {len(materials)})"
+            )
+        index.flags.writeable = False
+        object.__setattr__(self, "materials", materials)
+        object.__setattr__(self, "index", index)
+
+    @staticmethod
+    def of(material: Material | Materials, n_tets: int) -> Materials:
+        """The per-tetrahedron form of ``material`` for a mesh of ``n_tets`` tetrahedra: a Material
+        everywhere, or a Materials checked to have one entry per tetrahedron."""
+        if isinstance(material, Materials):
+            if len(material.index) != n_tets:
+                raise MaterialError(f"materials.index: {len(material.index)} entries for a mesh of {n_tets} tetrahedra")
+            return material
+        if not isinstance(material, Material):
+            raise MaterialError(f"material: a Material or Materials, got {type(material).__name__}")
+        return Materials((material,), np.zeros(n_tets, dtype=np.int64))
+
+    def per_tet(self, name: str) -> np.ndarray:
+        """Each tetrahedron's value (M,) float64 of the Material field or property ``name`` (one of
+        PER_TET, in its SI unit)."""
+        if name not in PER_TET:
+            raise MaterialError(f"per_tet({name!r}): one of {', '.join(PER_TET)}")
+        return np.array([float(getattr(m, name)) for m in self.materials])[self.index]
+
+    def fiber_directions(self, centroids: np.ndarray) -> np.ndarray:
+        """Unit fibre directions (M, 3) float64 of each tetrahedron's material at its centroid (M, 3) m
+        (``Material.fiber_directions``; zeros where the material is isotropic)."""
+        centroids = np.asarray(centroids, dtype=float).reshape(-1, 3)
+        out = np.zeros_like(centroids)
+        for k, m in enumerate(self.materials):
+            sel = self.index == k
+            out[sel] = m.fiber_directions(centroids[sel])
+        return out
+
+    def subset(self, which) -> Materials:
+        """The materials of tetrahedra ``which`` (an index or mask of the mesh's tetrahedra), in order."""
+        return Materials(self.materials, self.index[which])
+
+    @property
+    def transverse(self) -> bool:
+        """True if any material has fibres."""
+        return any(m.transverse for m in self.materials)
+
+    @property
+    def homogeneous(self) -> bool:
+        """True if every tetrahedron has the same material."""
+        return len(np.unique(self.index)) <= 1
+
+    def as_dict(self) -> dict:
+        """JSON-ready description: the materials and how many tetrahedra each has."""
+        counts = np.bincount(self.index, minlength=len(self.materials))
+        return {"materials": [m.as_dict() for m in self.materials], "tets": [int(c) for c in counts]}

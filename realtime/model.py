@@ -20,8 +20,8 @@ import numba as nb
 import numpy as np
 
 from .errors import InputError, LoadingError
-from .geometry import check_tets, lumped_volumes
-from .material import Material
+from .geometry import check_tets, lumped_volumes, signed_volumes
+from .material import Material, Materials
 
 _JIT = dict(nogil=True, cache=True)
 
@@ -233,7 +233,7 @@ class Model:
         name: registry name ("linear-tm", ...).
         points: (N, 3) float64 rest positions, m.
         tets: (M, 4) int64, positively oriented.
-        material: the Material.
+        material: the Material, or the Materials of a body made of several (one per tetrahedron).
         mass: (N,) float64 lumped masses, kg (rho V / 4 from each tetrahedron).
         loading: constraints and loads.
         force_kernel: numba function ``force(data, scratch, u, f)`` writing the internal force (N, 3), N.
@@ -250,7 +250,7 @@ class Model:
     name: str
     points: np.ndarray
     tets: np.ndarray
-    material: Material
+    material: Material | Materials
     mass: np.ndarray
     loading: Loading
     force_kernel: Callable
@@ -265,6 +265,11 @@ class Model:
     @property
     def n_vertices(self) -> int:
         return len(self.points)
+
+    @property
+    def materials(self) -> Materials:
+        """The material of each tetrahedron of ``tets`` (Materials.of ``material``)."""
+        return Materials.of(self.material, len(self.tets))
 
     def internal_force(self, u: np.ndarray) -> np.ndarray:
         """Internal elastic force (N, 3) float64, N, at displacement u (N, 3) m (with scratch of its own:
@@ -331,9 +336,13 @@ class Model:
         return self.tool_reactions(u).sum(axis=0)
 
 
-def lumped_masses(points: np.ndarray, tets: np.ndarray, density: float) -> np.ndarray:
-    """rho V / 4 of each tetrahedron given to each of its vertices, (N,) float64, kg."""
-    return density * lumped_volumes(points, tets)
+def lumped_masses(points: np.ndarray, tets: np.ndarray, density) -> np.ndarray:
+    """rho V / 4 of each tetrahedron given to each of its vertices, (N,) float64, kg. density: kg/m^3,
+    one number or (M,) float64, each tetrahedron's."""
+    if np.ndim(density) == 0:
+        return density * lumped_volumes(points, tets)
+    vol = np.abs(signed_volumes(points, tets)) * np.asarray(density, dtype=float)
+    return np.bincount(np.asarray(tets).ravel(), weights=np.repeat(vol / 4.0, 4), minlength=len(points))
 
 
 def prepare_mesh(points, tets) -> tuple[np.ndarray, np.ndarray]:

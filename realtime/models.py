@@ -10,19 +10,19 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .blocks import BlockData, block_data, block_scratch, law_params
+from .blocks import BlockData, block_data, block_scratch
 from .corotational import corotational_energy, corotational_force, corotational_scratch
 from .errors import InputError
 from .geometry import shape_gradients, signed_volumes, unique_edges
 from .hybrid import HybridData, hybrid_energy, hybrid_force, hybrid_scratch
-from .material import Material
+from .material import Material, Materials
 from .model import Loading, Model, lumped_masses, no_scratch, prepare_mesh
 from .springs import SpringData, spring_energy, spring_force
 from .stvk import stvk_energy, stvk_force
 from .tensor_mass import TensorMass, assemble_blocks, element_elasticity, linear_tm_energy, linear_tm_force
 
 
-def build_linear_tm(points, tets, material: Material, loading: Loading | None = None) -> Model:
+def build_linear_tm(points, tets, material: Material | Materials, loading: Loading | None = None) -> Model:
     """Linear tensor-mass (Cotin et al. 2000), isotropic or transversely isotropic.
 
     f = -K u with K the P1 linear stiffness; the law ``material.law`` is ignored (always linear).
@@ -65,7 +65,7 @@ def cut(model: Model, which) -> Model:
     removed = tm.tets[which]
     mass = model.mass.copy()
     vol = np.abs(signed_volumes(model.points, removed))
-    np.subtract.at(mass, removed.ravel(), np.repeat(model.material.density * vol / 4.0, 4))
+    np.subtract.at(mass, removed.ravel(), np.repeat(tm.materials.per_tet("density")[which] * vol / 4.0, 4))
     alive_tets = tm.tets[tm.alive]
     orphan = np.ones(model.n_vertices, dtype=bool)
     orphan[alive_tets.ravel()] = False
@@ -74,7 +74,10 @@ def cut(model: Model, which) -> Model:
     mass[orphan] = 1.0  # never used: orphans do not move; keeps 1/m finite
     loading = Loading(**{**model.loading.__dict__, "free": free})
     extra = {**model.extra, "generation": tm.generation}
-    return Model(**{**model.__dict__, "tets": alive_tets, "mass": mass, "loading": loading, "extra": extra})
+    material = model.material if isinstance(model.material, Material) else tm.materials.subset(tm.alive)
+    return Model(
+        **{**model.__dict__, "tets": alive_tets, "material": material, "mass": mass, "loading": loading, "extra": extra}
+    )
 
 
 def tet_rest_stiffness(model: Model):
@@ -85,16 +88,19 @@ def tet_rest_stiffness(model: Model):
 
 
 def tet_eigenvalue_bound(model: Model) -> float:
-    """max over the tetrahedra of lambda_max(K_e, M_e), 1/s^2: K_e the P1 stiffness of the material's
-    rest linearisation (fibres and the volume penalty included), M_e = rho V / 4 at each vertex."""
-    m = model.material
+    """max over the tetrahedra of lambda_max(K_e, M_e), 1/s^2: K_e the P1 stiffness of each
+    tetrahedron's material's rest linearisation (fibres and the volume penalty included), M_e = rho V / 4
+    at each vertex, rho its material's: the stiffest and lightest material sets the bound."""
+    mats = model.materials
+    rho = mats.per_tet("density")
     grads, vol = shape_gradients(model.points, model.tets)
     lam_max = 0.0
     for start in range(0, len(vol), 4096):  # bounded memory: (4096, 12, 12) at a time
-        g, v = grads[start : start + 4096], vol[start : start + 4096]
-        C = element_elasticity(model.points, model.tets[start : start + 4096], m, extra_lam=m.volume_penalty)
+        part = slice(start, start + 4096)
+        g, v = grads[part], vol[part]
+        C = element_elasticity(model.points, model.tets[part], mats.subset(part), penalty=True)
         ke = np.einsum("maj,mijkl,mbl->maibk", g, C, g).reshape(len(v), 12, 12) * v[:, None, None]
-        ev = np.linalg.eigvalsh(ke)[:, -1] / (m.density * v / 4.0)
+        ev = np.linalg.eigvalsh(ke)[:, -1] / (rho[part] * v / 4.0)
         lam_max = max(lam_max, float(ev.max()))
     return lam_max
 
@@ -142,7 +148,7 @@ def _model(
         points=points,
         tets=tets,
         material=material,
-        mass=lumped_masses(points, tets, material.density),
+        mass=lumped_masses(points, tets, Materials.of(material, len(tets)).per_tet("density")),
         loading=loading if loading is not None else Loading.free_body(len(points)),
         force_kernel=force,
         energy_kernel=energy,
@@ -155,28 +161,28 @@ def _model(
     )
 
 
-def build_stvk_tm(points, tets, material: Material, loading: Loading | None = None) -> Model:
+def build_stvk_tm(points, tets, material: Material | Materials, loading: Loading | None = None) -> Model:
     """Non-linear StVK tensor-mass (Picinbono et al. 2003), isotropic or transversely isotropic, with
     the volume penalty when ``material.volume_penalty`` > 0. Rotation invariant."""
     points, tets = prepare_mesh(points, tets)
-    btets, geo = block_data(points, tets, material)
-    data = BlockData(btets, geo, law_params(material), np.ones(len(btets), dtype=np.bool_))
+    btets, geo, prm = block_data(points, tets, material)
+    data = BlockData(btets, geo, prm, np.ones(len(btets), dtype=np.bool_))
     return _model("stvk-tm", points, tets, material, loading, stvk_force, stvk_energy, data, False, block_scratch)
 
 
-def build_corotational_tm(points, tets, material: Material, loading: Loading | None = None) -> Model:
+def build_corotational_tm(points, tets, material: Material | Materials, loading: Loading | None = None) -> Model:
     """Corotational linear elasticity, polar rotation per tetrahedron (SOFA's "polar" method).
 
     Isotropic only: for an anisotropic law the rotated-frame force is not the gradient of an energy.
     """
-    if material.transverse:
+    points, tets = prepare_mesh(points, tets)
+    if Materials.of(material, len(tets)).transverse:
         raise InputError(
             "corotational-tm: isotropic materials only (the rotated-frame force of an anisotropic "
             "law is not the gradient of an energy); use stvk-tm for fibres"
         )
-    points, tets = prepare_mesh(points, tets)
-    btets, geo = block_data(points, tets, material)
-    data = BlockData(btets, geo, law_params(material), np.ones(len(btets), dtype=np.bool_))
+    btets, geo, prm = block_data(points, tets, material)
+    data = BlockData(btets, geo, prm, np.ones(len(btets), dtype=np.bool_))
     return _model(
         "corotational-tm",
         points,
@@ -192,7 +198,7 @@ def build_corotational_tm(points, tets, material: Material, loading: Loading | N
 
 
 def build_hybrid_tm(
-    points, tets, material: Material, loading: Loading | None = None, threshold: float | None = None
+    points, tets, material: Material | Materials, loading: Loading | None = None, threshold: float | None = None
 ) -> Model:
     """Linear tensor-mass, StVK on the tetrahedra with a vertex displaced more than ``threshold`` (m).
 
@@ -206,8 +212,8 @@ def build_hybrid_tm(
         threshold = 0.1 * float(np.linalg.norm(points[e[:, 0]] - points[e[:, 1]], axis=1).mean())
     if not threshold >= 0.0:
         raise InputError(f"hybrid-tm: threshold = {threshold!r} must be >= 0 m")
-    btets, geo = block_data(points, tets, material)
-    data = HybridData(tm.kernel_data(), btets, geo, law_params(material), np.array([float(threshold)]))
+    btets, geo, prm = block_data(points, tets, material)
+    data = HybridData(tm.kernel_data(), btets, geo, prm, np.array([float(threshold)]))
     n_points, n_padded = len(points), len(btets)
     return _model(
         "hybrid-tm",
@@ -232,8 +238,9 @@ def nonlinear_fraction(tets: np.ndarray, u: np.ndarray, threshold: float) -> flo
     return float(moved[tets].any(axis=1).mean())
 
 
-def spring_stiffness(points, tets, edges, material: Material) -> np.ndarray:
-    """Van Gelder's calibration (1998): k_ij = E sum_{T around ij} V_T / L_ij^2, N/m (E,).
+def spring_stiffness(points, tets, edges, material: Material | Materials) -> np.ndarray:
+    """Van Gelder's calibration (1998): k_ij = sum_{T around ij} E_T V_T / L_ij^2, N/m (E,), E_T the Young's
+    modulus of tetrahedron T's material.
 
     A network of central springs has the Cauchy relation lambda = mu built in (nu = 1/4 for a regular
     lattice): it cannot represent another Poisson's ratio, which is why nu does not appear. The test
@@ -242,15 +249,15 @@ def spring_stiffness(points, tets, edges, material: Material) -> np.ndarray:
     """
     from .tensor_mass import LOCAL_EDGES, edge_index
 
-    vol = np.abs(signed_volumes(points, tets))
+    ev = np.abs(signed_volumes(points, tets)) * Materials.of(material, len(tets)).per_tet("young")
     idx = edge_index(edges, len(points), tets[:, LOCAL_EDGES].reshape(-1, 2)).reshape(-1, 6)
     acc = np.zeros(len(edges))
-    np.add.at(acc, idx.ravel(), np.repeat(vol, 6))
+    np.add.at(acc, idx.ravel(), np.repeat(ev, 6))
     length2 = np.sum((points[edges[:, 1]] - points[edges[:, 0]]) ** 2, axis=1)
-    return material.young * acc / length2
+    return acc / length2
 
 
-def build_mass_spring(points, tets, material: Material, loading: Loading | None = None) -> Model:
+def build_mass_spring(points, tets, material: Material | Materials, loading: Loading | None = None) -> Model:
     """Mass-spring network on the mesh edges (Delingette 1998; Liu 2002), lumped FEM masses.
 
     Damping: the integrators' Rayleigh stiffness term evaluates the spring forces at u + beta v, which
@@ -283,14 +290,14 @@ def _with_quasistatic(model: Model, cls) -> Model:
     return Model(**{**model.__dict__, "name": cls.model_name, "extra": extra})
 
 
-def build_precomputed(points, tets, material: Material, loading: Loading | None = None) -> Model:
+def build_precomputed(points, tets, material: Material | Materials, loading: Loading | None = None) -> Model:
     """Quasi-static precomputed linear model (Cotin et al. 1999); see realtime.quasistatic."""
     from .quasistatic import Precomputed
 
     return _with_quasistatic(build_linear_tm(points, tets, material, loading), Precomputed)
 
 
-def build_condensed(points, tets, material: Material, loading: Loading | None = None) -> Model:
+def build_condensed(points, tets, material: Material | Materials, loading: Loading | None = None) -> Model:
     """Static linear model condensed onto the surface (Bro-Nielsen 1996); see realtime.quasistatic."""
     from .quasistatic import Condensed
 
@@ -311,7 +318,9 @@ MODELS: dict[str, Callable[..., Model]] = {
 QUASI_STATIC = ("precomputed", "condensed")
 
 
-def build_model(name: str, points, tets, material: Material, loading: Loading | None = None, **options) -> Model:
+def build_model(
+    name: str, points, tets, material: Material | Materials, loading: Loading | None = None, **options
+) -> Model:
     """Build the model registered under ``name``."""
     try:
         builder = MODELS[name]

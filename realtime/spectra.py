@@ -66,7 +66,7 @@ def min_eigenvalue(model: Model, tol: float = 1e-3) -> float:
     """
     fidx = np.flatnonzero(model.loading.free.reshape(-1) != 0.0)
     v0 = np.random.default_rng(0).standard_normal(len(fidx))
-    if model.material.volume_penalty == 0.0 and len(fidx) <= FACTOR_LIMIT:
+    if not model.materials.per_tet("volume_penalty").any() and len(fidx) <= FACTOR_LIMIT:
         K = model.rest_stiffness()[fidx][:, fidx].tocsc()
         M = sp.diags(np.repeat(model.mass, 3)[fidx]).tocsc()
         try:

@@ -42,7 +42,8 @@ def stvk_block(W, geo, gb, prm, minus_linear):
     W[(3 a + r) BLOCK + q] = V (P g_{a+1})_r, with P = (I + H) S(E) + kappa (J - 1) cof F the StVK
     stress; with ``minus_linear``, less the linear stress sigma(eps) of the same law (no penalty: the
     linear tensor-mass has none), which is the hybrid model's correction.
-    W: (9 BLOCK,) float64 scratch; geo: block_data's geo; gb: uint64 offset of the block in geo.
+    W: (9 BLOCK,) float64 scratch; geo: block_data's geo; gb: uint64 offset of the block in geo;
+    prm: (5,) float64 the block's row of block_data's prm.
     """
     lam, mu2, dlam, dmu, kappa = prm[0], 2.0 * prm[1], prm[2], prm[3], prm[4]
     fibre = dlam != 0.0 or dmu != 0.0
@@ -115,7 +116,7 @@ def stvk_force(data, scratch, u, f):
     f[:] = 0.0
     for b in range(tets.shape[0] // BLOCK):
         gather(tets, b * BLOCK, u, W)
-        stvk_block(W, geo, np.uint64(b) * GEO_ROWS_U, prm, False)
+        stvk_block(W, geo, np.uint64(b) * GEO_ROWS_U, prm[b], False)
         scatter_block(tets, b * BLOCK, W, f, everywhere)
 
 
@@ -127,5 +128,6 @@ def stvk_energy(data, u):
     w = 0.0
     for e in range(tets.shape[0]):
         F, vol, a = block_grad_u(tets, geo, e, u)
-        w += vol * (stvk_density(F, prm[0], prm[1], a, prm[2], prm[3]) + volume_penalty_energy(F, prm[4]))
+        c = prm[e // BLOCK]
+        w += vol * (stvk_density(F, c[0], c[1], a, c[2], c[3]) + volume_penalty_energy(F, c[4]))
     return w

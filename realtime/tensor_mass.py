@@ -27,7 +27,7 @@ import scipy.sparse as sp
 from .errors import InputError
 from .geometry import shape_gradients, unique_edges
 from .laws import linear_elasticity_tensor
-from .material import Material
+from .material import Material, Materials
 
 _JIT = dict(nogil=True, cache=True)
 _HOT = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz", "arcp"})  # see blocks.HOT
@@ -36,25 +36,38 @@ _HOT = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz", "arc
 LOCAL_EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
 
 
-def element_stiffness(points: np.ndarray, tets: np.ndarray, material: Material) -> np.ndarray:
+def element_stiffness(points: np.ndarray, tets: np.ndarray, material: Material | Materials) -> np.ndarray:
     """P1 linear stiffness blocks of every tetrahedron, (M, 4, 4, 3, 3) float64, N/m.
 
-    ke[e, a, b] is the 3x3 block coupling local vertex a (rows) to local vertex b (columns).
+    ke[e, a, b] is the 3x3 block coupling local vertex a (rows) to local vertex b (columns); each
+    tetrahedron takes its own material's tensor (``material`` a Material, or Materials with one per
+    tetrahedron).
     """
+    mats = Materials.of(material, len(tets))
     grads, vol = shape_gradients(points, tets)
-    if material.fiber_axis is None:
-        C = linear_elasticity_tensor(material.lam, material.mu, material.fiber_vector, material.dlam, material.dmu)
+    if len(mats.materials) == 1 and mats.materials[0].fiber_axis is None:  # one tensor for the whole mesh
+        m = mats.materials[0]
+        C = linear_elasticity_tensor(m.lam, m.mu, m.fiber_vector, m.dlam, m.dmu)
         return np.einsum("e,pqrs,eaq,ebs->eabpr", vol, C, grads, grads, optimize=True)
-    C = element_elasticity(points, tets, material)  # fibres around an axis: one tensor per tetrahedron
+    C = element_elasticity(points, tets, mats)
     return np.einsum("e,epqrs,eaq,ebs->eabpr", vol, C, grads, grads, optimize=True)
 
 
-def element_elasticity(points: np.ndarray, tets: np.ndarray, material: Material, extra_lam: float = 0.0):
-    """The elasticity tensor of every tetrahedron, (M, 3, 3, 3, 3) Pa, its fibre direction taken at the
-    centroid (``Material.fiber_directions``); ``extra_lam`` (Pa) adds to lambda (the volume penalty's
-    stiffness at rest)."""
-    a = material.fiber_directions(points[tets].mean(axis=1))
-    return linear_elasticity_tensor(material.lam + extra_lam, material.mu, a, material.dlam, material.dmu)
+def element_elasticity(points: np.ndarray, tets: np.ndarray, material: Material | Materials, penalty: bool = False):
+    """The elasticity tensor of every tetrahedron, (M, 3, 3, 3, 3) Pa: its material's, the fibre direction
+    taken at the centroid (``Material.fiber_directions``); with ``penalty``, the volume penalty's
+    stiffness at rest (its coefficient added to lambda)."""
+    mats = Materials.of(material, len(tets))
+    a = mats.fiber_directions(points[tets].mean(axis=1))
+    lam = mats.per_tet("lam") + (mats.per_tet("volume_penalty") if penalty else 0.0)
+    shape = (-1, 1, 1, 1, 1)
+    return linear_elasticity_tensor(
+        lam.reshape(shape),
+        mats.per_tet("mu").reshape(shape),
+        a,
+        mats.per_tet("dlam").reshape(shape),
+        mats.per_tet("dmu").reshape(shape),
+    )
 
 
 def edge_index(edges: np.ndarray, n_vertices: int, pairs: np.ndarray) -> np.ndarray:
@@ -97,14 +110,16 @@ class TensorMass:
         edge_tensors: (E, 3, 3) float64, N/m: T_ij for edge (i, j), i < j.
         tet_edges: (M, 6) int64, the edge index of each local edge (LOCAL_EDGES order).
         ke: (M, 4, 4, 3, 3) float64, the element blocks, kept for local updates (cutting).
+        materials: the Materials of the M tetrahedra.
         generation: the number of cuts made (``remove`` calls).
     """
 
-    def __init__(self, points: np.ndarray, tets: np.ndarray, material: Material):
+    def __init__(self, points: np.ndarray, tets: np.ndarray, material: Material | Materials):
         self.n_vertices = len(points)
         self.tets = np.asarray(tets, dtype=np.int64)
+        self.materials = Materials.of(material, len(self.tets))
         self.edges = unique_edges(self.tets)
-        self.ke = element_stiffness(points, self.tets, material)
+        self.ke = element_stiffness(points, self.tets, self.materials)
         pairs = self.tets[:, LOCAL_EDGES]  # (M, 6, 2)
         self.tet_edges = edge_index(self.edges, self.n_vertices, pairs.reshape(-1, 2)).reshape(-1, 6)
         self.vertex_tensors = np.zeros((self.n_vertices, 3, 3))
