@@ -14,9 +14,9 @@ import numpy as np
 
 from realtime.errors import InputError
 
-from .tetmesh import TetMesh
+from .tetmesh import TetMesh, structured_box
 
-GENERATORS = ("box", "cylinder", "tube", "liver")
+GENERATORS = ("box", "grid", "cylinder", "tube", "liver")
 
 
 @contextlib.contextmanager
@@ -95,6 +95,26 @@ def box(size=(0.1, 0.02, 0.02), h: float = 0.005) -> TetMesh:
         return _extract(gmsh, f"box(size={size}, h={h})", names)
 
 
+def grid(size=(0.02, 0.02, 0.03), h: float = 0.005) -> TetMesh:
+    """A box from the origin to ``size`` (m) cut into cubes of side h (m), six tetrahedra each, with no
+    mesher: every plane x, y or z = k h is a union of faces, so layers, inclusions and loads drawn on
+    those planes are resolved exactly. Each side must be a whole number of h. Faces carry the vertex
+    tags xmin ... zmax like ``box``'s."""
+    size = np.asarray([float(s) for s in size])
+    cells = size / h
+    if not (
+        h > 0.0 and np.all(np.abs(cells - np.round(cells)) <= 1e-9 * np.maximum(cells, 1.0)) and np.all(cells >= 0.5)
+    ):
+        k = int(np.argmax(np.abs(cells - np.round(cells))))
+        raise InputError(f"grid: size[{k}] = {size[k]!r} m is not a whole number of h = {h!r} m")
+    mesh = structured_box(size, np.round(cells).astype(int))
+    x, tags = mesh.points, {}
+    for axis, name in enumerate("xyz"):
+        tags[f"{name}min"] = np.flatnonzero(np.abs(x[:, axis]) <= 1e-12 * size[axis])
+        tags[f"{name}max"] = np.flatnonzero(np.abs(x[:, axis] - size[axis]) <= 1e-12 * size[axis])
+    return TetMesh(mesh.points, mesh.tets, vertex_tags=tags, source=f"grid(size={size.tolist()}, h={h})")
+
+
 def _axial_classify(tol):
     def classify(bb):
         if bb[5] - bb[2] < tol:
@@ -162,7 +182,7 @@ def liver(scale: float = 1.0, h: float = 0.0102) -> TetMesh:
 
 def generate(generator: str, **params) -> TetMesh:
     """Dispatch to a generator by name with its keyword parameters."""
-    funcs = {"box": box, "cylinder": cylinder, "tube": tube, "liver": liver}
+    funcs = {"box": box, "grid": grid, "cylinder": cylinder, "tube": tube, "liver": liver}
     if generator not in funcs:
         raise InputError(f"generator = {generator!r}: must be one of {', '.join(GENERATORS)} or file")
     return funcs[generator](**params)

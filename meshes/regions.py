@@ -153,6 +153,44 @@ def _inside_tets(points, tets, x, tol):
     return out
 
 
+def locate(mesh: TetMesh, x: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """The tetrahedron of ``mesh`` holding each point of x (K, 3) m: (K,) int64, -1 for a point in none.
+
+    A point within ``tol`` (relative to each tetrahedron's size) of a face counts as inside; where two
+    tetrahedra hold it, the nearer centroid wins. Candidates are the nearest centroids, then, for the
+    few points they miss, every tetrahedron whose bounding sphere reaches the point.
+    """
+    x = np.asarray(x, dtype=float).reshape(-1, 3)
+    out = np.full(len(x), -1, dtype=np.int64)
+    if len(x) == 0 or mesh.n_tets == 0:
+        return out
+    X = mesh.points[mesh.tets]
+    centroid = X.mean(axis=1)
+    D = np.stack([X[:, 1] - X[:, 0], X[:, 2] - X[:, 0], X[:, 3] - X[:, 0]], axis=2)
+    Dinv = np.linalg.inv(D)
+    scale = np.cbrt(np.abs(np.linalg.det(D)))
+    tree = cKDTree(centroid)
+
+    def inside(points, t):
+        lam = np.einsum("kij,kj->ki", Dinv[t], points - X[t, 0])
+        return np.minimum(lam.min(axis=1), 1.0 - lam.sum(axis=1)) >= -tol / scale[t]
+
+    _, near = tree.query(x, k=min(8, mesh.n_tets))
+    near = near.reshape(len(x), -1)
+    for j in range(near.shape[1]):
+        todo = np.flatnonzero(out < 0)
+        hit = inside(x[todo], near[todo, j])
+        out[todo[hit]] = near[todo[hit], j]
+    radius = np.linalg.norm(X - centroid[:, None], axis=2).max()
+    for k in np.flatnonzero(out < 0):
+        cand = np.asarray(tree.query_ball_point(x[k], radius * (1.0 + tol)), dtype=np.int64)
+        if len(cand):
+            hit = cand[inside(np.repeat(x[k][None], len(cand), axis=0), cand)]
+            if len(hit):
+                out[k] = hit[np.argmin(np.linalg.norm(centroid[hit] - x[k], axis=1))]
+    return out
+
+
 def spanned(mesh: TetMesh, selected: np.ndarray, x: np.ndarray, tol: float = 1e-9) -> np.ndarray:
     """Whether each point of x (K, 3) m lies on an entity of ``mesh`` spanned by selected vertices.
 

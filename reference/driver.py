@@ -22,14 +22,18 @@ import numpy as np
 from mpi4py import MPI
 
 from meshes import TetMesh
-from realtime.material import Material
+from realtime.material import Material, Materials
 
 from .problem import Problem
 
 
+def _materials_of(material: Material | Materials) -> tuple:
+    return material.materials if isinstance(material, Materials) else (material,)
+
+
 def solve_static(
     mesh: TetMesh,
-    material: Material,
+    material: Material | Materials,
     problem: Problem,
     degree: int = 2,
     refine: int = 0,
@@ -59,8 +63,7 @@ def solve_static(
     for level in levels:
         t0 = time.perf_counter()
         ep = ElasticityProblem(mesh, material, problem, degree=degree, refine=level, comm=comm)
-        nonlinear = material.law != "linear" or material.volume_penalty
-        if nonlinear:
+        if not ep.linear:
             warm = nested and coarse is not None
             if warm:
                 ep.start_from(coarse)
@@ -81,7 +84,7 @@ def solve_static(
         infos.append(info)
     meta = {
         "solver": "reference",
-        "law": material.law,
+        "law": problems[0].law,
         "degree": degree,
         "refine": refine,
         "mpi_ranks": comm.size,
@@ -106,7 +109,7 @@ def solved_fields(problems: list) -> dict[str, np.ndarray]:
 
 
 def restore_static(
-    mesh: TetMesh, material: Material, problem: Problem, degree: int, refine: int, fields: dict
+    mesh: TetMesh, material: Material | Materials, problem: Problem, degree: int, refine: int, fields: dict
 ) -> list | None:
     """The solved problems of a serial ``solve_static`` rebuilt from ``solved_fields``: each level's space
     made again and its displacement set, for ``evaluate_static`` (seconds, where the solve took tens).
@@ -157,7 +160,7 @@ def evaluate_static(problems: list, meta: dict, points: np.ndarray) -> dict:
 
 def solve_dynamic(
     mesh: TetMesh,
-    material: Material,
+    material: Material | Materials,
     problem: Problem,
     end: float,
     output_every: float,
@@ -203,7 +206,7 @@ def solve_dynamic(
     solves = [info]
     meta = {
         "solver": "reference",
-        "law": material.law,
+        "law": "+".join(sorted({m.law for m in _materials_of(material)})),
         "degree": degree,
         "refine": refine,
         "mode": "dynamic",

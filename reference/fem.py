@@ -23,9 +23,9 @@ from dolfinx.fem.petsc import LinearProblem
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from meshes.regions import spanned
+from meshes.regions import locate, spanned
 from meshes.tetmesh import TetMesh
-from realtime.material import Material
+from realtime.material import Material, Materials
 
 from .errors import ReferenceSolveError
 from .materials import LAWS, volume_penalty_energy
@@ -359,7 +359,10 @@ class ElasticityProblem:
 
     Args:
         mesh: the scene's TetMesh (the coarse geometry; regions with tags refer to it).
-        material: the Material; ``material.law`` picks the energy (linear or stvk).
+        material: the Material, whose ``law`` picks the energy (linear or stvk); or Materials, one for each
+            tetrahedron of ``mesh``: each cell of the (refined) domain then takes the material of the
+            scene tetrahedron that holds its midpoint, and integrates that material's own energy, fibres
+            and density over its cells (exact per-cell coefficients; ``parts``).
         problem: constraints and loads.
         degree: Lagrange degree, 1 or 2.
         refine: uniform refinements of the mesh before discretising.
@@ -367,7 +370,13 @@ class ElasticityProblem:
     """
 
     def __init__(
-        self, mesh: TetMesh, material: Material, problem: Problem, degree: int = 1, refine: int = 0, comm=MPI.COMM_WORLD
+        self,
+        mesh: TetMesh,
+        material: Material | Materials,
+        problem: Problem,
+        degree: int = 1,
+        refine: int = 0,
+        comm=MPI.COMM_WORLD,
     ):
         self.mesh, self.material, self.problem = mesh, material, problem
         self.degree, self.refine, self.comm = degree, refine, comm
@@ -376,6 +385,7 @@ class ElasticityProblem:
         self._size = float(np.ptp(mesh.points, axis=0).max())  # m, the body's largest extent
         self.V = fem.VectorFunctionSpace(self.domain, ("Lagrange", degree))
         self.u = fem.Function(self.V, name="displacement")
+        self.parts = self._material_parts()
         self.load_factor = fem.Constant(self.domain, PETSc.ScalarType(1.0))
         self._tool_functions = []
         self.load_areas = []  # m^2, the loaded area of each force or traction load
@@ -391,47 +401,85 @@ class ElasticityProblem:
     def _constant(self, value):
         return fem.Constant(self.domain, PETSc.ScalarType(value))
 
-    def fiber(self):
-        """The unit fibre direction as a UFL vector: the material's one direction, or around its axis
+    def _material_parts(self):
+        """[(Material, cell measure)]: the whole domain for one Material; for Materials, one subdomain per
+        material present, each cell tagged with the material of the scene tetrahedron holding its
+        midpoint (a cell of a refined domain lies inside one scene tetrahedron)."""
+        if isinstance(self.material, Material):
+            return [(self.material, ufl.dx)]
+        mats = Materials.of(self.material, self.mesh.n_tets)
+        n_local = self.domain.topology.index_map(3).size_local
+        cells = np.arange(n_local, dtype=np.int32)
+        parent = locate(self.mesh, dmesh.compute_midpoints(self.domain, 3, cells))
+        if np.any(parent < 0):
+            raise ReferenceSolveError(f"{int(np.sum(parent < 0))} cells of the domain lie in no scene tetrahedron")
+        tags = dmesh.meshtags(self.domain, 3, cells, (mats.index[parent] + 1).astype(np.int32))
+        dx = ufl.Measure("dx", domain=self.domain, subdomain_data=tags)
+        return [(m, dx(k + 1)) for k, m in enumerate(mats.materials) if np.any(mats.index == k)]
+
+    @property
+    def linear(self) -> bool:
+        """True when every material's energy is quadratic (linear law, no volume penalty)."""
+        return all(m.law == "linear" and m.volume_penalty == 0.0 for m, _ in self.parts)
+
+    @property
+    def law(self) -> str:
+        """The law's name: the materials' law, or their laws joined by '+'."""
+        return "+".join(sorted({m.law for m, _ in self.parts}))
+
+    def fiber(self, m: Material):
+        """The unit fibre direction of material m as a UFL vector: its one direction, or around its axis
         a(x) = axis x (x - point) / |axis x (x - point)| at every quadrature point (the continuous field;
         a law is only evaluated off the axis, where it is defined)."""
-        m = self.material
         if m.fiber_axis is None:
             return ufl.as_vector(m.fiber_vector.tolist())
         x = ufl.SpatialCoordinate(self.domain)
         t = ufl.cross(ufl.as_vector(list(m.fiber_axis)), x - ufl.as_vector(list(m.fiber_point)))
         return t / ufl.sqrt(ufl.dot(t, t))
 
-    @property
-    def dx_law(self):
-        """The measure of the law's integrals. With fibres around an axis the integrand holds a
+    def dx_law(self, m: Material, dx):
+        """The measure dx of material m's law integrals. With fibres around an axis the integrand holds a
         non-polynomial field whose UFL degree estimate runs past 20: the StVK residual of constant
         fibres is a polynomial of degree 4 (degree - 1) in the cell, and two more orders integrate the
         field's smooth variation."""
-        if self.material.fiber_axis is None:
-            return ufl.dx
-        return ufl.dx(metadata={"quadrature_degree": 4 * (self.degree - 1) + 2})
+        if m.fiber_axis is None:
+            return dx
+        return dx(metadata={"quadrature_degree": 4 * (self.degree - 1) + 2})
 
-    def energy_density(self, F):
-        m = self.material
+    def energy_density(self, F, m: Material):
+        """Material m's energy per unit reference volume (J/m^3) at the deformation gradient F."""
         psi = LAWS[m.law](
-            F, self._constant(m.lam), self._constant(m.mu), self.fiber(), self._constant(m.dlam), self._constant(m.dmu)
+            F, self._constant(m.lam), self._constant(m.mu), self.fiber(m), self._constant(m.dlam), self._constant(m.dmu)
         )
         if m.volume_penalty > 0.0:
             psi += volume_penalty_energy(F, self._constant(m.volume_penalty))
         return psi
 
-    def first_piola(self, u):
-        F = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-        return ufl.diff(self.energy_density(F), F)
+    def internal_work(self, u, v, law=None):
+        """sum over the materials of the integral of P(F(u)) : grad v, P = dW/dF of each material's
+        energy (``law``: a LAWS name to use instead of each material's own, without the penalty)."""
+        form = 0
+        for m, dx in self.parts:
+            F = ufl.variable(ufl.Identity(3) + ufl.grad(u))
+            psi = self.energy_density(F, m) if law is None else self._law_only(F, m, law)
+            form += ufl.inner(ufl.diff(psi, F), ufl.grad(v)) * self.dx_law(m, dx)
+        return form
+
+    def _law_only(self, F, m: Material, law: str):
+        return LAWS[law](
+            F, self._constant(m.lam), self._constant(m.mu), self.fiber(m), self._constant(m.dlam), self._constant(m.dmu)
+        )
+
+    def mass_weighted(self, integrand):
+        """sum over the materials of the integral of rho integrand (integrand a scalar UFL form)."""
+        return sum(self._constant(m.density) * integrand * dx for m, dx in self.parts)
 
     def _residual_form(self):
         v = ufl.TestFunction(self.V)
-        rho = self._constant(self.material.density)
-        residual = ufl.inner(self.first_piola(self.u), ufl.grad(v)) * self.dx_law
+        residual = self.internal_work(self.u, v)
         g = self.problem.gravity()
         if np.any(g != 0.0):
-            residual -= self.load_factor * rho * ufl.inner(self._constant(tuple(g)), v) * ufl.dx
+            residual -= self.load_factor * self.mass_weighted(ufl.inner(self._constant(tuple(g)), v))
         surface_loads = [ld for ld in self.problem.loads if isinstance(ld, (Force, Traction))]
         if surface_loads:
             fdim = 2
@@ -502,7 +550,7 @@ class ElasticityProblem:
 
     def solve_linear(self, petsc_options=None) -> dict:
         """One linear solve (law = linear): K u = f with the Dirichlet conditions."""
-        if self.material.law != "linear" or self.material.volume_penalty > 0.0:
+        if not self.linear:
             raise ValueError("solve_linear needs law = linear and no volume penalty; use solve_newton")
         opts = solver_options(self.n_dofs, petsc_options, linear=True)
         du = ufl.TrialFunction(self.V)
@@ -619,7 +667,7 @@ class ElasticityProblem:
                 raise ReferenceSolveError(
                     f"reference: Newton found no equilibrium without inverted elements beyond load fraction "
                     f"{done:.4g} ({why}; law = "
-                    f"{self.material.law}, P{self.degree}, refine {self.refine}, {self.n_dofs} dofs): the load may "
+                    f"{self.law}, P{self.degree}, refine {self.refine}, {self.n_dofs} dofs): the load may "
                     f"be too large for this mesh and law, or elements invert; try a smaller load, a finer mesh, "
                     f"law = linear, or more load steps (--load-steps {max(4 * steps, 10)})"
                 )
@@ -638,7 +686,7 @@ class ElasticityProblem:
 
     def solve(self, **kwargs) -> dict:
         """solve_linear for the linear law without penalty, solve_newton otherwise."""
-        if self.material.law == "linear" and self.material.volume_penalty == 0.0:
+        if self.linear:
             return self.solve_linear(petsc_options=kwargs.get("petsc_options"))
         return self.solve_newton(**kwargs)
 
@@ -663,7 +711,8 @@ class ElasticityProblem:
     def energy(self) -> float:
         """Total elastic energy of the current displacement, J (MPI-reduced)."""
         F = ufl.Identity(3) + ufl.grad(self.u)
-        local = fem.assemble_scalar(fem.form(self.energy_density(F) * self.dx_law))
+        energy = sum(self.energy_density(F, m) * self.dx_law(m, dx) for m, dx in self.parts)
+        local = fem.assemble_scalar(fem.form(energy))
         return self.comm.allreduce(local, op=MPI.SUM)
 
     def solve_dynamic(
@@ -693,7 +742,6 @@ class ElasticityProblem:
         beta, gamma = newmark
         a_m, b_k = rayleigh
         V = self.V
-        rho = self._constant(self.material.density)
         u_old, v_old, a_old = fem.Function(V), fem.Function(V), fem.Function(V)
         w = ufl.TestFunction(V)
         c1, c2, c3 = 1.0 / (beta * dt * dt), 1.0 / (beta * dt), (1.0 - 2.0 * beta) / (2.0 * beta)
@@ -704,34 +752,20 @@ class ElasticityProblem:
         def veloc(u):
             return v_old + dt * ((1.0 - gamma) * a_old + gamma * accel(u))
 
-        m = self.material
-
-        def k0(u, test):  # the rest stiffness K0 as a form: inner(C : eps(u), eps(test))
-            Fv = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-            psi = LAWS["linear"](
-                Fv,
-                self._constant(m.lam),
-                self._constant(m.mu),
-                self.fiber(),
-                self._constant(m.dlam),
-                self._constant(m.dmu),
-            )
-            return ufl.inner(ufl.diff(psi, Fv), ufl.grad(test))
-
         u = self.u
-        residual = self.residual + rho * ufl.inner(accel(u), w) * ufl.dx
+        residual = self.residual + self.mass_weighted(ufl.inner(accel(u), w))
         if a_m:
-            residual += a_m * rho * ufl.inner(veloc(u), w) * ufl.dx
-        if b_k:
-            residual += b_k * k0(veloc(u), w) * self.dx_law
-        linear = self.material.law == "linear" and self.material.volume_penalty == 0.0
+            residual += a_m * self.mass_weighted(ufl.inner(veloc(u), w))
+        if b_k:  # the rest stiffness K0 as a form: inner(C : eps(veloc), eps(w)), each material's C
+            residual += b_k * self.internal_work(veloc(u), w, law="linear")
+        linear = self.linear
         opts = solver_options(self.n_dofs, petsc_options, linear=linear)
         modes = self.rigid_body_modes() if opts.get("pc_type") == "gamg" else None
         times, values, reactions = [0.0], [self.evaluate(points)], [self.reaction()]
         self.set_tool_fraction_at(0.0)
         # initial acceleration: M a0 = f_ext - f_int(0) with the tools' accelerations zero at rest
         a_trial = ufl.TrialFunction(V)
-        mass_form = rho * ufl.inner(a_trial, w) * ufl.dx
+        mass_form = self.mass_weighted(ufl.inner(a_trial, w))
         zero = fem.Function(V)
         rhs0 = -ufl.replace(self.residual, {self.u: zero})
         LinearProblem(mass_form, rhs0, bcs=self._homogeneous_bcs(), u=a_old, petsc_options=opts).solve()

@@ -115,3 +115,160 @@ def test_bad_materials_are_one_line_errors():
         Materials((), index)
     with pytest.raises(Exception, match="isotropic materials only"):
         build_model("corotational-tm", mesh.points, mesh.tets, Materials((HOST, STIFF), index))
+
+
+# ---- scenes of several materials: the [[material]] tables, the reference, the closed form ----
+
+TWO = """
+name = "two"
+[mesh]
+generator = "grid"
+size = [0.02, 0.01, 0.01]
+h = 0.005
+[[material]]
+all = true
+law = "linear"
+young = 5.0e3
+poisson = 0.45
+density = 1000.0
+[[material]]
+box = [[0.01, -1.0, -1.0], [1.0, 1.0, 1.0]]
+law = "linear"
+young = 5.0e5
+poisson = 0.3
+density = 1200.0
+[[fixed]]
+box = [[-1e-9, -1.0, -1.0], [1e-9, 1.0, 1.0]]
+[[load]]
+kind = "gravity"
+value = [0.0, 0.0, -9.81]
+"""
+
+
+def p_wave_modulus(young, poisson):
+    """lambda + 2 mu, the stress over the strain in uniaxial strain: written here from Hooke's law in
+    uniaxial strain (eps_xx = eps_yy = 0), not taken from realtime.material."""
+    return young * (1.0 - poisson) / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
+
+
+def layered_closed_form(scene):
+    """u (N, 3) of the layered slab: u_z(z) = -p int_0^z dz' / M(z'), u_x = u_y = 0 (layers in series in
+    uniaxial strain; the side walls are rollers and the floor holds z)."""
+    from meshes.regions import BoxRegion
+
+    p = -scene.problem.loads[0].value[2]
+    layers = []  # (z from, z to, M) from the scene's own tables
+    for region, m in scene.zones:
+        lo, hi = (0.0, 0.03) if not isinstance(region, BoxRegion) else (max(region.lo[2], 0.0), min(region.hi[2], 0.03))
+        layers.append((lo, hi, p_wave_modulus(m.young, m.poisson)))
+    breaks = sorted({b for lo, hi, _ in layers for b in (lo, hi)})
+
+    def modulus(z):  # the last table that holds z wins, as for the tetrahedra
+        return [m for lo, hi, m in layers if lo <= z <= hi][-1]
+
+    u = np.zeros_like(scene.mesh.points)
+    for i, z in enumerate(scene.mesh.points[:, 2]):
+        cuts = [0.0] + [b for b in breaks if 0.0 < b < z] + [z]
+        # 1/M is constant between breaks: the integral is an exact sum
+        u[i, 2] = -p * sum((b - a) / modulus(0.5 * (a + b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True))
+    return u
+
+
+def test_layered_slab_is_exact_in_the_p1_reference_and_the_settled_linear_tensor_mass():
+    from realtime import solve_static
+    from verification.runner import model_for, reference_result
+    from verification.scene import load_scene
+
+    scene = load_scene("layered-slab")
+    exact = layered_closed_form(scene)
+    # the closed form is piecewise linear in z with kinks on grid planes: P1 holds it exactly
+    scale = np.abs(exact).max()
+    assert scale > 0.0 and len(set(np.round(exact[:, 2] / scale, 6))) > 5
+    ref = reference_result(scene, degree=1, refine=0, estimate=False)
+    # a direct LDL^T solve of a 525-dof system: round-off, amplified by a condition number near 1e3
+    assert np.abs(ref.displacement[-1] - exact).max() <= 1e-12 * scale
+    settled = solve_static(model_for(scene, "linear-tm"), rtol=1e-12)
+    # dynamic relaxation stops at a residual of 1e-12 of the load; the error follows by the same factor
+    assert np.abs(settled.state.u - exact).max() <= 1e-10 * scale
+    # and the slab tells the layers apart: one material everywhere is far off
+    one = load_scene("layered-slab").with_material()
+    one.zones = None
+    wrong = solve_static(model_for(one, "linear-tm"), rtol=1e-8)
+    assert np.abs(wrong.state.u - exact).max() > 0.5 * scale
+
+
+def test_p1_reference_and_linear_tensor_mass_solve_one_system_around_an_inclusion():
+    """A sphere 100 times stiffer inside an unstructured gmsh block: the reference tags its cells by the
+    scene tetrahedron holding their midpoints, the engine takes the tetrahedra's materials; on the scene's
+    mesh both solve one linear system."""
+    from realtime import solve_static
+    from verification.runner import model_for, reference_result
+    from verification.scene import load_scene
+
+    scene = load_scene("stiff-inclusion").with_material(law="linear")
+    assert len(np.unique(scene.body_material().index)) == 2
+    ref = reference_result(scene, degree=1, refine=0, estimate=False)
+    model = model_for(scene, "linear-tm")
+    settled = solve_static(model, rtol=1e-12)
+    d = ref.displacement[-1]
+    # dynamic relaxation to 1e-12 of the load against a direct solve: 1e-9 allows the condition number
+    assert np.linalg.norm(settled.state.u - d) <= 1e-9 * np.linalg.norm(d)
+    np.testing.assert_allclose(model.reaction(settled.state.u), ref.reaction[-1], rtol=1e-8, atol=1e-12)
+
+
+def test_a_refined_scene_keeps_each_tetrahedron_s_material():
+    from meshes.regions import locate
+    from verification.scene import load_scene
+
+    scene = load_scene("stiff-inclusion")
+    fine = scene.refined(1)
+    parent = locate(scene.mesh, fine.mesh.points[fine.mesh.tets].mean(axis=1))
+    assert np.all(parent >= 0)
+    assert np.array_equal(fine.body_material().index, scene.body_material().index[parent])
+    assert fine.densities().sum() > 0 and len(fine.densities()) == fine.mesh.n_tets
+
+
+def _scene_file(tmp_path, text):
+    path = tmp_path / "scene.toml"
+    path.write_text(text)
+    return path
+
+
+BAD_TABLES = [
+    ("all = true\n", "box = [[0.005, -1.0, -1.0], [1.0, 1.0, 1.0]]\n", r"material: 24 tetrahedra have no material"),
+    ("box = [[0.01,", "box = [[5.0, 5.0, 5.0], [6.0, 6.0, 6.0]]\nxbox = [[0.01,", r"unknown key"),
+    ('law = "linear"\nyoung = 5.0e5', 'law = "stvk"\nyoung = 5.0e5', r"material\[1\].law: 'stvk' differs"),
+    ("poisson = 0.3", "poisson = 0.5", r"material\[1\].poisson"),
+    ("all = true\n", 'tag = "xmin"\n', r"material\[0\].tag: 'xmin' is not a volume group"),
+    (
+        "box = [[0.01, -1.0, -1.0], [1.0, 1.0, 1.0]]",
+        "box = [[5.0, 5.0, 5.0], [6.0, 6.0, 6.0]]",
+        r"holds no tetrahedron",
+    ),
+]
+
+
+@pytest.mark.parametrize("old, new, message", BAD_TABLES, ids=[b[2][:30] for b in BAD_TABLES])
+def test_bad_material_tables_are_one_line_errors(tmp_path, capsys, old, new, message):
+    from verification.cli import main
+    from verification.scene import SceneError, load_scene
+
+    assert old in TWO
+    path = _scene_file(tmp_path, TWO.replace(old, new, 1))
+    with pytest.raises(SceneError, match=message):
+        load_scene(path).mesh  # noqa: B018  (tables are checked against the mesh)
+    assert main(["check", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and str(path) in err
+
+
+def test_two_material_scene_runs_and_reports_its_tables(tmp_path, capsys):
+    from verification.cli import main
+
+    path = _scene_file(tmp_path, TWO)
+    assert main(["check", str(path), "--json"]) == 0
+    import json
+
+    out = json.loads(capsys.readouterr().out)
+    assert [z["tets"] for z in out["materials"]] == [48, 48]
+    assert [z["young_pa"] for z in out["materials"]] == [5.0e3, 5.0e5]

@@ -77,6 +77,27 @@ def _write_vtk(target: str, name: str, res) -> None:
     write_series(target, name, res.points, res.tets, res.times, {"displacement": res.displacement})
 
 
+def _zones(scene) -> list:
+    """Each [[material]] table: its region, law constants and how many tetrahedra it holds."""
+    import numpy as np
+
+    if not scene.zones:
+        return []
+    counts = np.bincount(scene.body_material().index, minlength=len(scene.zones))
+    return [
+        {
+            "table": f"material[{k}]",
+            "region": region.describe(),
+            "tets": int(counts[k]),
+            "young_pa": m.young,
+            "poisson": m.poisson,
+            "density_kg_m3": m.density,
+            "wave_speed_m_s": m.wave_speed,
+        }
+        for k, (region, m) in enumerate(scene.zones)
+    ]
+
+
 def cmd_check(args) -> int:
     """Read a scene as every command does (mesh, regions, loading, a model) and describe it, solving
     nothing: the check to run before a long study."""
@@ -86,8 +107,8 @@ def cmd_check(args) -> int:
 
     scene = _scene(args)
     mesh = scene.mesh
-    loading = build_loading(mesh, scene.material.density, scene.problem)
-    model = realtime.build_model("linear-tm", mesh.points, mesh.tets, scene.material, loading)
+    loading = build_loading(mesh, scene.densities(), scene.problem)
+    model = realtime.build_model("linear-tm", mesh.points, mesh.tets, scene.body_material(), loading)
     regions = []
     for i, fx in enumerate(scene.problem.fixed):
         regions.append(
@@ -107,6 +128,7 @@ def cmd_check(args) -> int:
         "mesh": {**mesh.quality(), "sha256": mesh.sha256(), "parts": mesh.parts()[0], "notes": list(mesh.notes)},
         "regions": regions,
         "material": {"lambda_pa": m.lam, "mu_pa": m.mu, "wave_speed_m_s": m.wave_speed},
+        "materials": _zones(scene),
         "dt_crit_element_s": realtime.element_critical_dt(model),
     }
 
@@ -118,6 +140,11 @@ def cmd_check(args) -> int:
             f"degrees, aspect ratio up to {q['max_aspect_ratio']:.2f}"
         ]
         lines += [f"  mesh repaired: {n}" for n in q["notes"]]
+        lines += [
+            f"  {z['table']}: {z['region']} holds {z['tets']} tetrahedra: E = {z['young_pa']:.4g} Pa, "
+            f"nu = {z['poisson']:.4g}, rho = {z['density_kg_m3']:.4g} kg/m^3"
+            for z in o["materials"]
+        ]
         lines += [f"  {r['table']}: {r['region']} holds {r['vertices']} vertices" for r in o["regions"]]
         lines.append(f"  element estimate of the explicit critical step: {o['dt_crit_element_s']:.3g} s")
         return "\n".join(lines)

@@ -55,7 +55,7 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
     h0 = scene.mesh.mean_edge()
     hs = [h0 / 2**k for k in range(levels)]
     progress = Progress(1 + levels * (len(models) + 2), f"converge {scene.name}")
-    base = dict(mesh=scene.mesh, material=scene.material, problem=scene.problem, estimate=False)
+    base = dict(mesh=scene.mesh, material=scene.body_material(), problem=scene.problem, estimate=False)
     # the truth (P2 on the finest level, at its vertices) and P1 and P2 at each level but that one
     jobs = [dict(base, degree=2, refine=levels - 1, points=meshes[-1].points)]
     jobs += [dict(base, degree=d, refine=k, points=meshes[k].points) for k in range(levels) for d in (1, 2)]

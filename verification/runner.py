@@ -233,7 +233,7 @@ def reference_result(
         ts = scene.time
         sol = reference_dynamic(
             solved.mesh,
-            scene.material,
+            solved.body_material(),
             solved.problem,
             ts.end,
             ts.output_every,
@@ -252,14 +252,14 @@ def reference_result(
             reference_path(solved, degree, refine, estimate, newton_steps, min_increment, False, petsc_options)
         )
         if use_cache and memo not in _SOLVED and serial and solved is not scene and fields.exists():
-            _restore_solved(memo, fields, solved, scene.material, degree, refine)
+            _restore_solved(memo, fields, solved, solved.body_material(), degree, refine)
         if use_cache and memo in _SOLVED:  # use_cache=False asks for a solve (the benchmarks time it)
             log("reference: the same problem was solved before: evaluated at these vertices")
             sol = evaluate_static(*_SOLVED[memo], mesh.points)
         else:
             sol = reference_static(
                 solved.mesh,
-                scene.material,
+                solved.body_material(),
                 solved.problem,
                 degree=degree,
                 refine=refine,
@@ -317,8 +317,8 @@ def _omega2_rest(scene: Scene, model, options: dict | None = None) -> float:
 def model_for(scene: Scene, model: str, **options):
     """The real-time model of a scene, with its loading."""
     mesh = scene.mesh
-    loading = build_loading(mesh, scene.material.density, scene.problem)
-    return build_model(model, mesh.points, mesh.tets, scene.material, loading, **options)
+    loading = build_loading(mesh, scene.densities(), scene.problem)
+    return build_model(model, mesh.points, mesh.tets, scene.body_material(), loading, **options)
 
 
 def time_steps(model, integrator, dt: float, state, n: int = 100, repeats: int = 9) -> dict:

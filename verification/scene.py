@@ -20,7 +20,7 @@ import numpy as np
 from meshes import InvalidMeshError, TetMesh, get_mesh, read_mesh
 from meshes.regions import AllRegion, BoxRegion, Region, SphereRegion, TagRegion
 from realtime.errors import InputError
-from realtime.material import LAWS, Material, MaterialError
+from realtime.material import LAWS, Material, MaterialError, Materials
 from reference.problem import (
     COMPONENTS,
     RAMP_SHAPES,
@@ -37,6 +37,7 @@ SCENES_DIR = Path(__file__).parent / "scenes"
 
 MESH_PARAMS = {
     "box": {"size": "vec3", "h": "length"},
+    "grid": {"size": "vec3", "h": "length"},
     "cylinder": {"radius": "length", "length": "length", "h": "length"},
     "tube": {"inner_radius": "length", "outer_radius": "length", "length": "length", "h": "length"},
     "liver": {"scale": "positive", "h": "length"},
@@ -83,20 +84,41 @@ class Scene:
     level: int = 0
     #: The scene this one refines (its geometry and regions are the base's); None at level 0.
     base: Scene | None = field(default=None, repr=False)
+    #: [[material]] tables: ((region, Material), ...), a tetrahedron taking the last whose region holds
+    #: it; None for one [material] everywhere (then ``material`` is it; otherwise the first table's).
+    zones: tuple | None = None
 
     @property
     def mesh(self) -> TetMesh:
         if self._mesh is None:
             self._mesh = build_mesh(self.mesh_spec, self.path)
             check_regions(self, self._mesh)
+            if self.zones:
+                zone_index(self, self._mesh)  # every tetrahedron has a material, every table a tetrahedron
         return self._mesh
+
+    def body_material(self) -> Material | Materials:
+        """What the solvers take: the Material, or for [[material]] tables the Materials of this scene's
+        mesh. A refined scene's tetrahedra take their base tetrahedron's material (``TetMesh.refined``
+        numbers child j of parent j mod M), so every level is the base's body."""
+        if not self.zones:
+            return self.material
+        base = self.base or self
+        index = zone_index(base, base.mesh)
+        for _ in range(self.level - base.level):
+            index = np.tile(index, 8)
+        return Materials(tuple(m for _, m in self.zones), index)
+
+    def densities(self) -> np.ndarray:
+        """Each tetrahedron's density (M,) float64, kg/m^3."""
+        return Materials.of(self.body_material(), self.mesh.n_tets).per_tet("density")
 
     def sha256(self) -> str:
         """Hash of the scene's content: the canonical JSON of its TOML, what was parsed from it (so that
         a variant made with dataclasses.replace, a 90 or a 60 degree twist, has a hash of its own) and
         its mesh."""
         text = json.dumps(self.raw, sort_keys=True, default=str)
-        parsed = repr((self.material, self.problem, self.time, self.manufactured, self.level))
+        parsed = repr((self.material, self.problem, self.time, self.manufactured, self.level, self.zones))
         return hashlib.sha256((text + parsed + self.mesh.sha256()).encode()).hexdigest()
 
     def refined(self, levels: int = 1) -> Scene:
@@ -134,10 +156,14 @@ class Scene:
         )
 
     def with_material(self, **changes) -> Scene:
-        """A copy with material fields changed (for studies over nu, E)."""
+        """A copy with material fields changed (for studies over nu, E); with [[material]] tables, in
+        every table."""
         raw = json.loads(json.dumps(self.raw))
-        raw.setdefault("material", {}).update(changes)
-        return dataclasses.replace(self, material=self.material.replace(**changes), raw=raw)
+        tables = raw.setdefault("material", {})
+        for table in tables if isinstance(tables, list) else [tables]:
+            table.update(changes)
+        zones = self.zones and tuple((region, m.replace(**changes)) for region, m in self.zones)
+        return dataclasses.replace(self, material=self.material.replace(**changes), raw=raw, zones=zones)
 
 
 def builtin_scenes() -> dict[str, Path]:
@@ -332,40 +358,23 @@ def parse(path: Path, data: dict) -> Scene:
         if n_tets > MAX_TETS:
             mr.fail("h", f"{spec['h']!r} m would make about {n_tets:.1e} tetrahedra (the limit is {MAX_TETS:.0e})")
 
-    mat = _Reader(path, top.get("material"), "material")
-    fields = dict(
-        law=mat.string("law", LAWS),
-        young=mat.number("young"),
-        poisson=mat.number("poisson"),
-        density=mat.number("density"),
-        volume_penalty=mat.number("volume_penalty", 0.0),
-    )
-    if mat.has("fiber") and mat.has("fiber_around"):
-        mat.fail("fiber_around", "give fibres one direction (fiber) or an axis to run around (fiber_around), not both")
-    if mat.has("fiber_around"):
-        around = _Reader(path, mat.get("fiber_around"), "material.fiber_around")
-        fields["fiber_axis"] = around.vec3("axis")
-        fields["fiber_point"] = around.vec3("point", [0.0, 0.0, 0.0])
-        around.finish(("axis", "point"))
-        fields["young_fiber"] = mat.number("young_fiber")
-        fields["fiber_shear"] = mat.number("fiber_shear", 0.0)
-    elif mat.has("fiber") or mat.has("young_fiber"):
-        fields["fiber"] = mat.vec3("fiber")
-        fields["young_fiber"] = mat.number("young_fiber")
-        fields["fiber_shear"] = mat.number("fiber_shear", 0.0)
-    mat.finish(
-        ("law", "young", "poisson", "density", "volume_penalty", "fiber", "fiber_around", "young_fiber", "fiber_shear")
-    )
-    try:
-        material = Material(**fields)
-    except MaterialError as exc:
-        key = (
-            str(exc)
-            .split(" ", 1)[0]
-            .replace("fiber_axis", "fiber_around.axis")
-            .replace("fiber_point", "fiber_around.point")
-        )
-        raise SceneError(f"{path}: material.{key} {str(exc).split(' ', 1)[1]}") from None
+    zones = None
+    if isinstance(top.table.get("material"), list):
+        zones = []
+        for table in _tables(top, "material"):
+            zones.append((_region(table), _material(table, REGION_KEYS)))
+        if not zones:
+            top.fail("material", "an empty array of tables: give [material] or at least one [[material]]")
+        for i, (_, m) in enumerate(zones[1:], start=1):
+            if m.law != zones[0][1].law:
+                top.fail(
+                    f"material[{i}].law",
+                    f"{m.law!r} differs from material[0].law = {zones[0][1].law!r}: one law for the whole body",
+                )
+        material = zones[0][1]
+        zones = tuple(zones)
+    else:
+        material = _material(_Reader(path, top.get("material"), "material"), ())
 
     fixed = []
     for fr in _tables(top, "fixed"):
@@ -412,6 +421,8 @@ def parse(path: Path, data: dict) -> Scene:
         mr2.finish(("degrees", "sizes"))
         manufactured = {"degrees": degrees, "sizes": per}
     top.finish(("name", "description", "mesh", "material", "fixed", "load", "time", "manufactured"))
+    if zones and manufactured:
+        top.fail("manufactured", "a manufactured solution is for one [material]; this scene has [[material]] tables")
     if (
         not fixed
         and not any(isinstance(ld, Displacement) for ld in loads)
@@ -432,13 +443,87 @@ def parse(path: Path, data: dict) -> Scene:
         tspec,
         raw=data,
         manufactured=manufactured,
+        zones=zones,
     )
+
+
+def _material(mat: _Reader, region_keys: tuple) -> Material:
+    """One [material] table (or [[material]] entry, which also holds ``region_keys``) as a Material."""
+    path = mat.path
+    fields = dict(
+        law=mat.string("law", LAWS),
+        young=mat.number("young"),
+        poisson=mat.number("poisson"),
+        density=mat.number("density"),
+        volume_penalty=mat.number("volume_penalty", 0.0),
+    )
+    if mat.has("fiber") and mat.has("fiber_around"):
+        mat.fail("fiber_around", "give fibres one direction (fiber) or an axis to run around (fiber_around), not both")
+    if mat.has("fiber_around"):
+        around = _Reader(path, mat.get("fiber_around"), mat.key("fiber_around"))
+        fields["fiber_axis"] = around.vec3("axis")
+        fields["fiber_point"] = around.vec3("point", [0.0, 0.0, 0.0])
+        around.finish(("axis", "point"))
+        fields["young_fiber"] = mat.number("young_fiber")
+        fields["fiber_shear"] = mat.number("fiber_shear", 0.0)
+    elif mat.has("fiber") or mat.has("young_fiber"):
+        fields["fiber"] = mat.vec3("fiber")
+        fields["young_fiber"] = mat.number("young_fiber")
+        fields["fiber_shear"] = mat.number("fiber_shear", 0.0)
+    mat.finish(
+        ("law", "young", "poisson", "density", "volume_penalty", "fiber", "fiber_around", "young_fiber", "fiber_shear")
+        + region_keys
+    )
+    try:
+        return Material(**fields)
+    except MaterialError as exc:
+        key = (
+            str(exc)
+            .split(" ", 1)[0]
+            .replace("fiber_axis", "fiber_around.axis")
+            .replace("fiber_point", "fiber_around.point")
+        )
+        raise SceneError(f"{path}: {mat.key(key)} {str(exc).split(' ', 1)[1]}") from None
+
+
+def zone_index(scene: Scene, mesh: TetMesh) -> np.ndarray:
+    """The [[material]] table of each tetrahedron of ``mesh`` (the scene's own, level 0): (M,) int64,
+    the last table whose region holds it. A box, sphere or ``all`` holds the tetrahedra whose centroid
+    it contains; a tag, the tetrahedra of that volume group of the mesh file (a gmsh physical volume,
+    a medit reference). SceneError for a tetrahedron no table holds, a table that holds none, or a
+    tag that names no volume group."""
+    index = np.full(mesh.n_tets, -1, dtype=np.int64)
+    centroids = mesh.points[mesh.tets].mean(axis=1)
+    for k, (region, _) in enumerate(scene.zones):
+        if isinstance(region, TagRegion):
+            if region.name not in mesh.cell_tags:
+                known = ", ".join(sorted(mesh.cell_tags)) or "none"
+                raise SceneError(
+                    f"{scene.path}: material[{k}].tag: {region.name!r} is not a volume group of the mesh "
+                    f"(its volume groups: {known}); a material needs tetrahedra"
+                )
+            held = np.asarray(mesh.cell_tags[region.name], dtype=np.int64)
+        else:
+            held = np.flatnonzero(region.contains(centroids, mesh))
+        if len(held) == 0:
+            raise SceneError(
+                f"{scene.path}: material[{k}]: the region {region.describe()} holds no tetrahedron's centroid"
+            )
+        index[held] = k
+    orphan = np.flatnonzero(index < 0)
+    if len(orphan):
+        raise SceneError(
+            f"{scene.path}: material: {len(orphan)} tetrahedra have no material, tetrahedron {orphan[0]} with "
+            f"centroid {np.round(centroids[orphan[0]], 9).tolist()} among them; add a first [[material]] with "
+            "all = true for the host tissue"
+        )
+    return index
 
 
 def _volume(spec: dict) -> float:
     """The volume, m^3, of a generator's body (the liver: 1.28 litres at scale 1)."""
     gen = spec["generator"]
-    if gen == "box":
+    if gen in ("box", "grid"):
         return float(np.prod(spec["size"]))
     if gen == "cylinder":
         return math.pi * spec["radius"] ** 2 * spec["length"]
