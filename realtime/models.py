@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+import scipy.sparse as sp
 
 from .blocks import BlockData, block_data, block_scratch
 from .corotational import corotational_energy, corotational_force, corotational_scratch
@@ -285,9 +286,11 @@ def build_mass_spring(points, tets, material: Material | Materials, loading: Loa
 
 
 def _with_quasistatic(model: Model, cls) -> Model:
+    """The model with ``cls(model)`` as its quasi-static solver (``cls`` a class with a ``model_name``,
+    or a function of the model returning the solver)."""
     extra = dict(model.extra)
-    extra["quasistatic"] = cls(model)
-    return Model(**{**model.__dict__, "name": cls.model_name, "extra": extra})
+    extra["quasistatic"] = solver = cls(model)
+    return Model(**{**model.__dict__, "name": solver.model_name, "extra": extra})
 
 
 def build_precomputed(points, tets, material: Material | Materials, loading: Loading | None = None) -> Model:
@@ -304,6 +307,29 @@ def build_condensed(points, tets, material: Material | Materials, loading: Loadi
     return _with_quasistatic(build_linear_tm(points, tets, material, loading), Condensed)
 
 
+def build_ffd(points, tets, material: Material | Materials, loading: Loading | None = None, degree: int = 3) -> Model:
+    """Free-form deformation driven by the tools (Sederberg & Parry 1986; direct manipulation, Hsu et al.
+    1992): no mechanics, the non-physics baseline; see realtime.ffd. ``degree``: the lattice's degree per
+    axis, its knob ((degree + 1)^3 control points)."""
+    from .ffd import FreeFormDeformation, no_energy, no_force
+
+    points, tets = prepare_mesh(points, tets)
+    model = _model(
+        "ffd",
+        points,
+        tets,
+        material,
+        loading,
+        no_force,
+        no_energy,
+        (),
+        True,
+        rest=lambda m: sp.csr_matrix((3 * m.n_vertices, 3 * m.n_vertices)),
+        bound=lambda m: 0.0,
+    )
+    return _with_quasistatic(model, lambda m: FreeFormDeformation(m, degree))
+
+
 MODELS: dict[str, Callable[..., Model]] = {
     "linear-tm": build_linear_tm,
     "corotational-tm": build_corotational_tm,
@@ -312,10 +338,13 @@ MODELS: dict[str, Callable[..., Model]] = {
     "mass-spring": build_mass_spring,
     "precomputed": build_precomputed,
     "condensed": build_condensed,
+    "ffd": build_ffd,
 }
 
 #: Models that jump to equilibrium instead of integrating in time (their integrator is QuasiStatic).
-QUASI_STATIC = ("precomputed", "condensed")
+QUASI_STATIC = ("precomputed", "condensed", "ffd")
+#: Models without mechanics (no internal force, no energy): what a force-field test cannot test.
+GEOMETRIC = ("ffd",)
 
 
 def build_model(

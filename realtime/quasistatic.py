@@ -133,6 +133,20 @@ class Precomputed:
         u[self.free_dofs] += self.T[:, cols] @ F
         return u.reshape(-1, 3), F
 
+    def advance(self, model: Model, t: float, u: np.ndarray) -> np.ndarray:
+        """Write into u (N, 3) m the equilibrium with the tools where they are at time t (s); return the
+        force (L, 3) N each tool exerts on the body there."""
+        dofs, tools = self.targets.dofs, self.targets.tools
+        u[:], forces = self.solve(dofs, self.targets.values(model, t))
+        return _per_tool(model, dofs, tools, forces)
+
+    def equilibrium(self, model: Model, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Displacement (N, 3) m at equilibrium at time t and the tools' total force (3,) N."""
+        u, F = self.solve(self.targets.dofs, self.targets.values(model, t))
+        R = np.zeros(3)
+        np.add.at(R, self.targets.dofs % 3, F)
+        return u, R
+
     def tool_force(self, vertex: int, displacement: np.ndarray) -> np.ndarray:
         """Force (3,) N needed to hold one surface vertex at ``displacement`` (3,) m: the haptic update."""
         dofs = 3 * vertex + np.arange(3)
@@ -249,6 +263,22 @@ class Condensed:
         u_r = np.ascontiguousarray(u, dtype=float).ravel()[self.retained]
         return _per_tool(model, self.tool_dofs, self.tool_ids, self.K_tool @ u_r - self.f_tool)
 
+    def advance(self, model: Model, t: float, u: np.ndarray) -> np.ndarray:
+        """Write into u (N, 3) m the retained displacements with the tools where they are at time t (s),
+        the interior left at zero (recovered on demand by ``full``); return the force (L, 3) N each tool
+        exerts on the body."""
+        u_r = self.update(self.targets.values(model, t))
+        u[:] = 0.0
+        u.reshape(-1)[self.retained] = u_r
+        return _per_tool(model, self.tool_dofs, self.tool_ids, self.K_tool @ u_r - self.f_tool)
+
+    def equilibrium(self, model: Model, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Displacement (N, 3) m at equilibrium at time t (all vertices) and the tools' total force (3,) N."""
+        held = np.zeros(model.n_vertices * 3)
+        held[self.targets.dofs] = self.targets.values(model, t)
+        u = self.full(self.solve_surface(held[self.retained[self.held_r]]))
+        return u, model.reaction(u)
+
     def full(self, u_r: np.ndarray) -> np.ndarray:
         """All displacements (N, 3) m: the interior recovered from the retained ones."""
         u = np.zeros(3 * self.n)
@@ -288,18 +318,8 @@ class QuasiStatic:
 
         model.check_current()
         dt, n = _check_step(model, state, dt, n)
-        solver = model.extra["quasistatic"]
         t = state.t + n * dt
-        dofs, tools, vals = solver.targets.dofs, solver.targets.tools, solver.targets.values(model, t)
-        if isinstance(solver, Precomputed):
-            u, forces = solver.solve(dofs, vals)
-            state.u[:] = u
-            out = _per_tool(model, dofs, tools, forces)
-        else:
-            u_r = solver.update(vals)
-            state.u[:] = 0.0
-            state.u.reshape(-1)[solver.retained] = u_r
-            out = _per_tool(model, dofs, tools, solver.K_tool @ u_r - solver.f_tool)
+        out = model.extra["quasistatic"].advance(model, t, state.u)
         state.v[:] = 0.0
         state.t = t
         state.steps += n
@@ -307,14 +327,4 @@ class QuasiStatic:
 
     def equilibrium(self, model: Model, t: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """Displacement (N, 3) m at equilibrium (all vertices) and the tools' total force (3,) N."""
-        solver = model.extra["quasistatic"]
-        dofs, vals = solver.targets.dofs, solver.targets.values(model, t)
-        if isinstance(solver, Precomputed):
-            u, F = solver.solve(dofs, vals)
-            R = np.zeros(3)
-            np.add.at(R, dofs % 3, F)
-            return u, R
-        held = np.zeros(model.n_vertices * 3)
-        held[dofs] = vals
-        u = solver.full(solver.solve_surface(held[solver.retained[solver.held_r]]))
-        return u, model.reaction(u)
+        return model.extra["quasistatic"].equilibrium(model, t)
