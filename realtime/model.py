@@ -290,13 +290,15 @@ class Model:
         return self.eigenvalue_bound_of(self)
 
     def check_current(self) -> None:
-        """Raise InputError if this model was cut since it was built (``realtime.models.cut`` returned its
-        successor, which shares and has changed its stiffness tensors)."""
+        """Raise InputError if this model's mesh was changed since it was built (``realtime.models.cut``,
+        ``realtime.topology.slit`` or ``suture`` returned its successor, which shares and has changed its
+        stiffness tensors)."""
         tensors = self.extra.get("tensors")
         if tensors is not None and tensors.generation != self.extra.get("generation", tensors.generation):
             raise InputError(
-                f"{self.name}: this model was cut {tensors.generation - self.extra['generation']} time(s) since it "
-                "was built; step the model realtime.models.cut returned"
+                f"{self.name}: this model's mesh was changed {tensors.generation - self.extra['generation']} time(s) "
+                "since it was built (cut, slit or sutured); step the model realtime.models.cut or realtime.topology "
+                "returned"
             )
 
     def elastic_energy(self, u: np.ndarray) -> float:

@@ -150,6 +150,50 @@ class TensorMass:
         alive[which] = False
         self.generation += 1
 
+    def relabel(self, which, new_tets: np.ndarray, n_vertices: int) -> None:
+        """Give tetrahedra ``which`` (K,) int the vertices ``new_tets`` (K, 4) int64, on a mesh of
+        ``n_vertices`` >= N vertices (new ones at the end): a slit, which gives the tetrahedra on one side
+        copies of the vertices they shared with the other, or a suture, which joins such copies back.
+        The new vertices sit where the old ones did, so each tetrahedron's blocks ``ke`` stay; only the
+        sums move: its blocks leave the old vertices and edges and join the new ones (Cotin et al.
+        2000's local update). An edge that did not exist is added (the edge list is laid out again,
+        O(E) copies; no block is recomputed); one left with no tetrahedron keeps a zero tensor."""
+        which = np.asarray(which, dtype=np.int64)
+        if np.any(~self.alive[which]):
+            bad = int(which[~self.alive[which]][0])
+            raise InputError(f"relabel: tetrahedron {bad} was removed by a cut")
+        self._scatter(which, -1.0)
+        if n_vertices > self.n_vertices:
+            grown = np.zeros((n_vertices, 3, 3))
+            grown[: self.n_vertices] = self.vertex_tensors
+            self.vertex_tensors, self.n_vertices = grown, n_vertices
+        self.tets = self.tets.copy()  # a model before the change keeps its own tets
+        self.tets[which] = new_tets
+        pairs = np.sort(self.tets[which][:, LOCAL_EDGES].reshape(-1, 2), axis=1)
+        missing = edge_index(self.edges, self.n_vertices, pairs) < 0
+        if missing.any():
+            edges = np.unique(np.concatenate([self.edges, pairs[missing]]), axis=0)
+            tensors = np.zeros((len(edges), 3, 3))
+            tensors[edge_index(edges, self.n_vertices, self.edges)] = self.edge_tensors
+            self.edges, self.edge_tensors = edges, tensors
+            self.tet_edges = edge_index(self.edges, self.n_vertices, self.tets[:, LOCAL_EDGES].reshape(-1, 2))
+            self.tet_edges = self.tet_edges.reshape(-1, 6)
+        else:
+            self.tet_edges[which] = edge_index(self.edges, self.n_vertices, pairs).reshape(-1, 6)
+        self._scatter(which, +1.0)
+        self.generation += 1
+
+    def truncate(self, n_vertices: int) -> None:
+        """Drop the vertices from ``n_vertices`` on, which no tetrahedron (alive or cut) may use: a suture
+        that joined a slit's copies back gives the mesh its old size."""
+        if self.tets.size and self.tets.max() >= n_vertices:
+            raise InputError(f"truncate: a tetrahedron still uses vertex {int(self.tets.max())} >= {n_vertices}")
+        keep = self.edges[:, 1] < n_vertices
+        self.edges, self.edge_tensors = self.edges[keep], self.edge_tensors[keep]
+        self.vertex_tensors, self.n_vertices = self.vertex_tensors[:n_vertices].copy(), n_vertices
+        self.tet_edges = edge_index(self.edges, n_vertices, self.tets[:, LOCAL_EDGES].reshape(-1, 2)).reshape(-1, 6)
+        self.generation += 1
+
     @property
     def alive(self) -> np.ndarray:
         """(M,) bool: which tetrahedra are still in the mesh."""

@@ -1,0 +1,203 @@
+"""Topology changes of a linear tensor-mass model besides cutting: slitting and suturing.
+
+``realtime.models.cut`` removes tetrahedra (Cotin et al. 2000). A scalpel that leaves no gap is a
+*slit*: the mesh separates along interior triangles, each vertex on them split into one copy per side,
+so that the tetrahedra on either side no longer share it. *Suturing* is its inverse: joining two
+vertex sets that sit at the same place (the two lips of a slit) back into one. Both are local
+tensor updates (``TensorMass.relabel``): the tetrahedra whose vertices change move their stiffness
+blocks from the old vertices and edges to the new ones; no element stiffness is recomputed, since a
+copy sits where its original is. The lumped masses move with the tetrahedra.
+
+Vertex indices stay valid: a slit appends its copies after the mesh's vertices; a suture leaves a
+joined vertex unused and held (as a cut leaves an orphan), except that the copies a slit appended are
+dropped again when a suture leaves them unused at the end, so that slitting and suturing back returns
+the model's own vertex set. The model returned is a new Model; the one before the change shares the
+updated tensors, so every integrator refuses to step it (``Model.check_current``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from .errors import InputError
+from .geometry import TET_FACES, signed_volumes
+from .material import Material
+from .model import Loading, Model
+
+#: Two vertices are joined only where they coincide: within this fraction of the mesh's size.
+COINCIDE = 1e-9
+
+
+def _tensors(model: Model, what: str):
+    tm = model.extra.get("tensors")
+    if model.name != "linear-tm" or tm is None:
+        raise InputError(f"{what}: {model.name} does not support topology changes (linear-tm does)")
+    model.check_current()
+    return tm
+
+
+def _masses(model: Model, tm, which: np.ndarray, old: np.ndarray, n: int) -> np.ndarray:
+    """The lumped masses (n,) kg after tetrahedra ``which`` moved from vertices ``old`` (K, 4) to
+    ``tm.tets[which]``: each one's rho V / 4 leaves the old vertices and joins the new."""
+    mass = np.zeros(n)
+    mass[: min(n, model.n_vertices)] = model.mass[: min(n, model.n_vertices)]
+    share = np.repeat(tm.materials.per_tet("density")[which] * np.abs(signed_volumes(model.points, old)) / 4.0, 4)
+    np.subtract.at(mass, old.ravel(), share)
+    np.add.at(mass, tm.tets[which].ravel(), share)
+    return mass
+
+
+def _rebuilt(model: Model, tm, points, mass, loading: Loading) -> Model:
+    orphan = np.ones(len(points), dtype=bool)
+    orphan[tm.tets[tm.alive].ravel()] = False
+    free = loading.free.copy()
+    free[orphan] = 0.0
+    mass = mass.copy()
+    mass[orphan] = 1.0  # never used: orphans do not move; keeps 1/m finite
+    loading = Loading(**{**loading.__dict__, "free": free})
+    loading.check(len(points))
+    extra = {**model.extra, "generation": tm.generation}
+    material = model.material if isinstance(model.material, Material) else tm.materials.subset(tm.alive)
+    return Model(
+        **{
+            **model.__dict__,
+            "material": material,
+            "points": points,
+            "tets": tm.tets[tm.alive],
+            "mass": mass,
+            "loading": loading,
+            "data": tm.kernel_data(),
+            "extra": extra,
+        }
+    )
+
+
+def slit(model: Model, faces) -> tuple[Model, np.ndarray]:
+    """Separate a linear tensor-mass model along interior triangles ``faces`` (F, 3) int (vertex
+    indices, any order), each shared by two tetrahedra of the model.
+
+    Around each vertex of the slit, the tetrahedra that still connect through faces off the slit form
+    one side; each side but the first gets a copy of the vertex, appended after the mesh's vertices (a
+    vertex where the slit ends inside the body has one side and stays whole). The copies take their
+    share of the vertex's external force by mass (exact for gravity) and its constraints; tools keep
+    driving the originals. Returns the new model and the pairs (K, 2) int64 (original, copy), which
+    ``suture`` takes to join them back.
+    """
+    tm = _tensors(model, "slit")
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    alive = np.flatnonzero(tm.alive)
+    tet_faces = np.sort(tm.tets[alive][:, TET_FACES].reshape(-1, 3), axis=1)  # (4 A, 3)
+    n = model.n_vertices
+    key = (tet_faces[:, 0] * n + tet_faces[:, 1]) * n + tet_faces[:, 2]
+    slit_keys = set()
+    for f in np.sort(faces, axis=1):
+        k = (f[0] * n + f[1]) * n + f[2]
+        if np.count_nonzero(key == k) != 2:
+            raise InputError(
+                f"slit: face {f.tolist()} is not an interior triangle of the mesh (shared by two tetrahedra)"
+            )
+        slit_keys.add(int(k))
+    owner = np.repeat(alive, 4)
+    new_tets = {}
+    copies = []
+    for v in np.unique(faces):
+        around = alive[np.any(tm.tets[alive] == v, axis=1)]
+        local = {int(t): i for i, t in enumerate(around)}
+        # the faces through v of the tetrahedra around it, paired where two tetrahedra share one off the slit
+        mine = np.isin(owner, around) & np.any(tet_faces == v, axis=1)
+        fk, ft = key[mine], owner[mine]
+        order = np.argsort(fk, kind="stable")
+        fk, ft = fk[order], ft[order]
+        same = (fk[1:] == fk[:-1]) & ~np.isin(fk[1:], list(slit_keys))
+        a = np.array([local[int(t)] for t in ft[:-1][same]], dtype=np.int64)
+        b = np.array([local[int(t)] for t in ft[1:][same]], dtype=np.int64)
+        graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(len(around), len(around)))
+        count, side = connected_components(graph, directed=False)
+        for k in range(1, count):
+            copy = n + len(copies)
+            copies.append((int(v), copy))
+            for t in around[side == k]:
+                row = new_tets.setdefault(int(t), tm.tets[t].copy())
+                row[row == v] = copy
+    if not copies:
+        return model, np.zeros((0, 2), dtype=np.int64)
+    pairs = np.array(copies, dtype=np.int64)
+    which = np.array(sorted(new_tets), dtype=np.int64)
+    old = tm.tets[which].copy()
+    n_new = n + len(pairs)
+    tm.relabel(which, np.array([new_tets[int(t)] for t in which]), n_new)
+    points = np.concatenate([model.points, model.points[pairs[:, 0]]])
+    mass = _masses(model, tm, which, old, n_new)
+    lo = model.loading
+    fext = np.concatenate([lo.external_force, np.zeros((len(pairs), 3))])
+    for orig in np.unique(pairs[:, 0]):  # the force follows the mass, among the original and its copies
+        group = np.concatenate([[orig], pairs[pairs[:, 0] == orig, 1]])
+        total = fext[orig].copy()
+        fext[group] = total[None, :] * (mass[group] / mass[group].sum())[:, None]
+    free = np.concatenate([lo.free, lo.free[pairs[:, 0]]])
+    loading = Loading(**{**lo.__dict__, "free": free, "external_force": fext})
+    return _rebuilt(model, tm, points, mass, loading), pairs
+
+
+def suture(model: Model, pairs) -> Model:
+    """Join vertex pairs (K, 2) int of a linear tensor-mass model: every tetrahedron using the second
+    vertex of a pair uses the first instead. The two must coincide (rest positions within COINCIDE of
+    the mesh's size), as the lips of a slit do; the second may not be a tool's. It keeps no
+    tetrahedron, its mass and external force go to the first, and it is left unused and held, or
+    dropped if it and every vertex after it are now unused copies a slit appended.
+    """
+    tm = _tensors(model, "suture")
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    n = model.n_vertices
+    if np.any((pairs < 0) | (pairs >= n)):
+        bad = pairs[np.any((pairs < 0) | (pairs >= n), axis=1)][0]
+        raise InputError(f"suture: pair {bad.tolist()} names a vertex outside 0..{n - 1}")
+    size = float(np.ptp(model.points, axis=0).max())
+    gap = np.linalg.norm(model.points[pairs[:, 0]] - model.points[pairs[:, 1]], axis=1)
+    if np.any(gap > COINCIDE * size) or np.any(pairs[:, 0] == pairs[:, 1]):
+        k = int(np.argmax(gap)) if np.any(gap > COINCIDE * size) else int(np.argmax(pairs[:, 0] == pairs[:, 1]))
+        raise InputError(
+            f"suture: vertices {pairs[k].tolist()} are {gap[k]:.3g} m apart; a suture joins two copies of one "
+            "place (distinct vertices at the same rest position)"
+        )
+    driven = np.isin(pairs[:, 1], model.loading.tool_vertex)
+    if driven.any():
+        raise InputError(f"suture: vertex {int(pairs[driven][0, 1])} is driven by a tool; put it first in its pair")
+    target = np.arange(n)
+    target[pairs[:, 1]] = pairs[:, 0]
+    target = target[target]  # a chain a <- b <- c joins c to a
+    alive = np.flatnonzero(tm.alive)
+    which = alive[np.any(np.isin(tm.tets[alive], pairs[:, 1]), axis=1)]
+    new = target[tm.tets[which]]
+    flat = np.sort(new, axis=1)
+    if np.any(flat[:, 1:] == flat[:, :-1]):
+        t = int(which[np.argmax(np.any(flat[:, 1:] == flat[:, :-1], axis=1))])
+        raise InputError(
+            f"suture: tetrahedron {t} would hold one vertex twice; a suture joins vertices of different tetrahedra"
+        )
+    old = tm.tets[which].copy()
+    tm.relabel(which, new, n)
+    mass = _masses(model, tm, which, old, n)
+    lo = model.loading
+    fext = lo.external_force.copy()
+    np.add.at(fext, target[pairs[:, 1]], fext[pairs[:, 1]])
+    fext[pairs[:, 1]] = 0.0
+    loading = Loading(**{**lo.__dict__, "external_force": fext})
+    points = model.points
+    # drop the trailing copies this suture left unused, so that a slit sutured back has its old size
+    used = np.zeros(n, dtype=bool)
+    used[tm.tets.ravel()] = True
+    joined = np.zeros(n, dtype=bool)
+    joined[pairs[:, 1]] = True
+    keep = n
+    while keep > 0 and joined[keep - 1] and not used[keep - 1]:
+        keep -= 1
+    if keep < n:
+        tm.truncate(keep)
+        points, mass = points[:keep], mass[:keep]
+        loading = Loading(
+            **{**loading.__dict__, "free": loading.free[:keep], "external_force": loading.external_force[:keep]}
+        )
+    return _rebuilt(model, tm, points, mass, loading)
