@@ -13,6 +13,7 @@ from realtime.geometry import (
     check_tets,
     min_altitudes,
     orient_positive,
+    red_refinement,
     signed_volumes,
     unique_edges,
 )
@@ -93,34 +94,10 @@ class TetMesh:
         indices and the edge midpoints follow, so the coarse mesh's vertices are the first N of the fine
         one's. Cell tags pass to the children; a vertex tag takes the midpoints of the edges of tagged
         boundary triangles."""
-        e = self.edges
-        n = self.n_vertices
-        index = {(int(a), int(b)): n + k for k, (a, b) in enumerate(e)}
+        points, tets = red_refinement(self.points, self.tets)
         t = self.tets
-        pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
-        m = np.empty((len(t), 6), dtype=np.int64)
-        for j, (a, b) in enumerate(pairs):
-            lo, hi = np.minimum(t[:, a], t[:, b]), np.maximum(t[:, a], t[:, b])
-            m[:, j] = [index[(int(x), int(y))] for x, y in zip(lo, hi, strict=True)]
-        x0, x1, x2, x3 = t.T
-        m01, m02, m03, m12, m13, m23 = m.T
-        points = np.vstack([self.points, 0.5 * (self.points[e[:, 0]] + self.points[e[:, 1]])])
-        # the inner octahedron: four tetrahedra around one of its three diagonals, the shortest (the best
-        # shaped children), each diagonal with the cycle of the four other midpoints around it
-        octahedra = {
-            (0, 5): (1, 2, 4, 3),  # m01-m23 around m02, m03, m13, m12
-            (1, 4): (0, 2, 5, 3),  # m02-m13 around m01, m03, m23, m12
-            (2, 3): (0, 1, 5, 4),  # m03-m12 around m01, m02, m23, m13
-        }
-        length = np.stack([np.linalg.norm(points[m[:, a]] - points[m[:, b]], axis=1) for a, b in octahedra], axis=1)
-        choice = np.argmin(length, axis=1)
-        inner = np.zeros((4, len(t), 4), dtype=np.int64)
-        for k, ((a, b), ring) in enumerate(octahedra.items()):
-            sel = choice == k
-            for i in range(4):
-                inner[i, sel] = np.stack([m[sel, a], m[sel, b], m[sel, ring[i]], m[sel, ring[(i + 1) % 4]]], axis=1)
-        corners = [(x0, m01, m02, m03), (m01, x1, m12, m13), (m02, m12, x2, m23), (m03, m13, m23, x3)]
-        tets = np.concatenate([np.stack(c, axis=1) for c in corners] + list(inner))
+        n = self.n_vertices
+        index = {(int(a), int(b)): n + k for k, (a, b) in enumerate(self.edges)}
         cell_tags = {
             k: np.concatenate([np.asarray(v) + i * len(t) for i in range(8)]) for k, v in self.cell_tags.items()
         }

@@ -171,3 +171,41 @@ def morton_order(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
         for d in range(3):
             code |= ((q[:, d] >> bit) & 1) << (3 * bit + d)
     return np.argsort(code, kind="stable")
+
+
+def red_refinement(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each tetrahedron cut into eight (red refinement: four corner tetrahedra and the inner octahedron
+    split along its shortest diagonal, the best-shaped children).
+
+    points (N, 3) float64 m, tets (M, 4) int64. Returns the fine points (N + E, 3): the N vertices keep
+    their indices and the midpoints of the E edges of ``unique_edges(tets)`` follow in that order; and
+    the fine tets (8 M, 4) int64, positively oriented, child j of coarse tetrahedron j mod M."""
+    e = unique_edges(tets)
+    n = len(points)
+    t = np.asarray(tets, dtype=np.int64)
+    pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    keys = e[:, 0] * n + e[:, 1]
+    m = np.empty((len(t), 6), dtype=np.int64)
+    for j, (a, b) in enumerate(pairs):
+        lo, hi = np.minimum(t[:, a], t[:, b]), np.maximum(t[:, a], t[:, b])
+        m[:, j] = n + np.searchsorted(keys, lo * n + hi)
+    x0, x1, x2, x3 = t.T
+    m01, m02, m03, m12, m13, m23 = m.T
+    fine = np.vstack([points, 0.5 * (points[e[:, 0]] + points[e[:, 1]])])
+    # the inner octahedron: four tetrahedra around one of its three diagonals, each diagonal with the
+    # cycle of the four other midpoints around it
+    octahedra = {
+        (0, 5): (1, 2, 4, 3),  # m01-m23 around m02, m03, m13, m12
+        (1, 4): (0, 2, 5, 3),  # m02-m13 around m01, m03, m23, m12
+        (2, 3): (0, 1, 5, 4),  # m03-m12 around m01, m02, m23, m13
+    }
+    length = np.stack([np.linalg.norm(fine[m[:, a]] - fine[m[:, b]], axis=1) for a, b in octahedra], axis=1)
+    choice = np.argmin(length, axis=1)
+    inner = np.zeros((4, len(t), 4), dtype=np.int64)
+    for k, ((a, b), ring) in enumerate(octahedra.items()):
+        sel = choice == k
+        for i in range(4):
+            inner[i, sel] = np.stack([m[sel, a], m[sel, b], m[sel, ring[i]], m[sel, ring[(i + 1) % 4]]], axis=1)
+    corners = [(x0, m01, m02, m03), (m01, x1, m12, m13), (m02, m12, x2, m23), (m03, m13, m23, x3)]
+    children = np.concatenate([np.stack(c, axis=1) for c in corners] + list(inner))
+    return fine, orient_positive(fine, children)

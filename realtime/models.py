@@ -11,6 +11,7 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse as sp
 
+from .adaptive import build_adaptive_tm
 from .blocks import BlockData, block_data, block_scratch
 from .corotational import corotational_energy, corotational_force, corotational_scratch
 from .errors import InputError
@@ -339,6 +340,7 @@ MODELS: dict[str, Callable[..., Model]] = {
     "precomputed": build_precomputed,
     "condensed": build_condensed,
     "ffd": build_ffd,
+    "adaptive-tm": build_adaptive_tm,
 }
 
 #: Models that jump to equilibrium instead of integrating in time (their integrator is QuasiStatic).

@@ -159,13 +159,16 @@ def test_a_cut_model_refuses_to_step_and_its_successor_steps():
     state = State.at_rest(mesh.n_vertices)
     integ.step(model, state, 1e-6, 1)
     after = cut(model, [0, 1, 2])
-    with pytest.raises(InputError, match=r"linear-tm: this model.s mesh was changed 1 time\(s\) since it was built \(cut, slit or sutured\)"):
+    with pytest.raises(
+        InputError,
+        match=r"linear-tm: this model.s mesh was changed 1 time\(s\) since it was built \(cut, slit or sutured\)",
+    ):
         integ.step(model, state, 1e-6, 1)
     with pytest.raises(InputError, match="this model.s mesh was changed"):
         ImplicitEuler().step(model, state, 1e-6, 1)
     integ.step(after, state, 1e-6, 1)
     again = cut(after, [3])
-    with pytest.raises(InputError, match="cut 1 time"):
+    with pytest.raises(InputError, match="changed 1 time"):
         integ.step(after, state, 1e-6, 1)
     integ.step(again, state, 1e-6, 1)
 

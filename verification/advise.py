@@ -204,16 +204,19 @@ def _verdict(r: dict, metric: str, tol: float) -> tuple[bool, str]:
     return True, f"{_label(r)}: {metric} {value:.3g} <= {tol:g}; {r['frame']['why']}"
 
 
-def _candidates(scene: Scene, metric: str, rate: float, use_cache: bool, comm, progress_label: str) -> list[dict]:
-    """The scene's runs, each with its frame budget, merged by ``merge_same_answers``."""
+def _candidates(
+    scene: Scene, metric: str, rate: float, use_cache: bool, comm, progress_label: str, models=None
+) -> list[dict]:
+    """The scene's runs of ``models`` (default all), each with its frame budget, merged by
+    ``merge_same_answers``."""
     dynamic = scene.time.mode == "dynamic"
-    res = sweep(scene, use_cache=use_cache, comm=comm)
+    res = sweep(scene, models=models, use_cache=use_cache, comm=comm)
     if comm is not None and comm.size > 1:
         # every rank goes on with the same rows: the reference solves below are collective
         res = comm.bcast(res, root=0)
     rows = list(res["rows"])
     if not dynamic:
-        extra = [m for m in IMPLICIT_MODELS if m in MODELS]
+        extra = [m for m in IMPLICIT_MODELS if m in (models or MODELS)]
         progress = Progress(len(extra), progress_label)
         for m in extra:
             rows.append(_compare_or_unsettled(scene, m, "implicit-euler", None, use_cache))
@@ -355,11 +358,14 @@ def propose_mesh(scene: Scene, rows: list[dict], metric: str, tol: float, rate: 
     return out
 
 
-def advise(scene: Scene, tol: float, rate: float, metric: str = "rel_l2", use_cache: bool = True, comm=None) -> dict:
+def advise(
+    scene: Scene, tol: float, rate: float, metric: str = "rel_l2", use_cache: bool = True, comm=None, models=None
+) -> dict:
     """The cheapest (model, integrator, dt, mesh) whose ``metric`` is at most ``tol`` while a simulator
     holds ``rate`` frames per second on this machine (``frame_budget`` with FRAME_SHARE of each frame),
     with the runner-up and why every cheaper option failed; on a refined mesh when the mesh's own error
-    stops every model on the scene's (module docstring). ``command`` re-runs the pick with compare."""
+    stops every model on the scene's (module docstring). ``models``: the ones to choose from (default
+    all: a simulator may have only some). ``command`` re-runs the pick with compare."""
     if metric == "reaction_rel_err" and not scene.problem.tools:
         raise SceneError(
             f"{scene.path}: --metric reaction_rel_err measures the tool's force, and this scene has no "
@@ -368,7 +374,7 @@ def advise(scene: Scene, tol: float, rate: float, metric: str = "rel_l2", use_ca
     if not (tol > 0 and rate > 0):
         raise SceneError(f"--tol {tol!r} and --rate {rate!r}: both must be positive")
     dynamic = scene.time.mode == "dynamic"
-    rows = _candidates(scene, metric, rate, use_cache, comm, f"advise {scene.name}")
+    rows = _candidates(scene, metric, rate, use_cache, comm, f"advise {scene.name}", models)
     ref = reference_result(scene, **REFERENCE_DEFAULTS)
     mesh = scene.mesh
     defo = deformation_summary(

@@ -376,7 +376,15 @@ def cmd_advise(args) -> int:
         from .prefetch import advice_jobs, solve_references
 
         solve_references(advice_jobs([scene]))
-    out = advise(scene, tol=args.tol, rate=args.rate, metric=args.metric, use_cache=not args.no_cache, comm=comm)
+    out = advise(
+        scene,
+        tol=args.tol,
+        rate=args.rate,
+        metric=args.metric,
+        use_cache=not args.no_cache,
+        comm=comm,
+        models=args.models,
+    )
     if _rank0(comm):
         _emit(args, out, format_advice)
     return 0
@@ -602,6 +610,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--tol", type=_positive, required=True, help="largest acceptable error (relative)")
     s.add_argument("--rate", type=_positive, required=True, help="update rate the model must sustain, Hz")
     s.add_argument("--metric", default="rel_l2", choices=("rel_l2", "surface_rel_l2", "reaction_rel_err"))
+    s.add_argument("--models", nargs="+", choices=sorted(MODELS), help="choose among these only (default: every model)")
     s.add_argument("--no-cache", action="store_true")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_advise)

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 import realtime
+from meshes import TetMesh
 from realtime import DivergenceError, ImplicitEuler, State, SymplecticEuler, build_model, make_integrator, solve_static
 from realtime.models import QUASI_STATIC
 from realtime.quasistatic import QuasiStatic
@@ -318,6 +319,13 @@ def model_for(scene: Scene, model: str, **options):
     """The real-time model of a scene, with its loading."""
     mesh = scene.mesh
     loading = build_loading(mesh, scene.densities(), scene.problem)
+    if model == "adaptive-tm":  # its mixed mesh gets the scene's loads as exactly as the scene's mesh
+        from realtime.adaptive import adaptive_plan
+
+        plan = adaptive_plan(mesh.points, mesh.tets, scene.body_material(), loading, **options)
+        mixed = TetMesh(plan.points, plan.tets, source=f"{mesh.source} adaptive")
+        densities = scene.densities()[plan.parent]
+        options = {**options, "plan": plan, "mixed_loading": build_loading(mixed, densities, scene.problem_on(mixed))}
     return build_model(model, mesh.points, mesh.tets, scene.body_material(), loading, **options)
 
 
@@ -414,7 +422,9 @@ def run_model(
         "versions": versions(),
         "commit": git_commit(),
     }
-    return Result(scene.mesh.points, scene.mesh.tets, np.zeros(1), u[None], model.reaction(u)[None], meta)
+    return Result(
+        scene.mesh.points, scene.mesh.tets, np.zeros(1), observed(model, u)[None], model.reaction(u)[None], meta
+    )
 
 
 def output_times(scene: Scene) -> np.ndarray:
@@ -422,6 +432,12 @@ def output_times(scene: Scene) -> np.ndarray:
     ts = scene.time
     n = int(round(ts.end / ts.output_every))
     return np.arange(n + 1) * ts.output_every
+
+
+def observed(model, u: np.ndarray) -> np.ndarray:
+    """The displacements (..., N, 3) of the scene's N vertices in a model's u (..., V, 3): all of them,
+    but for a model with vertices of its own after the scene's (adaptive-tm's midpoints)."""
+    return u[..., : model.extra.get("observed", model.n_vertices), :]
 
 
 def trajectory(model, integ, dt: float, times: np.ndarray, dt_crit: float | None = None):
@@ -434,7 +450,7 @@ def trajectory(model, integ, dt: float, times: np.ndarray, dt_crit: float | None
     if isinstance(integ, QuasiStatic):  # no history: the equilibrium with the tools where they are at t
         for k, t_out in enumerate(times):
             out_u[k], out_r[k] = integ.equilibrium(model, t_out)
-        return out_u, out_r
+        return observed(model, out_u), out_r
     for k, t_out in enumerate(times):
         n = int(np.ceil((t_out - state.t) / dt - 1e-9))
         if n > 1:
@@ -447,7 +463,7 @@ def trajectory(model, integ, dt: float, times: np.ndarray, dt_crit: float | None
         else:
             out_u[k] = state.u
         out_r[k] = model.reaction(out_u[k])
-    return out_u, out_r
+    return observed(model, out_u), out_r
 
 
 def _run_dynamic(scene: Scene, model, integrator: str, dt, dt_fraction, build_s: float, options=None) -> Result:
@@ -543,7 +559,9 @@ def _run_implicit(scene: Scene, model, integ, dt, dt_fraction, omega2, build_s, 
         "versions": versions(),
         "commit": git_commit(),
     }
-    return Result(scene.mesh.points, scene.mesh.tets, np.zeros(1), u[None], model.reaction(u)[None], meta)
+    return Result(
+        scene.mesh.points, scene.mesh.tets, np.zeros(1), observed(model, u)[None], model.reaction(u)[None], meta
+    )
 
 
 def _run_quasi_static(scene: Scene, model, build_s: float) -> Result:
@@ -579,7 +597,7 @@ def _run_quasi_static(scene: Scene, model, build_s: float) -> Result:
         "versions": versions(),
         "commit": git_commit(),
     }
-    return Result(scene.mesh.points, scene.mesh.tets, np.zeros(1), u[None], reaction[None], meta)
+    return Result(scene.mesh.points, scene.mesh.tets, np.zeros(1), observed(model, u)[None], reaction[None], meta)
 
 
 def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integrator: str, max_steps: int) -> dict:

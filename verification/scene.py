@@ -128,31 +128,38 @@ class Scene:
         region when the base vertices of its edge or face do), so that every level poses the base
         scene's problem (docs/architecture.md section 3). The reference of a refined scene is the
         base's, evaluated at the refined vertices."""
-        from meshes.regions import VertexRegion, spanned
-
         if levels == 0:
             return self
         base = self.base or self
         mesh = self.mesh
         for _ in range(levels):
             mesh = mesh.refined()
+        problem = self.problem_on(mesh)
+        level = self.level + levels
+        raw = json.loads(json.dumps(base.raw, default=str))
+        raw.setdefault("mesh", {})["refine"] = level
+        return dataclasses.replace(
+            base, material=self.material, problem=problem, raw=raw, _mesh=mesh, level=level, base=base
+        )
+
+    def problem_on(self, mesh: TetMesh):
+        """The base scene's problem on ``mesh``, a mesh whose vertices lie on the base mesh's vertices,
+        edges, faces or tetrahedra (a refinement of it, uniform or not): each region becomes the vertices
+        that its base selection spans (``meshes.regions.spanned``), the rule the reference applies."""
+        from meshes.regions import VertexRegion, spanned
+
+        base = self.base or self
 
         def carry(region):
             return VertexRegion(tuple(np.flatnonzero(spanned(base.mesh, region.vertices(base.mesh), mesh.points))))
 
-        problem = dataclasses.replace(
+        return dataclasses.replace(
             base.problem,
             fixed=tuple(dataclasses.replace(f, region=carry(f.region)) for f in base.problem.fixed),
             loads=tuple(
                 dataclasses.replace(ld, region=carry(ld.region)) if hasattr(ld, "region") else ld
                 for ld in base.problem.loads
             ),
-        )
-        level = self.level + levels
-        raw = json.loads(json.dumps(base.raw, default=str))
-        raw.setdefault("mesh", {})["refine"] = level
-        return dataclasses.replace(
-            base, material=self.material, problem=problem, raw=raw, _mesh=mesh, level=level, base=base
         )
 
     def with_material(self, **changes) -> Scene:

@@ -1,0 +1,101 @@
+"""adaptive-tm (issue 12): StVK tensor-mass on a mesh refined where the predictor strains it, with the
+hanging midpoints of the non-conforming interface following their edges."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from meshes import stored_mesh
+from realtime import InputError, Loading, Material, build_model
+from realtime.adaptive import adaptive_plan
+from realtime.geometry import boundary_faces, red_refinement
+
+MATERIAL = Material(5e3, 0.45, 1000.0, law="stvk")
+#: The same element sums in another order: a few hundred ulps of the largest force.
+ROUND_OFF = 1e-12
+
+
+def pulled_cylinder():
+    """The cylinder held at its base, a tool pulling its top sideways: strain concentrates at the base."""
+    mesh = stored_mesh("cylinder")
+    x = mesh.points
+    free = np.ones_like(x)
+    free[x[:, 2] < x[:, 2].min() + 1e-9] = 0.0
+    top = np.flatnonzero(x[:, 2] > x[:, 2].max() - 1e-9)
+    loading = Loading.translating_tool(free, np.zeros_like(x), top, vector=(2e-3, 0.0, 0.0))
+    return mesh, loading
+
+
+def test_threshold_above_one_is_the_coarse_stvk_model(rng):
+    mesh, loading = pulled_cylinder()
+    adaptive = build_model("adaptive-tm", mesh.points, mesh.tets, MATERIAL, loading, threshold=2.0)
+    coarse = build_model("stvk-tm", mesh.points, mesh.tets, MATERIAL, loading)
+    assert adaptive.n_vertices == mesh.n_vertices and len(adaptive.extra["plan"].hanging) == 0
+    u = 1e-3 * rng.standard_normal(mesh.points.shape)
+    f = coarse.internal_force(u)
+    assert np.abs(adaptive.internal_force(u) - f).max() <= ROUND_OFF * np.abs(f).max()
+    np.testing.assert_allclose(adaptive.mass, coarse.mass, rtol=ROUND_OFF)
+
+
+def test_threshold_zero_is_the_stvk_model_of_the_refined_mesh(rng):
+    mesh, loading = pulled_cylinder()
+    adaptive = build_model("adaptive-tm", mesh.points, mesh.tets, MATERIAL, loading, threshold=0.0)
+    points, tets = red_refinement(mesh.points, mesh.tets)
+    fine = build_model("stvk-tm", points, tets, MATERIAL)
+    assert adaptive.n_vertices == len(points) and np.array_equal(adaptive.points, points)
+    u = 1e-3 * rng.standard_normal(points.shape)
+    f = fine.internal_force(u)
+    assert np.abs(adaptive.internal_force(u) - f).max() <= ROUND_OFF * np.abs(f).max()
+    np.testing.assert_allclose(adaptive.mass, fine.mass, rtol=ROUND_OFF)
+
+
+def partly_refined():
+    mesh, loading = pulled_cylinder()
+    model = build_model("adaptive-tm", mesh.points, mesh.tets, MATERIAL, loading, threshold=0.3)
+    plan = model.extra["plan"]
+    assert 0 < plan.refined.sum() < len(mesh.tets) and len(plan.hanging) > 0
+    return mesh, model, plan
+
+
+def test_hanging_midpoints_pass_the_patch_test():
+    """Under an affine displacement the stress is the same everywhere, so every vertex inside the body
+    is in equilibrium: with the hanging midpoints following their edges and their forces folded onto
+    the ends, the non-conforming interface is no exception."""
+    mesh, model, plan = partly_refined()
+    A = np.array([[0.02, 0.01, -0.03], [0.00, -0.01, 0.02], [0.04, 0.00, 0.01]])  # F = I + A, 2-4% strains
+    f = model.internal_force(model.points @ A.T)
+    # the body's surface: the boundary of the uniformly refined mesh (the mixed mesh's own boundary
+    # faces would include the interface, whose faces do not pair up)
+    points, tets = red_refinement(mesh.points, mesh.tets)
+    distance, _ = cKDTree(points[np.unique(boundary_faces(tets))]).query(model.points)
+    inner = distance > 1e-12
+    ends = np.zeros(model.n_vertices, dtype=bool)
+    ends[np.unique(plan.hanging)] = True
+    assert (inner & ends).sum() > 20  # interface vertices inside the body, where the fold matters
+    # 1e-12: round-off of sums of terms as large as the largest force; unfolded, these reach 0.5 of it
+    assert np.abs(f[inner]).max() <= 1e-12 * np.abs(f).max()
+
+
+def test_force_is_minus_the_energy_gradient_across_the_interface(rng):
+    mesh, model, plan = partly_refined()
+    u = 1e-3 * rng.standard_normal((model.n_vertices, 3))
+    f = model.internal_force(u)
+    h = 1e-8
+    for k in np.unique(plan.hanging)[:6]:  # the vertices whose force holds the folded halves
+        for c in range(3):
+            d = np.zeros_like(u)
+            d[k, c] = h
+            fd = -(model.elastic_energy(u + d) - model.elastic_energy(u - d)) / (2 * h)
+            # central difference: truncation ~1e-12 f, round-off eps W / h ~1e-8 |f|max
+            assert fd == pytest.approx(f[k, c], rel=1e-5, abs=1e-6 * np.abs(f).max())
+
+
+def test_the_refined_tetrahedra_are_the_strained_ones():
+    mesh, model, plan = partly_refined()
+    assert plan.strain[plan.refined].min() >= 0.3 * plan.strain.max() > plan.strain[~plan.refined].max()
+
+
+def test_bad_threshold():
+    mesh, loading = pulled_cylinder()
+    with pytest.raises(InputError, match="threshold = -1"):
+        adaptive_plan(mesh.points, mesh.tets, MATERIAL, loading, threshold=-1)
