@@ -33,6 +33,15 @@ from .scene import Scene, SceneError, builtin_scenes
 from .sweep import sweep
 
 LINEAR_MODELS = ("linear-tm", "precomputed", "condensed")
+#: Models that refine the scene's mesh themselves: their error's mesh part is not P1's on the scene's
+#: mesh, so no finer scene mesh is proposed for them (adaptive-tm refined twice more would be a third
+#: level, at 64 times the cost, for a part the model already cut).
+OWN_MESH = ("adaptive-tm",)
+#: The longest precomputation (a quasi-static model's build) a proposal may ask a user to wait for, s.
+BUILD_LIMIT_S = 120.0
+#: Growth of a quasi-static model's build per refinement: 4 times the surface dofs (right-hand sides),
+#: each solved with a sparse factor of 8^(4/3) = 16 times the entries (nested dissection in 3D).
+BUILD_GROWTH = 64.0
 #: Time-stepping models tried with implicit Euler on static scenes (it settles in tens of steps).
 IMPLICIT_MODELS = ("linear-tm", "corotational-tm", "stvk-tm")
 #: The share of a frame a candidate may use: the rest is margin for timing noise between this run and
@@ -305,7 +314,7 @@ def propose_mesh(scene: Scene, rows: list[dict], metric: str, tol: float, rate: 
     surface = len(scene.mesh.surface_vertices)
     plans = []
     for r in rows:
-        if r["status"] != "ok":
+        if r["status"] != "ok" or r["model"] in OWN_MESH:
             continue
         own = _own(r)
         for level in range(1, MAX_LEVEL + 1):
@@ -322,6 +331,7 @@ def propose_mesh(scene: Scene, rows: list[dict], metric: str, tol: float, rate: 
             # budget by prediction is still worth a run, which decides
             hopeful = _predict(r, level, dynamic, rate, share=FRAME_SHARE * OPTIMISM)["holds"]
             need = _memory_bytes(r["model"], n * 8**level, surface * 4**level)
+            build = (r.get("build_s") or 0.0) * BUILD_GROWTH**level if r["integrator"] == "quasi-static" else 0.0
             plans.append(
                 {
                     "row": r,
@@ -333,6 +343,8 @@ def propose_mesh(scene: Scene, rows: list[dict], metric: str, tol: float, rate: 
                     "hopeful": hopeful,
                     "memory_bytes": need,
                     "fits_memory": need <= memory,
+                    "predicted_build_s": build,
+                    "builds_in_time": build <= BUILD_LIMIT_S,
                 }
             )
             if bound <= tol:
@@ -348,8 +360,8 @@ def propose_mesh(scene: Scene, rows: list[dict], metric: str, tol: float, rate: 
         return out
     plans.sort(
         key=lambda p: (
-            not (p["predicted"]["holds"] and p["fits_memory"]),
-            not (p["hopeful"] and p["fits_memory"]),
+            not (p["predicted"]["holds"] and p["fits_memory"] and p["builds_in_time"]),
+            not (p["hopeful"] and p["fits_memory"] and p["builds_in_time"]),
             p["level"],
             p["predicted"]["work_us"] if dynamic else p["predicted"]["time_to_answer_s"],
         )
@@ -520,7 +532,7 @@ def _run_plans(scene: Scene, proposal: dict, metric: str, tol: float, rate: floa
     if not proposal or proposal.get("level") is None:
         return None, []
     dynamic = scene.time.mode == "dynamic"
-    plans = [p for p in proposal["plans"] if p["hopeful"] and p["fits_memory"]][:MAX_TRIALS]
+    plans = [p for p in proposal["plans"] if p["hopeful"] and p["fits_memory"] and p["builds_in_time"]][:MAX_TRIALS]
     tried = []
     progress = Progress(len(plans), f"advise {scene.name} refined")
     for p in plans:
@@ -562,6 +574,8 @@ def _proposal_summary(proposal: dict | None, tried: list) -> dict | None:
             "hopeful": p["hopeful"],
             "memory_gb": p["memory_bytes"] / 1e9,
             "fits_memory": p["fits_memory"],
+            "predicted_build_s": p["predicted_build_s"],
+            "builds_in_time": p["builds_in_time"],
         }
         for p in proposal.get("plans", [])
     ]

@@ -36,7 +36,7 @@ from .scene import SceneError, load_scene  # noqa: E402
 from .stability import FAILED_REFERENCES, reference_jobs, stability  # noqa: E402
 from .sweep import sweep, sweep_csv  # noqa: E402
 
-DEFAULT_SCENES = ["cantilever", "cantilever-pull", "cantilever-dynamic"]
+DEFAULT_SCENES = ["cantilever", "cantilever-pull", "cantilever-dynamic", "stiff-inclusion"]
 #: The advisor's question on every scene of the report: 5% error at a haptic 1 kHz.
 ADVISE_TOL, ADVISE_RATE = 0.05, 1000.0
 #: The stability study of the default report: the cantilever, two models (the others' columns

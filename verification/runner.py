@@ -443,14 +443,15 @@ def observed(model, u: np.ndarray) -> np.ndarray:
 def trajectory(model, integ, dt: float, times: np.ndarray, dt_crit: float | None = None):
     """Integrate from rest and sample the state at ``times`` (T,) s by linear interpolation between the
     two steps around each instant (quasi-static models: their equilibrium at each instant, all
-    vertices). Returns displacement (T, N, 3) m and reaction (T, 3) N."""
+    vertices). Returns displacement (T, V, 3) m of all the model's vertices (``observed`` picks the
+    scene's) and reaction (T, 3) N."""
     state = State.at_rest(model.n_vertices)
     out_u = np.zeros((len(times), model.n_vertices, 3))
     out_r = np.zeros((len(times), 3))
     if isinstance(integ, QuasiStatic):  # no history: the equilibrium with the tools where they are at t
         for k, t_out in enumerate(times):
             out_u[k], out_r[k] = integ.equilibrium(model, t_out)
-        return observed(model, out_u), out_r
+        return out_u, out_r
     for k, t_out in enumerate(times):
         n = int(np.ceil((t_out - state.t) / dt - 1e-9))
         if n > 1:
@@ -463,7 +464,7 @@ def trajectory(model, integ, dt: float, times: np.ndarray, dt_crit: float | None
         else:
             out_u[k] = state.u
         out_r[k] = model.reaction(out_u[k])
-    return observed(model, out_u), out_r
+    return out_u, out_r
 
 
 def _run_dynamic(scene: Scene, model, integrator: str, dt, dt_fraction, build_s: float, options=None) -> Result:
@@ -514,7 +515,7 @@ def _run_dynamic(scene: Scene, model, integrator: str, dt, dt_fraction, build_s:
         "versions": versions(),
         "commit": git_commit(),
     }
-    return Result(scene.mesh.points, scene.mesh.tets, times, u, reaction, meta)
+    return Result(scene.mesh.points, scene.mesh.tets, times, observed(model, u), reaction, meta)
 
 
 def _run_implicit(scene: Scene, model, integ, dt, dt_fraction, omega2, build_s, rtol, max_steps) -> Result:
@@ -734,6 +735,7 @@ def compare(
         "rate_hz": m["rate_hz"],
         "settle_steps": m["static"]["steps"],
         "settle_ms": m["settle_ms"],
+        "build_s": m.get("build_s"),
         "reference": {
             "degree": ref.meta["degree"],
             "refine": ref.meta["refine"],
