@@ -9,6 +9,8 @@ from realtime import InputError, Loading, Material, Materials, SymplecticEuler, 
 from realtime.model import State
 from realtime.topology import slit, suture
 
+from .conftest import assert_same_model
+
 HOST = Material(5e3, 0.45, 1000.0)
 STIFF = Material(5e5, 0.3, 1200.0)
 #: Two sums of the same blocks in another order (subtracted and added again): a few hundred ulps of the
@@ -35,17 +37,6 @@ def slit_faces(mesh):
     faces = np.unique(faces[np.all(on[faces], axis=1)], axis=0)
     assert len(faces) > 10
     return faces
-
-
-def assert_same_model(a, b, rng):
-    """Forces for random displacements, masses and constraints of two models on one vertex set."""
-    assert a.n_vertices == b.n_vertices
-    u = 1e-3 * rng.standard_normal((a.n_vertices, 3))
-    f = b.internal_force(u)
-    assert np.abs(a.internal_force(u) - f).max() <= ROUND_OFF * np.abs(f).max()
-    used = np.unique(b.tets)
-    np.testing.assert_allclose(a.mass[used], b.mass[used], rtol=ROUND_OFF)
-    assert np.array_equal(a.loading.free[used], b.loading.free[used])
 
 
 def test_slit_equals_the_model_built_on_the_slit_mesh(rng):
