@@ -73,7 +73,8 @@ class AdaptiveData(NamedTuple):
 
 def predictor_strain(points, tets, material, loading: Loading) -> np.ndarray:
     """|eps|_F (M,) of each tetrahedron under the static linear response to ``loading`` with the tools
-    at their final place (the predictor): K_ff u_f = f_f - K_fc u_c on the coarse mesh."""
+    at their final place (the predictor): K_ff u_f = f_f - K_fc u_c on the coarse mesh. Zeros for a body
+    that nothing holds (it has no static response; only threshold 0 then refines)."""
     n = len(points)
     K = TensorMass(points, tets, material).matrix().tocsr()
     u = np.zeros(3 * n)
@@ -86,6 +87,8 @@ def predictor_strain(points, tets, material, loading: Loading) -> np.ndarray:
         dofs = (3 * loading.tool_vertex[:, None] + np.arange(3))[loading.tool_mask != 0.0]
         u[dofs] = disp[loading.tool_mask != 0.0]
         held[dofs] = True
+    if not held.any():  # a free body has no static response: no strain to refine by
+        return np.zeros(len(tets))
     free = np.flatnonzero(~held)
     rhs = loading.external_force.reshape(-1)[free] - K[free][:, np.flatnonzero(held)] @ u[held]
     if len(free):
