@@ -68,18 +68,9 @@ def cut(model: Model, which) -> Model:
     mass = model.mass.copy()
     vol = np.abs(signed_volumes(model.points, removed))
     np.subtract.at(mass, removed.ravel(), np.repeat(tm.materials.per_tet("density")[which] * vol / 4.0, 4))
-    alive_tets = tm.tets[tm.alive]
-    orphan = np.ones(model.n_vertices, dtype=bool)
-    orphan[alive_tets.ravel()] = False
-    free = model.loading.free.copy()
-    free[orphan] = 0.0
-    mass[orphan] = 1.0  # never used: orphans do not move; keeps 1/m finite
-    loading = Loading(**{**model.loading.__dict__, "free": free})
-    extra = {**model.extra, "generation": tm.generation}
-    material = model.material if isinstance(model.material, Material) else tm.materials.subset(tm.alive)
-    return Model(
-        **{**model.__dict__, "tets": alive_tets, "material": material, "mass": mass, "loading": loading, "extra": extra}
-    )
+    from .topology import changed_model
+
+    return changed_model(model, tm, model.points, mass, model.loading, data=model.data)
 
 
 def tet_rest_stiffness(model: Model):

@@ -49,13 +49,17 @@ def _masses(model: Model, tm, which: np.ndarray, old: np.ndarray, n: int) -> np.
     return mass
 
 
-def _rebuilt(model: Model, tm, points, mass, loading: Loading) -> Model:
+def changed_model(model: Model, tm, points, mass, loading: Loading, data=None) -> Model:
+    """The successor of ``model`` after its TensorMass ``tm`` changed (a cut, slit or suture): its alive
+    tetrahedra, masses (N,) kg and loading on ``points`` (N, 3) m, a vertex left with no tetrahedron
+    held and given a unit mass (never used: it does not move; it keeps 1/m finite). ``data``: the
+    kernel's, if the change kept its arrays (a cut); else laid out again from ``tm``."""
     orphan = np.ones(len(points), dtype=bool)
     orphan[tm.tets[tm.alive].ravel()] = False
     free = loading.free.copy()
     free[orphan] = 0.0
     mass = mass.copy()
-    mass[orphan] = 1.0  # never used: orphans do not move; keeps 1/m finite
+    mass[orphan] = 1.0
     loading = Loading(**{**loading.__dict__, "free": free})
     loading.check(len(points))
     extra = {**model.extra, "generation": tm.generation}
@@ -68,7 +72,7 @@ def _rebuilt(model: Model, tm, points, mass, loading: Loading) -> Model:
             "tets": tm.tets[tm.alive],
             "mass": mass,
             "loading": loading,
-            "data": tm.kernel_data(),
+            "data": tm.kernel_data() if data is None else data,
             "extra": extra,
         }
     )
@@ -138,7 +142,7 @@ def slit(model: Model, faces) -> tuple[Model, np.ndarray]:
         fext[group] = total[None, :] * (mass[group] / mass[group].sum())[:, None]
     free = np.concatenate([lo.free, lo.free[pairs[:, 0]]])
     loading = Loading(**{**lo.__dict__, "free": free, "external_force": fext})
-    return _rebuilt(model, tm, points, mass, loading), pairs
+    return changed_model(model, tm, points, mass, loading), pairs
 
 
 def suture(model: Model, pairs) -> Model:
@@ -200,4 +204,4 @@ def suture(model: Model, pairs) -> Model:
         loading = Loading(
             **{**loading.__dict__, "free": loading.free[:keep], "external_force": loading.external_force[:keep]}
         )
-    return _rebuilt(model, tm, points, mass, loading)
+    return changed_model(model, tm, points, mass, loading)
