@@ -185,7 +185,14 @@ def corotational_force(data, scratch, u, f):
     tets, geo, prm, everywhere = data
     W, R, Fb = scratch
     f[:] = 0.0
-    for b in range(tets.shape[0] // BLOCK):
+    corotational_blocks(tets, geo, prm, everywhere, W, R, Fb, 0, tets.shape[0] // BLOCK, u, f)
+
+
+@nb.njit(inline="always", **HOT)
+def corotational_blocks(tets, geo, prm, everywhere, W, R, Fb, b0, b1, u, f):
+    """corotational_force's pass over the blocks b0 .. b1 - 1 of BlockData's arrays, adding into f
+    (N, 3) N; W, R, Fb the arrays of corotational_scratch()."""
+    for b in range(b0, b1):
         gather(tets, b * BLOCK, u, W)
         _corotational_block(W, R, Fb, geo, np.uint64(b) * GEO_ROWS_U, prm[b, 0], prm[b, 1])
         scatter_block(tets, b * BLOCK, W, f, everywhere)

@@ -21,28 +21,36 @@ from .material import Material, Materials
 from .model import Loading, Model, lumped_masses, no_scratch, prepare_mesh
 from .springs import SpringData, spring_energy, spring_force
 from .stvk import stvk_energy, stvk_force
-from .tensor_mass import TensorMass, assemble_blocks, element_elasticity, linear_tm_energy, linear_tm_force
+from .tensor_mass import TensorMass, assemble_blocks, element_elasticity
+from .threaded import block_kernel, check_threads, linear_tm_kernel
 
 
-def build_linear_tm(points, tets, material: Material | Materials, loading: Loading | None = None) -> Model:
+def build_linear_tm(
+    points, tets, material: Material | Materials, loading: Loading | None = None, threads: int = 1
+) -> Model:
     """Linear tensor-mass (Cotin et al. 2000), isotropic or transversely isotropic.
 
     f = -K u with K the P1 linear stiffness; the law ``material.law`` is ignored (always linear).
+    ``threads`` > 1: the force on that many threads (realtime.threaded).
     """
+    threads = check_threads(threads)
     points, tets = prepare_mesh(points, tets)
     tm = TensorMass(points, tets, material)
+    force, energy, data, scratch = linear_tm_kernel(tm, threads)
     return _model(
         "linear-tm",
         points,
         tets,
         material,
         loading,
-        linear_tm_force,
-        linear_tm_energy,
-        tm.kernel_data(),
+        force,
+        energy,
+        data,
         True,
+        scratch,
         tensors=tm,
         generation=tm.generation,
+        threads=threads,
     )
 
 
@@ -154,20 +162,29 @@ def _model(
     )
 
 
-def build_stvk_tm(points, tets, material: Material | Materials, loading: Loading | None = None) -> Model:
+def build_stvk_tm(
+    points, tets, material: Material | Materials, loading: Loading | None = None, threads: int = 1
+) -> Model:
     """Non-linear StVK tensor-mass (Picinbono et al. 2003), isotropic or transversely isotropic, with
-    the volume penalty when ``material.volume_penalty`` > 0. Rotation invariant."""
+    the volume penalty when ``material.volume_penalty`` > 0. Rotation invariant. ``threads`` > 1: the
+    force on that many threads (realtime.threaded)."""
+    threads = check_threads(threads)
     points, tets = prepare_mesh(points, tets)
     btets, geo, prm = block_data(points, tets, material)
     data = BlockData(btets, geo, prm, np.ones(len(btets), dtype=np.bool_))
-    return _model("stvk-tm", points, tets, material, loading, stvk_force, stvk_energy, data, False, block_scratch)
+    kernel = block_kernel(stvk_force, stvk_energy, block_scratch, data, len(points), threads)
+    return _model("stvk-tm", points, tets, material, loading, *kernel[:3], False, kernel[3], threads=threads)
 
 
-def build_corotational_tm(points, tets, material: Material | Materials, loading: Loading | None = None) -> Model:
+def build_corotational_tm(
+    points, tets, material: Material | Materials, loading: Loading | None = None, threads: int = 1
+) -> Model:
     """Corotational linear elasticity, polar rotation per tetrahedron (SOFA's "polar" method).
 
     Isotropic only: for an anisotropic law the rotated-frame force is not the gradient of an energy.
+    ``threads`` > 1: the force on that many threads (realtime.threaded).
     """
+    threads = check_threads(threads)
     points, tets = prepare_mesh(points, tets)
     if Materials.of(material, len(tets)).transverse:
         raise InputError(
@@ -176,18 +193,8 @@ def build_corotational_tm(points, tets, material: Material | Materials, loading:
         )
     btets, geo, prm = block_data(points, tets, material)
     data = BlockData(btets, geo, prm, np.ones(len(btets), dtype=np.bool_))
-    return _model(
-        "corotational-tm",
-        points,
-        tets,
-        material,
-        loading,
-        corotational_force,
-        corotational_energy,
-        data,
-        False,
-        corotational_scratch,
-    )
+    kernel = block_kernel(corotational_force, corotational_energy, corotational_scratch, data, len(points), threads)
+    return _model("corotational-tm", points, tets, material, loading, *kernel[:3], False, kernel[3], threads=threads)
 
 
 def build_hybrid_tm(

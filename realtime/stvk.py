@@ -104,6 +104,16 @@ def stvk_block(W, geo, gb, prm, minus_linear):
         lane_out(W, q, v, (p00, p01, p02, p10, p11, p12, p20, p21, p22), g)
 
 
+@nb.njit(inline="always", **HOT)
+def stvk_blocks(tets, geo, prm, everywhere, W, b0, b1, u, f):
+    """stvk_force's pass over the blocks b0 .. b1 - 1 of BlockData's arrays, adding into f (N, 3) N;
+    W (9 BLOCK,) scratch."""
+    for b in range(b0, b1):
+        gather(tets, b * BLOCK, u, W)
+        stvk_block(W, geo, np.uint64(b) * GEO_ROWS_U, prm[b], False)
+        scatter_block(tets, b * BLOCK, W, f, everywhere)
+
+
 @nb.njit(**HOT)
 def stvk_force(data, scratch, u, f):
     """StVK tensor-mass force (Picinbono et al. 2003), with fibre terms and the volume penalty.
@@ -112,12 +122,8 @@ def stvk_force(data, scratch, u, f):
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
     """
     tets, geo, prm, everywhere = data
-    W = scratch[0]
     f[:] = 0.0
-    for b in range(tets.shape[0] // BLOCK):
-        gather(tets, b * BLOCK, u, W)
-        stvk_block(W, geo, np.uint64(b) * GEO_ROWS_U, prm[b], False)
-        scatter_block(tets, b * BLOCK, W, f, everywhere)
+    stvk_blocks(tets, geo, prm, everywhere, scratch[0], 0, tets.shape[0] // BLOCK, u, f)
 
 
 @nb.njit(**JIT)

@@ -223,22 +223,12 @@ class TensorMass:
         )
 
 
-@nb.njit(**_HOT)
-def linear_tm_force(data, scratch, u, f):
-    """f = -K u from vertex and edge tensors, in one pass over the vertices.
-
-    Vertex i gathers -T_ii u_i - sum_j T_ij u_j over its edges (i, j > i) in registers and scatters
-    -T_ij^T u_i to each j; f_i is written once. Each edge tensor is loaded once into registers.
-    data: TensorData.   scratch: model.NO_SCRATCH (unused).
-    u: (N, 3) float64 displacement, m.   f: (N, 3) float64 output force, N (overwritten).
-    """
-    vt, cols, et, row_start = data
-    n = u.shape[0]
-    for i in range(n):
-        f[i, 0] = 0.0
-        f[i, 1] = 0.0
-        f[i, 2] = 0.0
-    for i in range(n):
+@nb.njit(inline="always", **_HOT)
+def linear_rows(vt, cols, et, row_start, lo, hi, u, f):
+    """linear_tm_force's pass over the vertex rows lo .. hi - 1, adding into f (N, 3) N: vertex i
+    gathers -T_ii u_i - sum_j T_ij u_j over its edges (i, j > i) in registers and scatters -T_ij^T u_i
+    to each j; f_i is written once. Each edge tensor is loaded once into registers."""
+    for i in range(lo, hi):
         ui0, ui1, ui2 = u[i, 0], u[i, 1], u[i, 2]
         a0 = f[i, 0] - (vt[i, 0, 0] * ui0 + vt[i, 0, 1] * ui1 + vt[i, 0, 2] * ui2)
         a1 = f[i, 1] - (vt[i, 1, 0] * ui0 + vt[i, 1, 1] * ui1 + vt[i, 1, 2] * ui2)
@@ -258,6 +248,22 @@ def linear_tm_force(data, scratch, u, f):
         f[i, 0] = a0
         f[i, 1] = a1
         f[i, 2] = a2
+
+
+@nb.njit(**_HOT)
+def linear_tm_force(data, scratch, u, f):
+    """f = -K u from vertex and edge tensors, in one pass over the vertices (linear_rows).
+
+    data: TensorData.   scratch: model.NO_SCRATCH (unused).
+    u: (N, 3) float64 displacement, m.   f: (N, 3) float64 output force, N (overwritten).
+    """
+    vt, cols, et, row_start = data
+    n = u.shape[0]
+    for i in range(n):
+        f[i, 0] = 0.0
+        f[i, 1] = 0.0
+        f[i, 2] = 0.0
+    linear_rows(vt, cols, et, row_start, 0, n, u, f)
 
 
 @nb.njit(**_JIT)

@@ -25,6 +25,7 @@ from .errors import InputError
 from .geometry import TET_FACES, signed_volumes
 from .material import Material
 from .model import Loading, Model
+from .threaded import linear_tm_kernel
 
 #: Two vertices are joined only where they coincide: within this fraction of the mesh's size.
 COINCIDE = 1e-9
@@ -53,7 +54,8 @@ def changed_model(model: Model, tm, points, mass, loading: Loading, data=None) -
     """The successor of ``model`` after its TensorMass ``tm`` changed (a cut, slit or suture): its alive
     tetrahedra, masses (N,) kg and loading on ``points`` (N, 3) m, a vertex left with no tetrahedron
     held and given a unit mass (never used: it does not move; it keeps 1/m finite). ``data``: the
-    kernel's, if the change kept its arrays (a cut); else laid out again from ``tm``."""
+    kernel's, if the change kept its arrays (a cut); else laid out again from ``tm`` (for as many
+    threads as the model's)."""
     orphan = np.ones(len(points), dtype=bool)
     orphan[tm.tets[tm.alive].ravel()] = False
     free = loading.free.copy()
@@ -64,6 +66,10 @@ def changed_model(model: Model, tm, points, mass, loading: Loading, data=None) -
     loading.check(len(points))
     extra = {**model.extra, "generation": tm.generation}
     material = model.material if isinstance(model.material, Material) else tm.materials.subset(tm.alive)
+    kernel = {}
+    if data is None:
+        force, energy, data, scratch = linear_tm_kernel(tm, model.extra.get("threads", 1))
+        kernel = {"force_kernel": force, "energy_kernel": energy, "new_scratch": scratch}
     return Model(
         **{
             **model.__dict__,
@@ -72,8 +78,9 @@ def changed_model(model: Model, tm, points, mass, loading: Loading, data=None) -
             "tets": tm.tets[tm.alive],
             "mass": mass,
             "loading": loading,
-            "data": tm.kernel_data() if data is None else data,
+            "data": data,
             "extra": extra,
+            **kernel,
         }
     )
 

@@ -95,6 +95,23 @@ def outside_venv_files(modules: dict | None = None) -> dict[str, list[str]]:
     return files
 
 
+def loaded_libraries(maps: str = "/proc/self/maps") -> dict[str, list[str]]:
+    """Shared libraries (``*.so*``) mapped into this process from /usr and outside the venv: file -> [its
+    name]. numba's threads come from Debian's libtbb, which no Python module names."""
+    venv = os.path.abspath(sys.prefix)
+    files: dict[str, list[str]] = {}
+    try:
+        lines = Path(maps).read_text().splitlines()
+    except OSError:
+        return files
+    for line in lines:
+        parts = line.split(maxsplit=5)
+        path = parts[5] if len(parts) == 6 else ""
+        if path.startswith("/usr/") and ".so" in os.path.basename(path) and not path.startswith(venv + "/"):
+            files[path] = [os.path.basename(path)]
+    return files
+
+
 def _dpkg_owners(files: list[str]) -> dict[str, str]:
     found = {}
     for i in range(0, len(files), 200):
@@ -110,12 +127,15 @@ def _dpkg_owners(files: list[str]) -> dict[str, str]:
 def owners(files: list[str]) -> dict[str, str | None]:
     """file -> the Debian package that owns it (``dpkg -S``), None for a file no package owns. A path
     through a symbolic link dpkg does not know (dolfinx lives under the /usr/lib/petsc alternative) is
-    looked up again as its resolved path."""
+    looked up again as its resolved path, and a /usr/lib path as the /lib path that Debian 12's merged
+    /usr lists some libraries under (libc6's)."""
     found = _dpkg_owners(files)
     unknown = [f for f in files if f not in found]
     resolved = {f: os.path.realpath(f) for f in unknown}
     again = _dpkg_owners(sorted(set(resolved.values())))
-    return {f: found.get(f) or again.get(resolved.get(f, "")) for f in files}
+    merged = {f: resolved[f][len("/usr") :] for f in unknown if resolved[f].startswith("/usr/lib/")}
+    merged_found = _dpkg_owners(sorted(set(merged.values())))
+    return {f: found.get(f) or again.get(resolved.get(f, "")) or merged_found.get(merged.get(f, "")) for f in files}
 
 
 def pip_supplied(project: str = "tissuebench") -> set[str]:
@@ -152,11 +172,14 @@ def distribution_of(module: str) -> set[str]:
 
 
 def missing_packages(makefile: Path = MAKEFILE, modules: dict | None = None) -> dict[str, list[str]]:
-    """Debian packages (or ``<no package>: FILE``) that loaded modules came from and that the Makefile
-    neither installs nor pulls in: package -> the modules."""
+    """Debian packages (or ``<no package>: FILE``) that loaded modules (and, for this process's own
+    modules, shared libraries) came from and that the Makefile neither installs nor pulls in: package ->
+    the modules or libraries."""
     closure = dependency_closure(makefile_packages(makefile))
     from_pip = pip_supplied()
     files = outside_venv_files(modules)
+    if modules is None:
+        files.update(loaded_libraries())
     missing: dict[str, list[str]] = defaultdict(list)
     for path, pkg in owners(sorted(files)).items():
         if pkg in closure or pkg in OPTIONAL:

@@ -7,7 +7,9 @@ after a warm-up; the median and the spread are reported. The scene: the liver he
 its back under gravity, at rest plus a small random displacement so that the non-linear models do real
 work (the hybrid row: a tenth of the vertices moved past its threshold). The "haptic loop" rows call
 step with n = 1, once per step, as a 1000 Hz device loop does: the cost of a whole call, Python and
-numba's dispatch included. Speed is never asserted in the tests: this command reports it.
+numba's dispatch included. The rows "M, 2 threads" run the threaded kernels (realtime.threaded) on
+every core, up to THREADS, in the same rounds as their one-thread rows, and report the speed-up over
+them. Speed is never asserted in the tests: this command reports it.
 
 Each row with a fixed amount of work (linear-tm, stvk-tm, mass-spring, scipy's product) also gets its
 roofline (verification.roofline): the least time its flops and bytes allow at this core's measured FMA
@@ -33,6 +35,8 @@ from .roofline import Roofline, bsr_work, step_work
 from .runner import git_commit, log, versions
 
 MESHES = ("liver", "liver-x10")
+#: The most threads a threaded row uses (it uses every core up to this).
+THREADS = 2
 #: Dense quasi-static models hold (surface dofs)^2 or (free dofs x surface dofs) numbers: past this
 #: many surface dofs they are not built (2 GB of float64 at 16 000).
 DENSE_LIMIT = 6000
@@ -179,6 +183,21 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                     "nonlinear_fraction": nonlinear_fraction(model.tets, state.u, model.extra["threshold"])
                 }
         cases += haptic
+        # the threaded kernels on every core (realtime.threaded), beside their one-thread rows
+        threads = min(os.cpu_count() or 1, THREADS)
+        for model_name in ("linear-tm", "corotational-tm", "stvk-tm") if threads > 1 else ():
+            log(f"bench: {name} {model_name}, {threads} threads")
+            model = build_model(model_name, mesh.points, mesh.tets, iso, loading, threads=threads)
+            one = next(c for c in cases if c["name"] == model_name)
+            state = State(u=u0.copy(), v=np.zeros_like(u0))
+            cases.append(
+                {
+                    **one,
+                    "name": f"{model_name}, {threads} threads",
+                    "threads": threads,
+                    "fn": _step_case(SymplecticEuler(), model, state, one["dt"], n),
+                }
+            )
         # the baseline a user would otherwise write: scipy's BSR product with the same matrix
         lin = build_model("linear-tm", mesh.points, mesh.tets, iso, loading)
         K = lin.extra["tensors"].matrix().tobsr(blocksize=(3, 3))
@@ -270,6 +289,10 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                 work = None
             _place_on_roofline(roof, c, work)
             rows.append(c)
+        for c in rows:
+            if c["mesh"] == name and c.get("threads"):  # measured in the same rounds as the one-thread row of its model
+                one = next(r for r in rows if r["mesh"] == name and r["name"] == c["model"])
+                c["speedup"] = one["step_us"] / c["step_us"]
     return {
         "machine": {**machine(), "roofline": roof.summary()},
         "results": rows,
@@ -294,6 +317,8 @@ def format_table(out: dict) -> str:
                 lines.append(f"  {r['name']:<52} skipped: {r['skipped']}")
                 continue
             note = f"  ({r['nonlinear_fraction']:.0%} of tetrahedra non-linear)" if "nonlinear_fraction" in r else ""
+            if "speedup" in r:
+                note += f"  {r['speedup']:.2f}x its one-thread row"
             if "roofline_us" in r:
                 note += (
                     f"  roofline {r['roofline_us']:.1f} us ({r['roofline_limit']}): {r['roofline_fraction']:.0%} of it"

@@ -1,0 +1,241 @@
+"""Force kernels on several threads (linear-tm, stvk-tm, corotational-tm built with ``threads`` > 1).
+
+Each kernel splits its work into T contiguous chunks fixed at build (``chunks``): blocks of tetrahedra in
+``block_data``'s Morton order, so that a chunk is a compact piece of the body, or vertex rows for
+linear tensor-mass, balanced by their edges. Thread t runs the serial kernel's loop over its chunk into
+its own force array F[t] (no two threads write one number), and the arrays are then added in the
+order t = 0, 1, ..., T - 1 by vertex ranges on all threads. The result therefore does not depend on
+which thread ran which chunk or when: a threaded model gives the same bits in every run, and differs
+from the serial kernel by round-off only (the order of the sums; the tests compare at a multiple of
+machine epsilon).
+
+The threads are numba's (``parallel=True``), in a threading layer that may be entered from several
+Python threads at once (TBB or GNU OpenMP, numba's "threadsafe" choice), so that a haptic loop and a
+visual loop may each step their own state of one threaded model. ``check_threading`` says which layer
+runs, or why none can.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import NamedTuple
+
+import numba as nb
+import numpy as np
+
+from .blocks import BLOCK, HOT
+from .corotational import corotational_blocks
+from .errors import InputError
+from .stvk import stvk_blocks
+from .tensor_mass import linear_rows
+
+PAR = dict(HOT, parallel=True)
+
+# The layer numba starts its threads in; set before the first parallel call of the process. "threadsafe"
+# takes TBB, else GNU OpenMP, and never numba's own workqueue, which aborts the process when two Python
+# threads launch parallel kernels at once.
+nb.config.THREADING_LAYER = "threadsafe"
+
+
+class Threaded(NamedTuple):
+    """A threaded kernel's data: ``data`` the serial kernel's (BlockData or TensorData), ``chunks`` (T + 1,)
+    int64 the bounds of each thread's work units (blocks of BLOCK tetrahedra, or vertex rows)."""
+
+    data: tuple
+    chunks: np.ndarray
+
+
+def balanced_chunks(cost: np.ndarray, threads: int) -> np.ndarray:
+    """(T + 1,) int64 bounds splitting units of work of ``cost`` (K,) float64 (any unit) into ``threads``
+    contiguous ranges of nearly equal total cost (T = min(threads, K), at least 1)."""
+    t = max(1, min(int(threads), len(cost)))
+    total = np.concatenate([[0.0], np.cumsum(cost, dtype=float)])
+    bounds = np.searchsorted(total, total[-1] * np.arange(t + 1) / t, side="left")
+    bounds[0], bounds[-1] = 0, len(cost)
+    return np.maximum.accumulate(bounds).astype(np.int64)
+
+
+def threaded_scratch(serial_scratch, threads: int, n_vertices: int) -> tuple:
+    """Scratch of a threaded kernel: each array of ``serial_scratch()`` stacked once per thread
+    ((T,) + its shape), then F (T, N, 3) float64, each thread's forces, N."""
+    one = serial_scratch()
+    return tuple(np.zeros((threads,) + a.shape) for a in one) + (np.zeros((threads, n_vertices, 3)),)
+
+
+def scratch_factory(serial_scratch, threads: int, n_vertices: int):
+    """Model.new_scratch of a threaded kernel (threaded_scratch with these arguments)."""
+    return partial(threaded_scratch, serial_scratch, threads, n_vertices)
+
+
+def check_threads(threads) -> int:
+    """``threads`` as an int >= 1, or InputError; for more than one, InputError unless a thread-safe
+    layer (TBB or GNU OpenMP) can run numba's threads on this machine."""
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise InputError(f"threads = {threads!r}: must be an integer >= 1")
+    if threads > 1:
+        check_threading()
+    return int(threads)
+
+
+def check_threading() -> str:
+    """The name of the threading layer the threaded kernels run in ("tbb" or "omp"), or InputError
+    saying why none could start (install Debian's libtbb12, or libgomp1)."""
+    try:
+        _probe(np.zeros(4))
+        return nb.threading_layer()
+    except (ValueError, RuntimeError) as e:
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise InputError(
+            f"threads > 1: no thread-safe threading layer for numba (TBB or GNU OpenMP): {msg}; "
+            "install Debian's libtbb12, or build with threads = 1"
+        ) from None
+
+
+@nb.njit(parallel=True, cache=True)
+def _probe(x):
+    for i in nb.prange(x.shape[0]):
+        x[i] = i
+    return x
+
+
+@nb.njit(inline="always", **HOT)
+def _sum_range(F, f, lo, hi):
+    """f[lo:hi] = F[0, lo:hi] + F[1, lo:hi] + ..., added in thread order."""
+    for i in range(lo, hi):
+        for c in range(3):
+            s = F[0, i, c]
+            for t in range(1, F.shape[0]):
+                s += F[t, i, c]
+            f[i, c] = s
+
+
+@nb.njit(**PAR)
+def sum_threads(F, f):
+    """f (N, 3) = the sum over t of F (T, N, 3), in the order of t, on all threads (one vertex range
+    each)."""
+    n = f.shape[0]
+    parts = F.shape[0]
+    for p in nb.prange(parts):
+        _sum_range(F, f, p * n // parts, (p + 1) * n // parts)
+
+
+# Each thread's share runs in a compiled call of its own: inlined into a parallel loop, the block code
+# trips numba's array analysis (an AssertionError on the lanes' tuples).
+@nb.njit(**HOT)
+def _stvk_chunk(tets, geo, prm, everywhere, W, b0, b1, u, f):
+    stvk_blocks(tets, geo, prm, everywhere, W, b0, b1, u, f)
+
+
+@nb.njit(**HOT)
+def _corotational_chunk(tets, geo, prm, everywhere, W, R, Fb, b0, b1, u, f):
+    corotational_blocks(tets, geo, prm, everywhere, W, R, Fb, b0, b1, u, f)
+
+
+@nb.njit(**HOT)
+def _linear_chunk(vt, cols, et, row_start, lo, hi, u, f):
+    linear_rows(vt, cols, et, row_start, lo, hi, u, f)
+
+
+@nb.njit(**PAR)
+def stvk_force_threaded(data, scratch, u, f):
+    """stvk.stvk_force on the chunks' threads.
+
+    data: Threaded(BlockData, chunks over blocks).   scratch: threaded_scratch(block_scratch, T, N).
+    u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
+    """
+    (tets, geo, prm, everywhere), chunks = data
+    W, F = scratch
+    for t in nb.prange(chunks.shape[0] - 1):
+        Ft = F[t]
+        Ft[:, :] = 0.0
+        _stvk_chunk(tets, geo, prm, everywhere, W[t], chunks[t], chunks[t + 1], u, Ft)
+    sum_threads(F, f)
+
+
+@nb.njit(**PAR)
+def corotational_force_threaded(data, scratch, u, f):
+    """corotational.corotational_force on the chunks' threads.
+
+    data: Threaded(BlockData, chunks over blocks).   scratch: threaded_scratch(corotational_scratch, T, N).
+    u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
+    """
+    (tets, geo, prm, everywhere), chunks = data
+    W, R, Fb, F = scratch
+    for t in nb.prange(chunks.shape[0] - 1):
+        Ft = F[t]
+        Ft[:, :] = 0.0
+        _corotational_chunk(tets, geo, prm, everywhere, W[t], R[t], Fb[t], chunks[t], chunks[t + 1], u, Ft)
+    sum_threads(F, f)
+
+
+@nb.njit(**PAR)
+def linear_tm_force_threaded(data, scratch, u, f):
+    """tensor_mass.linear_tm_force (f = -K u) on the chunks' threads, each a range of vertex rows.
+
+    data: Threaded(TensorData, chunks over vertices).   scratch: threaded_scratch(no_scratch, T, N).
+    u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
+    """
+    (vt, cols, et, row_start), chunks = data
+    F = scratch[1]
+    for t in nb.prange(chunks.shape[0] - 1):
+        Ft = F[t]
+        Ft[:, :] = 0.0
+        _linear_chunk(vt, cols, et, row_start, chunks[t], chunks[t + 1], u, Ft)
+    sum_threads(F, f)
+
+
+def block_chunks(n_blocks: int, threads: int) -> np.ndarray:
+    """Chunks of ``n_blocks`` blocks of tetrahedra for ``threads`` threads (equal counts)."""
+    return balanced_chunks(np.ones(n_blocks), threads)
+
+
+def row_chunks(row_start: np.ndarray, threads: int) -> np.ndarray:
+    """Chunks of vertex rows for ``threads`` threads, balanced by each row's work (its vertex tensor
+    and its edges (i, j > i), each read once): row_start (N + 1,) int64 as in TensorData."""
+    return balanced_chunks(1.0 + np.diff(row_start).astype(float), threads)
+
+
+def linear_tm_kernel(tm, threads: int = 1) -> tuple:
+    """(force, energy, data, new_scratch) of linear tensor-mass on TensorMass ``tm``: the serial
+    kernel for one thread, else the threaded one with its rows split for ``threads``."""
+    from .model import no_scratch
+    from .tensor_mass import linear_tm_energy, linear_tm_force
+
+    data = tm.kernel_data()
+    if threads == 1:
+        return linear_tm_force, linear_tm_energy, data, no_scratch
+    return (
+        linear_tm_force_threaded,
+        partial(threaded_energy, linear_tm_energy),
+        Threaded(data, row_chunks(data.row_start, threads)),
+        scratch_factory(no_scratch, threads, tm.n_vertices),
+    )
+
+
+def threaded_energy(serial, data: Threaded, u: np.ndarray) -> float:
+    """The serial energy kernel ``serial`` on a threaded model's data (the energy is not on the step's
+    path: one thread)."""
+    return serial(data.data, u)
+
+
+def block_kernel(force, energy, scratch, data, n_vertices: int, threads: int) -> tuple:
+    """(force, energy, data, new_scratch) of an element model (stvk-tm, corotational-tm) whose serial
+    kernels are ``force`` and ``energy`` on BlockData ``data`` with scratch ``scratch``: those for one
+    thread, else their threaded versions (THREADED) with the blocks split for ``threads``."""
+    if threads == 1:
+        return force, energy, data, scratch
+    chunks = block_chunks(len(data.tets) // BLOCK, threads)
+    return (
+        THREADED[force.__name__],
+        partial(threaded_energy, energy),
+        Threaded(data, chunks),
+        scratch_factory(scratch, threads, n_vertices),
+    )
+
+
+#: The threaded version of each serial force kernel, by the serial kernel's name.
+THREADED = {
+    "stvk_force": stvk_force_threaded,
+    "corotational_force": corotational_force_threaded,
+    "linear_tm_force": linear_tm_force_threaded,
+}

@@ -1,0 +1,122 @@
+"""The threaded force kernels (realtime.threaded): the serial kernels' forces, split over threads.
+
+Each threaded model is held to its serial twin on a two-material liver with fibres and the volume
+penalty: forces, energies and a trajectory agree to round-off (the order of the sums is the only
+difference: 64 machine epsilons of the largest force, since a vertex sums at most a few dozen
+contributions of either sign), and every call gives the same bits. Their speed is `make bench`'s.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from meshes import stored_mesh
+from realtime import InputError, Loading, Material, Materials, State, SymplecticEuler, build_model
+from realtime.threaded import balanced_chunks, check_threading, row_chunks
+from realtime.topology import slit, suture
+
+from .conftest import assert_same_model
+from .test_topology import block, slit_faces
+
+EPS = np.finfo(float).eps
+THREADED_MODELS = ("linear-tm", "stvk-tm", "corotational-tm")
+
+
+def _liver_materials(mesh, transverse: bool) -> Materials:
+    """The liver's tetrahedra above its mean height in a stiffer, denser material."""
+    soft = Material(2.8e4, 0.4, 1000.0, law="stvk")
+    if transverse:
+        soft = Material(2.8e4, 0.4, 1000.0, law="stvk", fiber=(1.0, 0.0, 0.0), young_fiber=6e4, volume_penalty=5e4)
+    stiff = Material(2.8e5, 0.45, 1100.0, law="stvk")
+    z = mesh.points[mesh.tets].mean(axis=1)[:, 2]
+    return Materials((soft, stiff), (z > z.mean()).astype(np.int64))
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+@pytest.mark.parametrize("model_name", THREADED_MODELS)
+def test_threaded_forces_equal_the_serial_kernels_to_round_off(model_name, threads, rng):
+    mesh = stored_mesh("liver")
+    mats = _liver_materials(mesh, transverse=model_name != "corotational-tm")
+    serial = build_model(model_name, mesh.points, mesh.tets, mats)
+    threaded = build_model(model_name, mesh.points, mesh.tets, mats, threads=threads)
+    assert threaded.force_kernel is not serial.force_kernel  # the threaded kernel, not the serial one again
+    assert threaded.extra["threads"] == threads
+    for scale in (1e-4, 3e-3):  # small and large (non-linear) displacements
+        u = scale * rng.standard_normal(mesh.points.shape)
+        fs, ft = serial.internal_force(u), threaded.internal_force(u)
+        assert np.abs(ft - fs).max() <= 64 * EPS * np.abs(fs).max()
+        assert not np.array_equal(ft, np.zeros_like(ft))
+        assert np.array_equal(threaded.internal_force(u), ft)  # the same bits every call
+        assert threaded.elastic_energy(u) == serial.elastic_energy(u)
+
+
+@pytest.mark.parametrize("model_name", THREADED_MODELS)
+def test_a_threaded_trajectory_follows_the_serial_one(model_name):
+    """200 symplectic Euler steps of the liver held at its base under gravity: the threaded run stays
+    within round-off of the serial one (the differences grow with the steps, 1e-12 of the motion)."""
+    mesh = stored_mesh("liver")
+    n = mesh.n_vertices
+    free = np.ones((n, 3))
+    free[mesh.points[:, 2] < mesh.points[:, 2].min() + 0.01] = 0.0
+    mat = Material(2.8e4, 0.4, 1000.0, law="stvk")
+    ends = []
+    for threads in (1, 2):
+        model = build_model(
+            model_name,
+            mesh.points,
+            mesh.tets,
+            mat,
+            Loading(free=free, external_force=np.zeros((n, 3))),
+            threads=threads,
+        )
+        integ = SymplecticEuler(alpha=20.0)
+        integ.set_forces(model, model.mass[:, None] * np.array([0.0, 0.0, -9.81]))
+        state = State.at_rest(n)
+        integ.step(model, state, 0.5 * integ.critical_dt(model), 200)
+        ends.append(state.u)
+    assert np.abs(ends[0]).max() > 0
+    assert np.abs(ends[1] - ends[0]).max() <= 1e-12 * np.abs(ends[0]).max()
+
+
+def test_a_slit_and_sutured_threaded_model_stays_threaded_and_equals_the_serial_one(rng):
+    """slit adds vertices, so the threaded kernel's rows and per-thread force arrays are laid out again:
+    the slit model keeps its threads and equals the serial slit model; suturing returns the original."""
+    mesh, materials, loading = block()
+    serial = build_model("linear-tm", mesh.points, mesh.tets, materials, loading)
+    threaded = build_model("linear-tm", mesh.points, mesh.tets, materials, loading, threads=2)
+    slit_s, pairs_s = slit(serial, slit_faces(mesh))
+    slit_t, pairs_t = slit(threaded, slit_faces(mesh))
+    assert np.array_equal(pairs_s, pairs_t)
+    assert slit_t.extra["threads"] == 2 and slit_t.force_kernel is threaded.force_kernel
+    u = 1e-3 * rng.standard_normal(slit_s.points.shape)
+    fs, ft = slit_s.internal_force(u), slit_t.internal_force(u)
+    assert np.abs(ft - fs).max() <= 64 * EPS * np.abs(fs).max()
+    back = suture(slit_t, pairs_t)
+    assert back.extra["threads"] == 2
+    assert_same_model(back, build_model("linear-tm", mesh.points, mesh.tets, materials, loading, threads=2), rng)
+
+
+def test_chunks_split_the_work_evenly_and_cover_it_once():
+    cost = np.random.default_rng(1).integers(1, 20, 1000).astype(float)
+    for t in (1, 2, 3, 7):
+        c = balanced_chunks(cost, t)
+        assert c[0] == 0 and c[-1] == len(cost) and len(c) == t + 1 and np.all(np.diff(c) >= 0)
+        shares = np.add.reduceat(cost, c[:-1]) if t > 1 else np.array([cost.sum()])
+        assert shares.max() - shares.min() <= 2 * cost.max()  # one unit either side of the even split
+    assert len(balanced_chunks(np.ones(2), 8)) == 3  # never more threads than units
+    rows = row_chunks(np.array([0, 10, 10, 10, 10, 10]), 2)
+    assert list(rows) == [0, 1, 5]  # the first row's ten edges are half the work
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, "2", True])
+def test_a_bad_thread_count_is_a_one_line_error(bad):
+    mesh = stored_mesh("beam")
+    with pytest.raises(InputError, match=r"^threads = .*integer >= 1$"):
+        build_model("stvk-tm", mesh.points, mesh.tets, Material(1e4, 0.3, 1000.0), threads=bad)
+
+
+def test_the_threads_run_in_a_layer_two_python_threads_may_enter_at_once():
+    """numba's own workqueue layer aborts the process when two Python threads launch parallel kernels
+    at once (a haptic and a visual loop); the threaded kernels must run in TBB or GNU OpenMP."""
+    assert check_threading() in ("tbb", "omp")
