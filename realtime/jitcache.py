@@ -9,6 +9,13 @@ numba's "ReferenceError: underlying object has vanished" (numba issue 9348) in t
 The rule here: the engine's compiled functions are cached together, under a stamp of all its sources
 and numba's version. On import, when the stamp differs, the engine's cache files (``*.nbi``, ``*.nbc``)
 are removed and compiled again on first use; nothing else in the directory is touched.
+
+The same error comes without stale versions when processes share the directory: one process saves a
+step loop's specialisation for a kernel, another loads that index, compiles a specialisation of its own,
+and re-pickling the first key fails (its kernel's type refers to a dispatcher that only the index's
+unpickling held). The report's workers settling scenes at once met it. A failed save of an index loses
+nothing but the caching of that one specialisation (the index on disk is left as it was), so
+``tolerate_vanished`` makes the engine's functions skip such a save instead of failing the run.
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ import tempfile
 from pathlib import Path
 
 import numba
+from numba.core.dispatcher import Dispatcher
 
 STAMP = "tissuebench-realtime.sha256"
 
@@ -59,10 +67,37 @@ def clear_if_stale(cache_dir: Path, sources: list[Path]) -> bool:
 
 
 def guard() -> None:
-    """clear_if_stale for the directory numba caches the engine's functions in (the step loops' own)."""
+    """clear_if_stale for the directory numba caches the engine's functions in (the step loops' own), and
+    tolerate_vanished on every compiled function of the engine."""
     from .steppers import _run_symplectic_euler
 
     cache = getattr(_run_symplectic_euler, "_cache", None)
     path = getattr(cache, "cache_path", None)
     if path:
         clear_if_stale(Path(path), list(Path(__file__).parent.glob("*.py")))
+    import sys
+
+    for name, module in list(sys.modules.items()):
+        if name.startswith(__package__ + "."):
+            for obj in list(vars(module).values()):
+                if isinstance(obj, Dispatcher):
+                    tolerate_vanished(obj)
+
+
+def tolerate_vanished(dispatcher: Dispatcher) -> None:
+    """Make ``dispatcher``'s cache skip saving a specialisation when numba cannot re-pickle its index
+    ("ReferenceError: underlying object has vanished", numba issue 9348; module docstring): the
+    specialisation is compiled and used, only not cached."""
+    cache = getattr(dispatcher, "_cache", None)
+    save = getattr(cache, "save_overload", None)
+    if save is None or getattr(save, "tolerates_vanished", False):
+        return
+
+    def save_overload(sig, data):
+        try:
+            save(sig, data)
+        except ReferenceError:
+            pass
+
+    save_overload.tolerates_vanished = True
+    cache.save_overload = save_overload

@@ -403,3 +403,28 @@ def test_the_engines_numba_cache_is_cleared_when_any_of_its_sources_changes(tmp_
     stamp = Path(_run_symplectic_euler._cache.cache_path) / jitcache.STAMP
     sources = sorted(Path(jitcache.__file__).parent.glob("*.py"))
     assert stamp.read_text() == jitcache.sources_digest(sources)
+
+
+def test_a_cache_index_numba_cannot_pickle_again_costs_the_caching_not_the_run():
+    """Two processes sharing the cache (the report's settling workers) met numba's "underlying object has
+    vanished" when saving a step loop's index that the other had written. Such a save is skipped: the
+    function compiles and runs. Without the guard the same save fails the call (checked)."""
+    import numba as nb
+
+    from realtime import jitcache
+    from realtime.steppers import _run_symplectic_euler
+
+    assert _run_symplectic_euler._cache.save_overload.tolerates_vanished  # the engine's functions are guarded
+
+    def vanished(sig, data):
+        raise ReferenceError("underlying object has vanished")
+
+    for guarded in (False, True):
+        f = nb.njit(cache=True)(lambda x: x + 1)
+        f._cache._save_overload = vanished
+        if guarded:
+            jitcache.tolerate_vanished(f)
+            assert f(1) == 2
+        else:
+            with pytest.raises(ReferenceError):
+                f(1)
