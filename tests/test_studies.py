@@ -191,6 +191,40 @@ def test_references_solved_ahead_on_two_processes_are_the_ones_a_study_finds(tmp
         assert np.linalg.norm(cached.displacement - fresh) <= 1e-12 * np.linalg.norm(fresh)
 
 
+@pytest.mark.slow
+def test_settlings_made_ahead_on_two_processes_are_the_ones_a_run_makes(tmp_path, monkeypatch):
+    """settle_ahead settles a static scene in spawned processes into the cache that run_model reads;
+    the run then only times. Its equilibrium and step count are what it would have settled itself, bit
+    for bit (one code, one machine; only the process differs), and a diverging fraction is left to the
+    run, which reports it."""
+    from realtime import DivergenceError
+    from verification.prefetch import settle_ahead
+    from verification.runner import model_for, run_model, settled, settled_path
+
+    monkeypatch.setenv("TISSUEBENCH_CACHE", str(tmp_path))  # the workers inherit it
+    scene = load_scene("cantilever")
+    models = ("linear-tm", "stvk-tm", "adaptive-tm")
+    settle_ahead([(scene, (0.9, 1.1)), (load_scene("cantilever-dynamic"), (0.9,))], workers=2, models=models)
+    for model in models:
+        path = settled_path(scene, model, "symplectic-euler", None, 0.9, 1e-10, 2_000_000, None)
+        assert path.exists(), model
+        assert not settled_path(scene, model, "symplectic-euler", None, 1.1, 1e-10, 2_000_000, None).exists()
+        ahead = run_model(scene, model, dt_fraction=0.9)
+        path.unlink()
+        here = settled(scene, model_for(scene, model), dt_fraction=0.9)
+        assert np.array_equal(ahead.displacement[0], here.state.u[: scene.mesh.n_vertices])
+        assert ahead.meta["static"]["steps"] == here.steps and ahead.meta["dt"] == here.dt
+    implicit = settled_path(scene, "stvk-tm", "implicit-euler", None, None, 1e-10, 2_000_000, None)
+    assert implicit.exists()  # the advisor's implicit Euler row, settled ahead too
+    ahead = run_model(scene, "stvk-tm", integrator="implicit-euler")
+    implicit.unlink()
+    here = settled(scene, model_for(scene, "stvk-tm"), "implicit-euler")
+    assert np.array_equal(ahead.displacement[0], here.state.u) and ahead.meta["static"]["steps"] == here.steps
+    with pytest.raises(DivergenceError):
+        run_model(scene, "linear-tm", dt_fraction=1.1)
+    assert not list((tmp_path / "settled").glob("cantilever-dynamic-*"))  # dynamic scenes are not settled
+
+
 def test_stability_reports_nearly_incompressible_honestly(capsys):
     assert main(["stability", "cantilever", "--models", "linear-tm", "stvk-tm", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)

@@ -122,3 +122,60 @@ def solve_references(jobs: list[tuple[Scene, dict]], workers: int | None = None)
         if reason is not None:
             failed[todo[k][0].sha256()] = reason
     return failed
+
+
+#: The time-stepping models in the order their settling takes longest (adaptive-tm's mixed mesh first),
+#: so that the last job to finish is a short one.
+_SETTLE_ORDER = ("adaptive-tm", "corotational-tm", "hybrid-tm", "stvk-tm", "linear-tm", "mass-spring")
+
+
+def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...]) -> int:
+    """(In a worker process.) Settle ``scene`` with ``model_name`` and symplectic Euler at each of
+    ``fractions`` of its critical step and at its largest stable fraction, and with implicit Euler at its
+    default step if the advisor tries it (``advise.IMPLICIT_MODELS``), into the caches that
+    ``runner.settled`` and ``runs.largest_stable_fraction`` read; returns how many settled (a run that
+    diverges or does not settle is left to the study, which reports it)."""
+    from realtime import DivergenceError, NotConvergedError
+
+    from .advise import IMPLICIT_MODELS
+    from .runner import model_for, settled
+    from .runs import largest_stable_fraction
+
+    model = model_for(scene, model_name)
+    stable = largest_stable_fraction(scene, model_name)["stable"]
+    runs = [("symplectic-euler", f) for f in (*fractions, *([stable] if stable else []))]
+    runs += [("implicit-euler", None)] if model_name in IMPLICIT_MODELS else []
+    done = 0
+    for integrator, fraction in runs:
+        try:
+            settled(scene, model, integrator, None, fraction)
+            done += 1
+        except (DivergenceError, NotConvergedError):
+            pass
+    return done
+
+
+def settle_ahead(jobs: list[tuple[Scene, tuple[float, ...]]], workers: int | None = None, models=None) -> None:
+    """Settle the static scenes of ``jobs`` ((scene, fractions of the critical step) pairs) with every
+    time-stepping model (or those of ``models``), ``workers`` processes at a time (default: the cores this process may use), as
+    their sweeps and advice would one after the other (``_settle_model``). The sweep then finds each
+    equilibrium cached and only times its steps, on a quiet machine: nothing is timed here. With one
+    worker or under mpirun nothing is settled here and the sweep settles as it goes."""
+    from realtime import MODELS
+    from realtime.models import QUASI_STATIC
+
+    models = sorted(
+        (m for m in models or MODELS if m not in QUASI_STATIC), key=lambda m: (_SETTLE_ORDER + (m,)).index(m)
+    )
+    todo = [
+        (scene, m, tuple(fractions))
+        for m in models
+        for scene, fractions in sorted(jobs, key=lambda job: -job[0].mesh.n_tets)
+        if scene.time.mode == "static"
+    ]
+    workers = _workers(workers, len(todo))
+    if not workers:
+        return
+    log(f"settling: {len(todo)} model runs of static scenes on {workers} processes before the timed runs")
+    for _ in _spawned(_settle_model, todo, workers):
+        pass

@@ -18,6 +18,7 @@ import platform
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -315,6 +316,112 @@ def _omega2_rest(scene: Scene, model, options: dict | None = None) -> float:
     return _OMEGA2[key]
 
 
+#: The most implicit Euler steps a static settling takes (it settles in tens where it settles at all).
+IMPLICIT_MAX_STEPS = 20_000
+
+
+@dataclass
+class Settled:
+    """A static scene settled by a time-stepping model (``settled``): the state at equilibrium, the
+    steps it took from rest and the final relative residual, the step dt and the explicit critical step
+    dt_crit (s) (the one dt was chosen from, or, for implicit Euler, the limit it steps over), omega_max^2
+    (1/s^2) behind dt_crit, the settling's wall time (s) when it ran, and implicit Euler's CG iterations
+    in its last step (-1 for an explicit integrator)."""
+
+    state: State
+    steps: int
+    residual: float
+    dt: float
+    dt_crit: float
+    omega2: float
+    wall_s: float
+    cg_iterations: int = -1
+
+
+def settled_path(scene: Scene, model_name: str, integrator: str, dt, dt_fraction, rtol, max_steps, options) -> Path:
+    """Where ``settled`` keeps a settling (it holds no timing, so no machine in its key)."""
+    fields = {
+        "code": code_digest(RUN_CODE),
+        "scene": scene.sha256(),
+        "model": model_name,
+        "integrator": integrator,
+        "dt": dt,
+        "fraction": dt_fraction,
+        "rtol": rtol,
+        "max_steps": max_steps,
+        "options": json.dumps(options or {}, sort_keys=True, default=str),
+    }
+    return cache_dir() / "settled" / f"{scene.name}-{digest(fields)}.npz"
+
+
+#: Settled's fields after the state, as the cache file stores them.
+_SETTLED_NUMBERS = ("steps", "residual", "dt", "dt_crit", "omega2", "wall_s", "cg_iterations")
+
+
+def settled(
+    scene: Scene,
+    model,
+    integrator: str = "symplectic-euler",
+    dt: float | None = None,
+    dt_fraction: float | None = None,
+    rtol: float = 1e-10,
+    max_steps: int = 2_000_000,
+    options: dict | None = None,
+) -> Settled:
+    """A static scene settled from rest by ``model`` (a Model) with ``integrator``, through a cache of
+    settlings: the report settles its static scenes ahead on every core (``prefetch.settle_ahead``) and
+    times the steps afterwards on a quiet machine. Raises DivergenceError or NotConvergedError as the
+    solvers do (nothing is cached then).
+
+    - Explicit: damped dynamics (``solve_static``) at dt, default ``dt_fraction`` (default 0.9) of the
+      critical step; a non-linear model's is the smaller of rest's and equilibrium's (it moves as the
+      body deforms).
+    - Implicit Euler: steps of dt (default 2 / omega_1, the slowest mode's time scale, which it damps by
+      1/sqrt(5) a step; or ``dt_fraction`` of the explicit critical step), at most IMPLICIT_MAX_STEPS.
+    """
+    path = settled_path(scene, model.name, integrator, dt, dt_fraction, rtol, max_steps, options)
+    if path.exists():
+        z = np.load(path)
+        state = State(u=z["u"], v=z["v"], t=float(z["t"]), steps=int(z["state_steps"]))
+        numbers = [z[k].item() for k in _SETTLED_NUMBERS]
+        return Settled(state, *numbers)
+    integ = make_integrator(integrator, scene.time.damping_mass, scene.time.damping_stiffness)
+    omega2 = _omega2_rest(scene, model, options)
+    t1 = time.perf_counter()
+    if isinstance(integ, ImplicitEuler):
+        dt_crit = SymplecticEuler().critical_dt(model, omega2)
+        if dt is None:
+            dt = 2.0 / math.sqrt(min_eigenvalue(model)) if dt_fraction is None else dt_fraction * dt_crit
+        static = solve_static_implicit(
+            model, dt, rtol=rtol, integrator=integ, max_steps=min(max_steps, IMPLICIT_MAX_STEPS)
+        )
+        cg = integ.iterations
+    else:
+        dt_crit = integ.critical_dt(model, omega2)
+        static, cg = None, -1
+        if not model.linear:
+            key = _omega2_key(scene, model.name, options, "settled", rtol)
+            if key not in _OMEGA2:
+                static = solve_static(model, dt=None, rtol=rtol, max_steps=max_steps)
+                _OMEGA2[key] = max_eigenvalue(model, static.state.u)
+            omega2 = max(omega2, _OMEGA2[key])
+            dt_crit = min(dt_crit, integ.critical_dt(model, omega2))
+        if dt is None:
+            dt = (0.9 if dt_fraction is None else dt_fraction) * dt_crit
+        if static is None or static.dt != dt:
+            static = solve_static(model, dt=dt, rtol=rtol, max_steps=max_steps)
+    out = Settled(static.state, static.steps, static.residual, dt, dt_crit, omega2, time.perf_counter() - t1, cg)
+    numbers = {k: getattr(out, k) for k in _SETTLED_NUMBERS}
+
+    def write(tmp):
+        with open(tmp, "wb") as fh:
+            np.savez(fh, u=out.state.u, v=out.state.v, t=out.state.t, state_steps=out.state.steps, **numbers)
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, write)
+    return out
+
+
 def model_for(scene: Scene, model: str, **options):
     """The real-time model of a scene, with its loading."""
     mesh = scene.mesh
@@ -373,27 +480,11 @@ def run_model(
         return _run_dynamic(scene, model, integrator, dt, dt_fraction, build_s, options)
     if model_name in QUASI_STATIC:
         return _run_quasi_static(scene, model, build_s)
-    omega2 = _omega2_rest(scene, model, options)
     integ = make_integrator(integrator, scene.time.damping_mass, scene.time.damping_stiffness)
+    static = settled(scene, model, integrator, dt, dt_fraction, rtol, max_steps, options)
     if isinstance(integ, ImplicitEuler):
-        return _run_implicit(scene, model, integ, dt, dt_fraction, omega2, build_s, rtol, min(max_steps, 20_000))
-    dt_crit_rest = integ.critical_dt(model, omega2)
-    dt_crit = dt_crit_rest
-    t1 = time.perf_counter()
-    static = None
-    if not model.linear:
-        # a non-linear model's critical step moves as it deforms: take the smaller of rest and equilibrium
-        key = _omega2_key(scene, model_name, options, "settled", rtol)
-        if key not in _OMEGA2:
-            static = solve_static(model, dt=None, rtol=rtol, max_steps=max_steps)
-            _OMEGA2[key] = max_eigenvalue(model, static.state.u)
-        omega2 = max(omega2, _OMEGA2[key])
-        dt_crit = min(dt_crit_rest, integ.critical_dt(model, omega2))
-    if dt is None:
-        dt = (0.9 if dt_fraction is None else dt_fraction) * dt_crit
-    if static is None or static.dt != dt:
-        static = solve_static(model, dt=dt, rtol=rtol, max_steps=max_steps)
-    settle_s = time.perf_counter() - t1
+        return _run_implicit(scene, model, integ, static, build_s, rtol)
+    dt, dt_crit, omega2, settle_s = static.dt, static.dt_crit, static.omega2, static.wall_s
     timing = time_steps(model, integ, dt, static.state.copy())
     u = static.state.u
     meta = {
@@ -518,18 +609,10 @@ def _run_dynamic(scene: Scene, model, integrator: str, dt, dt_fraction, build_s:
     return Result(scene.mesh.points, scene.mesh.tets, times, observed(model, u), reaction, meta)
 
 
-def _run_implicit(scene: Scene, model, integ, dt, dt_fraction, omega2, build_s, rtol, max_steps) -> Result:
-    """Implicit Euler on a static scene: steps of dt (default 2 / omega_1, the slowest mode's time
-    scale; or ``dt_fraction`` times the explicit critical step) until settled. dt_crit reports the
-    explicit limit it steps over."""
-    explicit = SymplecticEuler().critical_dt(model, omega2)
-    if dt is None:
-        # a static implicit solve steps on the slowest mode's time scale: dt = 2 / omega_1 damps it by
-        # 1/sqrt(5) a step; a fraction, if given, is of the explicit critical step
-        dt = 2.0 / math.sqrt(min_eigenvalue(model)) if dt_fraction is None else dt_fraction * explicit
-    t1 = time.perf_counter()
-    static = solve_static_implicit(model, dt, rtol=rtol, integrator=integ, max_steps=max_steps)
-    settle_s = time.perf_counter() - t1
+def _run_implicit(scene: Scene, model, integ, static: Settled, build_s, rtol) -> Result:
+    """Implicit Euler on a static scene, settled (``settled``): its steps timed at the equilibrium.
+    dt_crit reports the explicit limit it steps over."""
+    dt, explicit, omega2, settle_s = static.dt, static.dt_crit, static.omega2, static.wall_s
     timing = time_steps(model, integ, dt, static.state.copy(), n=5, repeats=7)
     u = static.state.u
     meta = {
@@ -550,7 +633,7 @@ def _run_implicit(scene: Scene, model, integ, dt, dt_fraction, omega2, build_s, 
             "residual": static.residual,
             "rtol": rtol,
             "wall_s": settle_s,
-            "cg_iterations_last_step": integ.iterations,
+            "cg_iterations_last_step": static.cg_iterations,
         },
         "build_s": build_s,
         **timing,
