@@ -3,6 +3,15 @@
 Imports only numpy, scipy and numba, so that it can be embedded in a simulator on its own.
 """
 
+import os as _os
+
+# The threaded kernels' threads (realtime.threaded) run in GNU OpenMP, which reads this once, when the
+# library loads: a thread that finished its share spins this many times before it sleeps, so that it is
+# awake for the next step's force (about a millisecond here; woken from sleep, a thread on this
+# machine's virtual cores took longer than the force itself). dolfinx and gmsh load the library too:
+# import realtime (or verification) first, or set it yourself.
+_os.environ.setdefault("GOMP_SPINCOUNT", "1000000")
+
 from . import jitcache as _jitcache
 from .errors import InputError, LoadingError
 from .integrators import (

@@ -10,7 +10,7 @@ from the serial kernel by round-off only (the order of the sums; the tests compa
 machine epsilon).
 
 The threads are numba's (``parallel=True``), in a threading layer that may be entered from several
-Python threads at once (TBB or GNU OpenMP, numba's "threadsafe" choice), so that a haptic loop and a
+Python threads at once (GNU OpenMP, else TBB; never numba's workqueue), so that a haptic loop and a
 visual loop may each step their own state of one threaded model. ``check_threading`` says which layer
 runs, or why none can.
 """
@@ -31,10 +31,13 @@ from .tensor_mass import linear_rows
 
 PAR = dict(HOT, parallel=True)
 
-# The layer numba starts its threads in; set before the first parallel call of the process. "threadsafe"
-# takes TBB, else GNU OpenMP, and never numba's own workqueue, which aborts the process when two Python
-# threads launch parallel kernels at once.
-nb.config.THREADING_LAYER = "threadsafe"
+# The layer numba starts its threads in, chosen before the first parallel call of the process: GNU
+# OpenMP, whose threads spin between steps (GOMP_SPINCOUNT, set in realtime/__init__.py), else TBB
+# (check_threading), whose threads slept: on the liver-x10 TBB's two-thread stvk-tm step was no faster
+# than one thread's (make bench), OpenMP's 1.6x. Both may be entered from two Python threads at once;
+# numba's own workqueue may not (it aborts the process), so it is never used.
+THREADING_LAYERS = ("omp", "tbb")
+nb.config.THREADING_LAYER = THREADING_LAYERS[0]
 
 
 class Threaded(NamedTuple):
@@ -78,17 +81,20 @@ def check_threads(threads) -> int:
 
 
 def check_threading() -> str:
-    """The name of the threading layer the threaded kernels run in ("tbb" or "omp"), or InputError
-    saying why none could start (install Debian's libtbb12, or libgomp1)."""
-    try:
-        _probe(np.zeros(4))
-        return nb.threading_layer()
-    except (ValueError, RuntimeError) as e:
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise InputError(
-            f"threads > 1: no thread-safe threading layer for numba (TBB or GNU OpenMP): {msg}; "
-            "install Debian's libtbb12, or build with threads = 1"
-        ) from None
+    """The name of the threading layer the threaded kernels run in, the first of THREADING_LAYERS that
+    starts, or InputError saying why none could (install Debian's libgomp1, or libtbb12)."""
+    reasons = []
+    for layer in THREADING_LAYERS:
+        nb.config.THREADING_LAYER = layer
+        try:
+            _probe(np.zeros(4))
+            return nb.threading_layer()
+        except (ValueError, RuntimeError) as e:
+            reasons.append(f"{layer}: {str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__}")
+    raise InputError(
+        f"threads > 1: no thread-safe threading layer for numba ({'; '.join(reasons)}); "
+        "install Debian's libgomp1, or build with threads = 1"
+    )
 
 
 @nb.njit(parallel=True, cache=True)

@@ -10,3 +10,7 @@ _RANK = os.environ.get("OMPI_COMM_WORLD_RANK") or os.environ.get("PMI_RANK")
 if _RANK is not None and "NUMBA_CACHE_DIR" not in os.environ:
     _base = Path(os.environ.get("TISSUEBENCH_CACHE", Path.home() / ".cache" / "tissuebench"))
     os.environ["NUMBA_CACHE_DIR"] = str(_base / "numba" / f"rank{_RANK}")
+
+# The engine before anything that loads GNU OpenMP (dolfinx, gmsh): it sets the spin count its
+# threaded kernels' threads wait with (realtime/__init__.py), which OpenMP reads only when it loads.
+import realtime  # noqa: E402,F401
