@@ -24,9 +24,10 @@ _GMSH1_TYPES = {1: "line", 3: "quad", 5: "hexahedron", 6: "wedge", 7: "pyramid",
 
 class _Cells:
     """What a reader hands on: points (N, 3), tetrahedra (M, 4) as the file numbers them (0-based),
-    surface triangles (F, 3) with their tags, tetrahedron tags, group names, other cell types."""
+    surface triangles (F, 3) with their tags, tetrahedron tags, group names, other cell types, and the
+    tetrahedra's numeric cell data (fields)."""
 
-    def __init__(self, points, tets, tet_tags=None, tris=None, tri_tags=None, names=None, others=()):
+    def __init__(self, points, tets, tet_tags=None, tris=None, tri_tags=None, names=None, others=(), fields=None):
         self.points = np.asarray(points, dtype=np.float64)
         self.tets = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
         self.tet_tags = None if tet_tags is None else np.asarray(tet_tags, dtype=np.int64)
@@ -34,6 +35,7 @@ class _Cells:
         self.tri_tags = None if tri_tags is None else np.asarray(tri_tags, dtype=np.int64)
         self.names = names or {}
         self.others = sorted(set(others))
+        self.fields = fields or {}  # name -> (M,) float64, a value per tetrahedron (the file's cell data)
 
 
 def _is_gmsh1(path: Path) -> bool:
@@ -128,6 +130,10 @@ def _read_gmsh1(path: Path) -> _Cells:
     )
 
 
+#: Cell data that meshio reads as the groups of a file, not as fields.
+TAG_DATA = ("gmsh:physical", "gmsh:geometrical", "medit:ref")
+
+
 def _read_meshio(path: Path) -> _Cells:
     import meshio
 
@@ -143,6 +149,15 @@ def _read_meshio(path: Path) -> _Cells:
             tris.append(cells.data)
             tri_tags.append(tags)
     names = {int(pairs[0]): name for name, pairs in (getattr(m, "field_data", None) or {}).items()}
+    fields = {}
+    tet_blocks = [i for i, cells in enumerate(m.cells) if cells.type in ("tetra", "tetra10")]
+    for name, per_block in m.cell_data.items():
+        if name in TAG_DATA or not tet_blocks:
+            continue
+        values = [np.asarray(per_block[i]) for i in tet_blocks]
+        # one number per tetrahedron (a column vector counts); vectors and tensors are not regions' stuff
+        if all(v.dtype.kind in "biuf" and v.reshape(len(v), -1).shape[1] == 1 for v in values):
+            fields[name] = np.concatenate([v.reshape(-1) for v in values]).astype(np.float64)
     points = np.asarray(m.points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] not in (2, 3):
         raise InvalidMeshError(f"{path}: points have shape {points.shape}, need (N, 3)")
@@ -157,6 +172,7 @@ def _read_meshio(path: Path) -> _Cells:
         cat(tri_tags, 0) if phys is not None else None,
         names,
         [c.type for c in m.cells if c.type not in ("tetra", "triangle")],
+        fields,
     )
 
 
@@ -176,7 +192,8 @@ def read_mesh(path: str | os.PathLike, scale: float = 1.0) -> TetMesh:
     InvalidMeshError naming the file and the element: a degenerate tetrahedron (with its quality
     figures), no tetrahedra (naming the cell types there are), a syntax error (with its line).
     gmsh physical groups become tags: of tetrahedra (cell tags) and of the vertices of tagged triangles
-    (vertex tags).
+    (vertex tags). The tetrahedra's other numeric cell data, one number each, become cell fields
+    (``mesh.cell_fields``), through the same repairs.
     """
     path = Path(path)
     if not path.exists():
@@ -228,12 +245,17 @@ def _clean(path: Path, c: _Cells, scale: float) -> TetMesh:
     # duplicate tetrahedra (the same four vertices twice)
     keys = np.sort(tets, axis=1)
     _, first = np.unique(keys, axis=0, return_index=True)
-    tet_tags = c.tet_tags
+    tet_tags, fields = c.tet_tags, c.fields
     if len(first) < len(tets):
         keep = np.sort(first)
         notes.append(f"dropped {len(tets) - len(keep)} duplicate tetrahedra")
         tets = tets[keep]
         tet_tags = None if tet_tags is None else tet_tags[keep]
+        fields = {name: v[keep] for name, v in fields.items()}
+    for name, v in fields.items():
+        if not np.all(np.isfinite(v)):
+            bad = int(np.flatnonzero(~np.isfinite(v))[0])
+            raise InvalidMeshError(f"{path}: cell field {name!r} is {v[bad]} at tetrahedron {bad}")
     # unreferenced vertices
     used = np.unique(tets)
     if len(used) < len(points):
@@ -261,7 +283,15 @@ def _clean(path: Path, c: _Cells, scale: float) -> TetMesh:
         for t in np.unique(c.tri_tags):
             v = compact[np.unique(tris[c.tri_tags == t])]
             vertex_tags[c.names.get(int(t), str(int(t)))] = np.unique(v[v >= 0]).astype(np.int64)
-    mesh = TetMesh(points, tets, source=str(path), vertex_tags=vertex_tags, cell_tags=cell_tags, notes=tuple(notes))
+    mesh = TetMesh(
+        points,
+        tets,
+        source=str(path),
+        vertex_tags=vertex_tags,
+        cell_tags=cell_tags,
+        notes=tuple(notes),
+        cell_fields=fields,
+    )
     n_parts, _ = mesh.parts()
     if n_parts > 1:
         object.__setattr__(mesh, "notes", mesh.notes + (f"{n_parts} disconnected parts",))

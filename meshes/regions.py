@@ -1,4 +1,4 @@
-"""Region selectors (docs/architecture.md section 3): box, sphere, tag, all.
+"""Region selectors (docs/architecture.md section 3): box, sphere, tag, all, and a cell field's range.
 
 A region answers two questions: which vertices of a mesh it holds (``vertices``), and whether
 arbitrary points lie in it (``contains``), the second for the finer meshes and the P2 nodes of the
@@ -105,6 +105,34 @@ class TagRegion(Region):
 
     def describe(self):
         return f'tag = "{self.name}"'
+
+
+@dataclass(frozen=True)
+class FieldRegion(Region):
+    """The tetrahedra whose value of the mesh's cell field ``name`` (TetMesh.cell_fields, read from the
+    file's cell data) lies in [lo, hi], and the points inside them (so a refined mesh or P2 nodes see
+    the same region). For a [[material]] table."""
+
+    name: str
+    lo: float
+    hi: float
+
+    def cells(self, mesh: TetMesh) -> np.ndarray:
+        """(K,) int64: the tetrahedra of ``mesh`` the region holds; KeyError naming the fields there are
+        if the mesh has no field ``name``."""
+        if self.name not in mesh.cell_fields:
+            raise KeyError(
+                f"{self.name!r} is not a cell field of the mesh (its fields: {', '.join(sorted(mesh.cell_fields)) or 'none'})"
+            )
+        v = mesh.cell_fields[self.name]
+        return np.flatnonzero((v >= self.lo) & (v <= self.hi)).astype(np.int64)
+
+    def contains(self, x, mesh):
+        tol = GEOMETRIC_TOL * float(np.ptp(mesh.points, axis=0).max())
+        return _inside_tets(mesh.points, mesh.tets[self.cells(mesh)], np.asarray(x, dtype=float), tol)
+
+    def describe(self):
+        return f'field = {{ name = "{self.name}", min = {self.lo:g}, max = {self.hi:g} }}'
 
 
 def _on_triangles(points, faces, x, tol):

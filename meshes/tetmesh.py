@@ -30,6 +30,8 @@ class TetMesh:
         tets: (M, 4) int64, positively oriented.
         vertex_tags: name -> (K,) int64 vertex indices (gmsh physical groups of faces and volumes).
         cell_tags: name -> (K,) int64 tetrahedron indices.
+        cell_fields: name -> (M,) float64, a value per tetrahedron read from the mesh file (its cell
+            data: a stiffness map, a segmentation label), in any unit the file uses.
         source: where the mesh came from (a file path or a generator description).
         notes: what reading the mesh repaired (merged duplicate vertices, turned tetrahedra...), one
             sentence each.
@@ -41,6 +43,7 @@ class TetMesh:
     cell_tags: dict = field(default_factory=dict)
     source: str = ""
     notes: tuple = ()
+    cell_fields: dict = field(default_factory=dict)
 
     def __post_init__(self):
         pts = np.ascontiguousarray(self.points, dtype=np.float64)
@@ -48,6 +51,12 @@ class TetMesh:
         object.__setattr__(self, "points", pts)
         object.__setattr__(self, "tets", tets)
         check_tets(pts, tets, where=self.source or "mesh")
+        fields = {name: np.ascontiguousarray(v, dtype=np.float64) for name, v in self.cell_fields.items()}
+        for name, values in fields.items():
+            if values.shape != (len(tets),):
+                where = self.source or "mesh"
+                raise InvalidMeshError(f"{where}: cell field {name!r} has shape {values.shape}, need ({len(tets)},)")
+        object.__setattr__(self, "cell_fields", fields)
 
     @staticmethod
     def from_arrays(points, tets, source: str = "", fix_orientation: bool = True, **tags) -> TetMesh:
@@ -92,8 +101,8 @@ class TetMesh:
         """The mesh cut uniformly, each tetrahedron into eight (red refinement: four corner tetrahedra
         and the inner octahedron split along its shortest diagonal). The vertices keep their
         indices and the edge midpoints follow, so the coarse mesh's vertices are the first N of the fine
-        one's. Cell tags pass to the children; a vertex tag takes the midpoints of the edges of tagged
-        boundary triangles."""
+        one's. Cell tags and fields pass to the children; a vertex tag takes the midpoints of the edges of
+        tagged boundary triangles."""
         points, tets = red_refinement(self.points, self.tets)
         t = self.tets
         n = self.n_vertices
@@ -119,6 +128,7 @@ class TetMesh:
             vertex_tags=vertex_tags,
             cell_tags=cell_tags,
             source=f"{self.source} refined",
+            cell_fields={k: np.tile(np.asarray(v, dtype=np.float64), 8) for k, v in self.cell_fields.items()},
         )
 
     def parts(self) -> tuple[int, np.ndarray]:
@@ -141,10 +151,14 @@ class TetMesh:
         return self.points.min(axis=0), self.points.max(axis=0)
 
     def sha256(self) -> str:
-        """Hash of the vertex coordinates and connectivity (bytes of float64 and int64 arrays)."""
+        """Hash of the vertex coordinates and connectivity (bytes of float64 and int64 arrays), and of
+        the cell fields, by name, when there are any (a material drawn from one depends on it)."""
         h = hashlib.sha256()
         h.update(np.ascontiguousarray(self.points, dtype="<f8").tobytes())
         h.update(np.ascontiguousarray(self.tets, dtype="<i8").tobytes())
+        for name in sorted(self.cell_fields):
+            h.update(name.encode())
+            h.update(np.ascontiguousarray(self.cell_fields[name], dtype="<f8").tobytes())
         return h.hexdigest()
 
     def quality(self) -> dict:

@@ -267,3 +267,48 @@ def test_two_material_scene_runs_and_reports_its_tables(tmp_path, capsys):
     out = json.loads(capsys.readouterr().out)
     assert [z["tets"] for z in out["materials"]] == [48, 48]
     assert [z["young_pa"] for z in out["materials"]] == [5.0e3, 5.0e5]
+
+
+def test_a_material_drawn_from_a_cell_field_of_the_mesh_file(tmp_path, capsys):
+    """[[material]] field = { name, min, max }: the tetrahedra whose value of a cell field of the mesh
+    file (here a VTU's "zone", 1 where the box region of TWO lies) is in range. It gives TWO's
+    materials tetrahedron for tetrahedron, through the reader's repairs (a duplicate tetrahedron, with
+    its own value, dropped) and a refinement; a field the mesh lacks names the ones it has."""
+    import meshio
+
+    from meshes.generators import grid
+    from verification.cli import main
+    from verification.scene import SceneError, load_scene
+
+    mesh = grid((0.02, 0.01, 0.01), 0.005)
+    zone = (mesh.points[mesh.tets].mean(axis=1)[:, 0] > 0.01).astype(float)
+    tets = np.concatenate([mesh.tets, mesh.tets[:1]])  # a duplicate, which the reader drops
+    meshio.write(
+        tmp_path / "two.vtu", meshio.Mesh(mesh.points, [("tetra", tets)], cell_data={"zone": [np.append(zone, 0.0)]})
+    )
+    mesh_table = '[mesh]\ngenerator = "grid"\nsize = [0.02, 0.01, 0.01]\nh = 0.005\n'
+    text = TWO.replace(mesh_table, '[mesh]\ngenerator = "file"\nfile = "two.vtu"\n').replace(
+        "box = [[0.01, -1.0, -1.0], [1.0, 1.0, 1.0]]", 'field = { name = "zone", min = 0.5, max = 1.5 }'
+    )
+    assert text.count("field =") == 1 and "two.vtu" in text
+    from_field = load_scene(_scene_file(tmp_path, text))
+    (tmp_path / "box").mkdir()
+    from_box = load_scene(_scene_file(tmp_path / "box", TWO))
+    assert np.array_equal(from_field.mesh.tets, from_box.mesh.tets)
+    assert "dropped 1 duplicate tetrahedra" in " ".join(from_field.mesh.notes)
+    assert np.array_equal(from_field.body_material().index, from_box.body_material().index)
+    assert np.array_equal(from_field.refined(1).body_material().index, from_box.refined(1).body_material().index)
+    assert from_field.mesh.sha256() != from_box.mesh.sha256()  # the field is part of what the mesh is
+    assert main(["check", str(tmp_path / "scene.toml"), "--json"]) == 0
+    import json
+
+    out = json.loads(capsys.readouterr().out)
+    assert [z["tets"] for z in out["materials"]] == [48, 48]
+    assert "field" in out["materials"][1]["region"]
+    for bad, message in (
+        ('name = "zone"', r"material\[1\]\.field\.name: 'zones' is not a cell field of the mesh \(its fields: zone\)"),
+        ("min = 0.5", r"material\[1\]\.field\.min: 2\.0 exceeds max 1\.5"),
+    ):
+        wrong = text.replace(bad, 'name = "zones"' if "name" in bad else "min = 2.0")
+        with pytest.raises(SceneError, match=message):
+            load_scene(_scene_file(tmp_path, wrong)).mesh  # noqa: B018

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from meshes import InvalidMeshError, TetMesh, get_mesh, read_mesh
-from meshes.regions import AllRegion, BoxRegion, Region, SphereRegion, TagRegion
+from meshes.regions import AllRegion, BoxRegion, FieldRegion, Region, SphereRegion, TagRegion
 from realtime.errors import InputError
 from realtime.material import LAWS, Material, MaterialError, Materials
 from reference.problem import (
@@ -258,13 +258,23 @@ class _Reader:
 
 
 REGION_KEYS = ("box", "sphere", "tag", "all")
+#: A [[material]] table may also take the tetrahedra by a range of a cell field of the mesh file.
+MATERIAL_REGION_KEYS = (*REGION_KEYS, "field")
 
 
-def _region(r: _Reader) -> Region:
-    given = [k for k in REGION_KEYS if r.has(k)]
+def _region(r: _Reader, keys: tuple[str, ...] = REGION_KEYS) -> Region:
+    given = [k for k in keys if r.has(k)]
     if len(given) != 1:
-        r.fail("", f"needs exactly one region key of {', '.join(REGION_KEYS)}, got {given or 'none'}")
+        r.fail("", f"needs exactly one region key of {', '.join(keys)}, got {given or 'none'}")
     kind = given[0]
+    if kind == "field":
+        sub = _Reader(r.path, r.get("field"), r.key("field"))
+        lo, hi = sub.number("min"), sub.number("max")
+        if lo > hi:
+            sub.fail("min", f"{lo!r} exceeds max {hi!r}")
+        region = FieldRegion(sub.string("name"), lo, hi)
+        sub.finish(("name", "min", "max"))
+        return region
     if kind == "box":
         v = r.get("box")
         if not (isinstance(v, list) and len(v) == 2 and all(_is_vec3(c) for c in v)):
@@ -369,7 +379,7 @@ def parse(path: Path, data: dict) -> Scene:
     if isinstance(top.table.get("material"), list):
         zones = []
         for table in _tables(top, "material"):
-            zones.append((_region(table), _material(table, REGION_KEYS)))
+            zones.append((_region(table, MATERIAL_REGION_KEYS), _material(table, MATERIAL_REGION_KEYS)))
         if not zones:
             top.fail("material", "an empty array of tables: give [material] or at least one [[material]]")
         for i, (_, m) in enumerate(zones[1:], start=1):
@@ -497,12 +507,18 @@ def zone_index(scene: Scene, mesh: TetMesh) -> np.ndarray:
     """The [[material]] table of each tetrahedron of ``mesh`` (the scene's own, level 0): (M,) int64,
     the last table whose region holds it. A box, sphere or ``all`` holds the tetrahedra whose centroid
     it contains; a tag, the tetrahedra of that volume group of the mesh file (a gmsh physical volume,
-    a medit reference). SceneError for a tetrahedron no table holds, a table that holds none, or a
-    tag that names no volume group."""
+    a medit reference); a field, those whose value of that cell field of the file lies in [min, max].
+    SceneError for a tetrahedron no table holds, a table that holds none, or a tag or field the mesh
+    does not have."""
     index = np.full(mesh.n_tets, -1, dtype=np.int64)
     centroids = mesh.points[mesh.tets].mean(axis=1)
     for k, (region, _) in enumerate(scene.zones):
-        if isinstance(region, TagRegion):
+        if isinstance(region, FieldRegion):
+            try:
+                held = region.cells(mesh)
+            except KeyError as exc:
+                raise SceneError(f"{scene.path}: material[{k}].field.name: {exc.args[0]}") from None
+        elif isinstance(region, TagRegion):
             if region.name not in mesh.cell_tags:
                 known = ", ".join(sorted(mesh.cell_tags)) or "none"
                 raise SceneError(
