@@ -125,20 +125,24 @@ def sum_threads(F, f):
         _sum_range(F, f, p * n // parts, (p + 1) * n // parts)
 
 
-# Each thread's share runs in a compiled call of its own: inlined into a parallel loop, the block code
-# trips numba's array analysis (an AssertionError on the lanes' tuples).
+# Each thread's share (its force array zeroed, then its chunk added) runs in a compiled call of its own:
+# inlined into a parallel loop, the block code trips numba's array analysis (an AssertionError on the
+# lanes' tuples).
 @nb.njit(**HOT)
 def _stvk_chunk(tets, geo, prm, everywhere, W, b0, b1, u, f):
+    f[:, :] = 0.0
     stvk_blocks(tets, geo, prm, everywhere, W, b0, b1, u, f)
 
 
 @nb.njit(**HOT)
 def _corotational_chunk(tets, geo, prm, everywhere, W, R, Fb, b0, b1, u, f):
+    f[:, :] = 0.0
     corotational_blocks(tets, geo, prm, everywhere, W, R, Fb, b0, b1, u, f)
 
 
 @nb.njit(**HOT)
 def _linear_chunk(vt, cols, et, row_start, lo, hi, u, f):
+    f[:, :] = 0.0
     linear_rows(vt, cols, et, row_start, lo, hi, u, f)
 
 
@@ -152,9 +156,7 @@ def stvk_force_threaded(data, scratch, u, f):
     (tets, geo, prm, everywhere), chunks = data
     W, F = scratch
     for t in nb.prange(chunks.shape[0] - 1):
-        Ft = F[t]
-        Ft[:, :] = 0.0
-        _stvk_chunk(tets, geo, prm, everywhere, W[t], chunks[t], chunks[t + 1], u, Ft)
+        _stvk_chunk(tets, geo, prm, everywhere, W[t], chunks[t], chunks[t + 1], u, F[t])
     sum_threads(F, f)
 
 
@@ -168,9 +170,7 @@ def corotational_force_threaded(data, scratch, u, f):
     (tets, geo, prm, everywhere), chunks = data
     W, R, Fb, F = scratch
     for t in nb.prange(chunks.shape[0] - 1):
-        Ft = F[t]
-        Ft[:, :] = 0.0
-        _corotational_chunk(tets, geo, prm, everywhere, W[t], R[t], Fb[t], chunks[t], chunks[t + 1], u, Ft)
+        _corotational_chunk(tets, geo, prm, everywhere, W[t], R[t], Fb[t], chunks[t], chunks[t + 1], u, F[t])
     sum_threads(F, f)
 
 
@@ -184,9 +184,7 @@ def linear_tm_force_threaded(data, scratch, u, f):
     (vt, cols, et, row_start), chunks = data
     F = scratch[1]
     for t in nb.prange(chunks.shape[0] - 1):
-        Ft = F[t]
-        Ft[:, :] = 0.0
-        _linear_chunk(vt, cols, et, row_start, chunks[t], chunks[t + 1], u, Ft)
+        _linear_chunk(vt, cols, et, row_start, chunks[t], chunks[t + 1], u, F[t])
     sum_threads(F, f)
 
 
