@@ -492,7 +492,13 @@ def write_report(
     if studies:
         jobs += reference_jobs(load_scene(STABILITY_SCENE))
     FAILED_REFERENCES.update(solve_references(jobs))  # the stability study does not solve these again
-    settle_ahead([(scene, section_fractions(scene, fractions)) for scene in map(load_scene, scenes)])
+    # the sections' steps and the advisor's (its sweep runs the default ones)
+    settle_ahead(
+        [
+            (scene, tuple(dict.fromkeys([*section_fractions(scene, fractions), *default_fractions(scene)])))
+            for scene in map(load_scene, scenes)
+        ]
+    )
     sections, data = [], {"scenes": []}
     for s in scenes:
         sec, d = scene_section(s, fractions)
