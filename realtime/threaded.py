@@ -26,8 +26,9 @@ import numpy as np
 from .blocks import BLOCK, HOT
 from .corotational import corotational_blocks
 from .errors import InputError
+from .model import no_scratch
 from .stvk import stvk_blocks
-from .tensor_mass import linear_rows
+from .tensor_mass import linear_rows, linear_tm_energy, linear_tm_force
 
 PAR = dict(HOT, parallel=True)
 
@@ -202,14 +203,11 @@ def row_chunks(row_start: np.ndarray, threads: int) -> np.ndarray:
 def linear_tm_kernel(tm, threads: int = 1) -> tuple:
     """(force, energy, data, new_scratch) of linear tensor-mass on TensorMass ``tm``: the serial
     kernel for one thread, else the threaded one with its rows split for ``threads``."""
-    from .model import no_scratch
-    from .tensor_mass import linear_tm_energy, linear_tm_force
-
     data = tm.kernel_data()
     if threads == 1:
         return linear_tm_force, linear_tm_energy, data, no_scratch
     return (
-        linear_tm_force_threaded,
+        THREADED[linear_tm_force.__name__],
         partial(threaded_energy, linear_tm_energy),
         Threaded(data, row_chunks(data.row_start, threads)),
         scratch_factory(no_scratch, threads, tm.n_vertices),

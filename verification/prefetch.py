@@ -157,8 +157,8 @@ def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...]) -
 
 def settle_ahead(jobs: list[tuple[Scene, tuple[float, ...]]], workers: int | None = None, models=None) -> None:
     """Settle the static scenes of ``jobs`` ((scene, fractions of the critical step) pairs) with every
-    time-stepping model (or those of ``models``), ``workers`` processes at a time (default: the cores this process may use), as
-    their sweeps and advice would one after the other (``_settle_model``). The sweep then finds each
+    time-stepping model (or those of ``models``), ``workers`` processes at a time (default: the cores
+    this process may use), as their sweeps and advice would one after the other (``_settle_model``). The sweep then finds each
     equilibrium cached and only times its steps, on a quiet machine: nothing is timed here. With one
     worker or under mpirun nothing is settled here and the sweep settles as it goes."""
     from realtime import MODELS
