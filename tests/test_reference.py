@@ -340,3 +340,63 @@ def test_solver_options_leave_petsc_s_table_empty():
         assert ksp.getType() == GAMG_OPTIONS["ksp_type"]
         ksp.destroy()
     assert not [key for key in PETSc.Options().getAll() if key.startswith("tb_")]
+
+
+@pytest.mark.parametrize("degree", [1, 2])
+def test_newmark_inertia_and_damping_as_matrix_products_equal_their_integrals(degree, tmp_path):
+    """A Newmark residual's inertia and Rayleigh damping are added as M (a + a_m v) + b_k K0 v, M the
+    scalar space's mass matrix applied per component: equal to the integrals the tangent differentiates,
+    rho (a + a_m v) . w + b_k C : eps(v) : eps(w), to round-off (1e3 eps of their norm: sums over a few
+    hundred cells). Two materials of different densities, so the mass matrix must weigh each part by its
+    own; random states, so every component and coupling is exercised."""
+    import ufl
+    from dolfinx import fem as dfem
+    from petsc4py import PETSc
+
+    from reference import fem
+
+    p = tmp_path / "two.toml"
+    p.write_text("""
+name = "two"
+[mesh]
+generator = "box"
+size = [0.04, 0.02, 0.02]
+h = 0.01
+[[material]]
+all = true
+law = "stvk"
+young = 1.0e4
+poisson = 0.45
+density = 1000.0
+[[material]]
+box = [[0.02, -1.0, -1.0], [1.0, 1.0, 1.0]]
+law = "stvk"
+young = 1.0e5
+poisson = 0.3
+density = 3000.0
+[[fixed]]
+box = [[-1e-9, -1.0, -1.0], [1e-9, 1.0, 1.0]]
+""")
+    scene = load_scene(p)
+    ep = fem.ElasticityProblem(scene.mesh, scene.body_material(), scene.problem, degree=degree)
+    rng = np.random.default_rng(3)
+    u_old, v_old, a_old = (dfem.Function(ep.V) for _ in range(3))
+    for f in (ep.u, u_old, v_old, a_old):
+        f.x.array[:] = rng.standard_normal(f.x.array.shape)
+    dt, beta, gamma, rayleigh = 1e-3, 0.25, 0.5, (2.0, 1e-3)
+    c1, c2, c3 = 1.0 / (beta * dt * dt), 1.0 / (beta * dt), (1.0 - 2.0 * beta) / (2.0 * beta)
+    add = ep._newmark_linear_part(u_old, v_old, a_old, (c1, c2, c3, dt, gamma), rayleigh)
+    products = dfem.petsc.create_vector(dfem.form(ep.residual))
+    products.set(0.0)
+    add(products)
+    w = ufl.TestFunction(ep.V)
+    accel = c1 * (ep.u - u_old) - c2 * v_old - c3 * a_old
+    veloc = v_old + dt * ((1.0 - gamma) * a_old + gamma * accel)
+    form = ep.mass_weighted(ufl.inner(accel + rayleigh[0] * veloc, w)) + rayleigh[1] * ep.internal_work(
+        veloc, w, law="linear"
+    )
+    integrals = dfem.petsc.assemble_vector(dfem.form(form))
+    integrals.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    assert np.linalg.norm(products.array - integrals.array) <= 1e3 * np.finfo(float).eps * np.linalg.norm(
+        integrals.array
+    )
