@@ -260,7 +260,15 @@ def test_a_wrong_state_or_step_is_a_one_line_error_not_a_crash(cls):
         (good, "1e-6", 1, r"step: dt = '1e-6'"),
         (good, 1e-6, -1, r"step: n = -1: must be a whole number of steps >= 0"),
         (good, 1e-6, 2.5, r"step: n = 2.5"),
+        (good, float("inf"), 1, r"step: dt = inf"),
+        (State(u=np.zeros((n, 3)), v=np.zeros((n, 3)), t=float("inf")), 1e-6, 1, r"State.t = inf"),
     ]
+    frozen = np.zeros((n, 3))
+    frozen.flags.writeable = False
+    cases.append((State(u=np.zeros((n, 3)), v=frozen), 1e-6, 1, "State.v: .* that is not C-contiguous and writable"))
     for state, dt, steps, message in cases:
         with pytest.raises(InputError, match=message):
             integ.step(model, state, dt, steps)
+    # what the exact-type fast path does not take, the full check still accepts: numpy scalars, an int t
+    for dt, steps, t in ((np.float64(1e-6), np.int64(1), 0), (1e-6, 1, np.float64(0.0)), (1, 0, 0.0)):
+        integ.step(model, State(u=np.zeros((n, 3)), v=np.zeros((n, 3)), t=t), dt, steps)
