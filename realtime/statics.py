@@ -33,10 +33,10 @@ def residual_floor(model: Model, u: np.ndarray, scale: float) -> float:
     the free components, u' = u with every component moved by one unit in the last place (alternating
     signs: deterministic). No iteration can tell residuals below it apart: they are what rounding u to
     float64 changes in the force. A damped run settles to a plateau a few times above it (the force's
-    own summation adds as much). On the cantilever refined twice linear-tm's floor is 2.3e-10; before
-    this test its residual stalled at 2.0e-9 and the run ended after 74 000 steps by the stall rule,
-    at a step count the summation order decided (69 600 with the two-thread kernel, whose sums differ
-    by round-off); now it stops at 57 400, at 2.3e-9."""
+    own summation adds as much). On the cantilever refined twice linear-tm's floor is 2.3e-10: the run
+    stops at 57 400 steps, at 2.3e-9; by the stall rule alone its residual stalled at 2.0e-9 and it
+    ended after 74 000 steps, a count the summation order decided (69 600 with the two-thread kernel,
+    whose sums differ by round-off)."""
     lo = model.loading
     signs = np.where(np.arange(u.size).reshape(u.shape) % 2 == 0, 1.0, -1.0)
     moved = u + signs * np.spacing(u)
