@@ -187,7 +187,7 @@ def _check_step(model: Model, state: State, dt, n) -> tuple[float, int]:
     finite number of s and n a whole number of steps >= 0. Raises InputError naming what is wrong.
 
     A haptic loop pays this at every call: what such a loop passes (Python floats and ints, the arrays
-    it stepped last time) is accepted by exact type tests first, 0.3 us instead of 0.8; anything else
+    it stepped last time) is accepted by exact type tests first, 0.5 us instead of 0.8; anything else
     goes through ``_checked_step``, which accepts numpy scalars too and names what is wrong."""
     shape = (len(model.points), 3)
     t = getattr(state, "t", None)
@@ -205,14 +205,14 @@ def _check_step(model: Model, state: State, dt, n) -> tuple[float, int]:
     return _checked_step(shape, state, dt, n)
 
 
+_FLOAT64 = np.dtype(np.float64)
+
+
 def _is_state_array(a, shape: tuple) -> bool:
     if type(a) is not np.ndarray or a.shape != shape or a.dtype != _FLOAT64:
         return False
     flags = a.flags
     return flags.c_contiguous and flags.writeable
-
-
-_FLOAT64 = np.dtype(np.float64)
 
 
 def _checked_step(shape: tuple, state: State, dt, n) -> tuple[float, int]:
