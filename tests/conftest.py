@@ -15,6 +15,27 @@ quiet_compilers()  # FFCx's JIT logs its compiler calls at INFO
 #: ahead, on all cores, when the session runs slow tests.
 SUITE_REFERENCES = ("cantilever", "cantilever-pull", "cantilever-dynamic", "block-press", "block-twist")
 _SESSION = {"slow": False}
+#: A clamped 6 cm StVK beam whose free end a tool pushes 1 cm down over 10 ms (no gravity or traction):
+#: the Newmark tests' scene (append a [time] table for a dynamic one).
+SWING = """
+name = "swing"
+[mesh]
+generator = "box"
+size = [0.06, 0.01, 0.01]
+h = 0.005
+[material]
+law = "stvk"
+young = 5.0e5
+poisson = 0.3
+density = 1000.0
+[[fixed]]
+box = [[-1e-9, -1.0, -1.0], [1e-9, 1.0, 1.0]]
+[[load]]
+kind = "displacement"
+box = [[0.0599999, -1.0, -1.0], [1.0, 1.0, 1.0]]
+value = [0.0, 0.0, -0.01]
+ramp = 0.01
+"""
 
 
 def pytest_collection_modifyitems(config, items):

@@ -9,6 +9,8 @@ from reference.driver import solve_static as reference_static
 from verification.runner import ROOT, compare, reference_result
 from verification.scene import load_scene
 
+from .conftest import SWING
+
 
 def slender_cantilever(tmp_path, poisson=0.3):
     """0.2 m x 20 mm x 20 mm (slenderness 10), linear, clamped at x = 0, under its own weight."""
@@ -263,25 +265,7 @@ def test_a_newmark_step_is_converged_against_its_forces_not_the_inertia_of_snapp
     from reference import fem
 
     p = tmp_path / "swing.toml"
-    p.write_text("""
-name = "swing"
-[mesh]
-generator = "box"
-size = [0.06, 0.01, 0.01]
-h = 0.005
-[material]
-law = "stvk"
-young = 5.0e5
-poisson = 0.3
-density = 1000.0
-[[fixed]]
-box = [[-1e-9, -1.0, -1.0], [1e-9, 1.0, 1.0]]
-[[load]]
-kind = "displacement"
-box = [[0.0599999, -1.0, -1.0], [1.0, 1.0, 1.0]]
-value = [0.0, 0.0, -0.01]
-ramp = 0.01
-""")
+    p.write_text(SWING)
     scene = load_scene(p)
     steps = []
     solve, assemble = fem.Newton.solve, fem.Newton._assemble_raw

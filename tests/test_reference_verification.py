@@ -19,6 +19,8 @@ from reference.problem import Displacement, Fixed, Gravity, Problem
 from verification.results import Result
 from verification.scene import load_scene
 
+from .conftest import SWING
+
 
 def fitted(h, e):
     return float(np.polyfit(np.log(h), np.log(e), 1)[0])
@@ -375,30 +377,16 @@ def test_mpirun_two_ranks_newmark_equals_serial(tmp_path):
     inertia and damping as products on each rank's owned entries, and the ghosts' parts of the assembled
     residual must still be added once (1e-8: Newtons stopped at 1e-10 of the force scale, over 20 steps)."""
     scene = tmp_path / "swing.toml"
-    scene.write_text("""
-name = "swing"
-[mesh]
-generator = "box"
-size = [0.04, 0.01, 0.01]
-h = 0.005
-[material]
-law = "stvk"
-young = 5.0e5
-poisson = 0.3
-density = 1000.0
-[[fixed]]
-box = [[-1e-9, -1.0, -1.0], [1e-9, 1.0, 1.0]]
-[[load]]
-kind = "displacement"
-box = [[0.0399999, -1.0, -1.0], [1.0, 1.0, 1.0]]
-value = [0.0, 0.0, -0.004]
-ramp = 0.005
+    scene.write_text(
+        SWING
+        + """
 [time]
 mode = "dynamic"
 end = 0.01
 output_every = 0.002
 damping = { mass = 2.0, stiffness = 1e-4 }
-""")
+"""
+    )
     serial, parallel = tmp_path / "serial.npz", tmp_path / "mpi.npz"
     args = ["reference", str(scene), "--degree", "2", "--no-estimate", "--no-cache"]
     for out, mpi in ((serial, 0), (parallel, 2)):
