@@ -16,6 +16,14 @@ and re-pickling the first key fails (its kernel's type refers to a dispatcher th
 unpickling held). The report's workers settling scenes at once met it. A failed save of an index loses
 nothing but the caching of that one specialisation (the index on disk is left as it was), so
 ``tolerate_vanished`` makes the engine's functions skip such a save instead of failing the run.
+
+A step loop's cached specialisation is found again only if its key, which holds the kernel's dispatcher,
+unpickles to the kernel this process imported. numba pickles a dispatcher as a random identity drawn on
+first use and, unpickling, returns the live dispatcher of that identity or else builds (and compiles) a
+new one, whose type matches nothing. So no process ever found another's step loops: the report's main
+process compiled them again in every run, 16 s of its cantilever section, and each settling worker did
+too. ``stable_identities`` gives each of the engine's compiled functions an identity drawn from its name
+and the sources' stamp instead, the same in every process of one version of the engine.
 """
 
 from __future__ import annotations
@@ -71,17 +79,37 @@ def guard() -> None:
     tolerate_vanished on every compiled function of the engine."""
     from .steppers import _run_symplectic_euler
 
+    sources = list(Path(__file__).parent.glob("*.py"))
     cache = getattr(_run_symplectic_euler, "_cache", None)
     path = getattr(cache, "cache_path", None)
     if path:
-        clear_if_stale(Path(path), list(Path(__file__).parent.glob("*.py")))
+        clear_if_stale(Path(path), sources)
     import sys
 
-    for name, module in list(sys.modules.items()):
-        if name.startswith(__package__ + "."):
-            for obj in list(vars(module).values()):
-                if isinstance(obj, Dispatcher):
-                    tolerate_vanished(obj)
+    dispatchers = [
+        obj
+        for name, module in list(sys.modules.items())
+        if name.startswith(__package__ + ".")
+        for obj in list(vars(module).values())
+        if isinstance(obj, Dispatcher)
+    ]
+    stable_identities(dispatchers, sources_digest(sources))
+    for obj in dispatchers:
+        tolerate_vanished(obj)
+
+
+def stable_identities(dispatchers: list[Dispatcher], stamp: str) -> None:
+    """Give each of ``dispatchers`` the identity numba pickles it as (its ``_uuid``), drawn from ``stamp``
+    and its module and qualified name rather than at random (module docstring), where numba allows it:
+    before its first pickling, and where no other live dispatcher holds that identity. The others keep
+    numba's random identity (their step loops compile in each process, as before)."""
+    for d in dispatchers:
+        fn = getattr(d, "py_func", None)
+        if fn is None or getattr(d, "_MemoMixin__uuid", "") is not None or not hasattr(d, "_set_uuid"):
+            continue
+        ident = f"tissuebench-{stamp[:16]}-{fn.__module__}.{fn.__qualname__}"
+        if d._memo.get(ident) is None:
+            d._set_uuid(ident)
 
 
 def tolerate_vanished(dispatcher: Dispatcher) -> None:

@@ -428,3 +428,39 @@ def test_a_cache_index_numba_cannot_pickle_again_costs_the_caching_not_the_run()
         else:
             with pytest.raises(ReferenceError):
                 f(1)
+
+
+_STEP_IN_A_FRESH_PROCESS = """
+import json
+import numpy as np
+from meshes import structured_box
+from realtime import Material, State, SymplecticEuler, build_model
+from realtime.steppers import _run_symplectic_euler
+mesh = structured_box((0.02, 0.01, 0.01), (2, 1, 1))
+model = build_model("linear-tm", mesh.points, mesh.tets, Material(young=3e3, poisson=0.3, density=1e3))
+SymplecticEuler(alpha=1.0).step(model, State.at_rest(mesh.n_vertices), 1e-5, 3)
+stats = _run_symplectic_euler.stats
+print(json.dumps([sum(stats.cache_hits.values()), sum(stats.cache_misses.values())]))
+"""
+
+
+@pytest.mark.slow
+def test_a_step_loop_compiled_in_one_process_is_loaded_from_the_cache_in_the_next():
+    """A step loop takes the model's kernel as an argument, and its cached specialisation is keyed by
+    that kernel's dispatcher, which numba pickles under an identity of its own. With numba's random
+    identities no process found another's step loops: the report's main process compiled them again in
+    every run (16 s of its cantilever section) and so did every settling worker. The engine's functions
+    now carry identities drawn from their names (jitcache.stable_identities): a second process loads the
+    step loop the first one compiled."""
+    import json
+    import subprocess
+    import sys
+
+    runs = []
+    for _ in range(2):  # in the suite's numba cache: an empty one would cost the test 50 s of compiling
+        out = subprocess.run(
+            [sys.executable, "-c", _STEP_IN_A_FRESH_PROCESS], capture_output=True, text=True, check=True
+        )
+        runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    assert sum(runs[0]) == 1  # the first compiled it and saved it, or loaded it
+    assert runs[1] == [1, 0]  # the second loaded it
