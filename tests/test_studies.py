@@ -225,6 +225,42 @@ def test_settlings_made_ahead_on_two_processes_are_the_ones_a_run_makes(tmp_path
     assert not list((tmp_path / "settled").glob("cantilever-dynamic-*"))  # dynamic scenes are not settled
 
 
+@pytest.mark.slow
+def test_the_stability_studys_settlings_made_ahead_are_the_ones_its_cells_read(tmp_path, monkeypatch):
+    """The stability study settles its cells ahead on every core (stability.settle_cells); each cell then
+    finds its equilibrium cached: the step count it reports is the one settled ahead, the explicit and
+    the implicit cell alike (a mark put in the cached file comes out in the cell). A cell tried ahead is
+    not queued again, whatever came of it."""
+    from verification import prefetch
+    from verification.runner import settled_path
+    from verification.stability import STABILITY_BUDGET, _cell, _far_face_tool, settle_cells
+
+    monkeypatch.setenv("TISSUEBENCH_CACHE", str(tmp_path))  # the workers inherit it
+    monkeypatch.setattr(prefetch, "SETTLED_AHEAD", set())
+    scene = load_scene("cantilever")
+    variant = scene.with_material(poisson=0.49)
+    cases = [("poisson", 0.49, variant), ("rotation", 90.0, _far_face_tool(scene, "rotation"))]
+    cells = settle_cells(scene, ("linear-tm", "condensed"), cases)
+    assert [(c[0].name, c[1], c[2]) for c in cells] == [
+        ("cantilever", "linear-tm", "symplectic-euler"),
+        ("cantilever", "linear-tm", "symplectic-euler"),
+        ("cantilever", "linear-tm", "implicit-euler"),  # nu >= 0.49: implicit Euler too
+        ("cantilever-rotation", "linear-tm", "symplectic-euler"),
+    ]  # the quasi-static model settles nothing
+    prefetch.settle_ahead([], workers=2, cells=cells)
+    paths = [settled_path(s, m, i, None, None, 1e-10, STABILITY_BUDGET, None) for s, m, i, _ in cells]
+    assert all(p.exists() for p in paths) and prefetch.SETTLED_AHEAD == set(paths)
+    for integrator, path in zip(("symplectic-euler", "implicit-euler"), paths[1:3], strict=True):
+        ahead = dict(np.load(path))
+        np.savez(path, **{**ahead, "steps": 12345})  # a mark: the cell reports it only if it read this file
+        row = _cell(variant, "linear-tm", integrator, 0.1, None, True)
+        assert row["settle_steps"] == 12345 and row["status"] == "inaccurate", integrator
+    for path in paths:
+        path.unlink()
+    monkeypatch.setattr(prefetch, "_spawned", lambda *a: pytest.fail("a cell tried ahead was queued again"))
+    prefetch.settle_ahead([], workers=2, cells=cells)
+
+
 def test_stability_reports_nearly_incompressible_honestly(capsys):
     assert main(["stability", "cantilever", "--models", "linear-tm", "stvk-tm", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)

@@ -128,13 +128,19 @@ def solve_references(jobs: list[tuple[Scene, dict]], workers: int | None = None)
 #: so that the last job to finish is a short one.
 _SETTLE_ORDER = ("adaptive-tm", "corotational-tm", "hybrid-tm", "stvk-tm", "linear-tm", "mass-spring")
 
+#: Settlings tried ahead in this process, by cache path, whatever came of them: one that diverged or did
+#: not settle is not cached, and a study that asks for it again runs it itself (and reports it).
+SETTLED_AHEAD: set = set()
 
-def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...]) -> int:
-    """(In a worker process.) Settle ``scene`` with ``model_name`` and symplectic Euler at each of
-    ``fractions`` of its critical step and at its largest stable fraction, and with implicit Euler at its
-    default step if the advisor tries it (``advise.IMPLICIT_MODELS``), into the caches that
-    ``runner.settled`` and ``runs.largest_stable_fraction`` read; returns how many settled (a run that
-    diverges or does not settle is left to the study, which reports it)."""
+
+def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...], runs: tuple = ()) -> int:
+    """(In a worker process.) Settle ``scene`` with ``model_name`` into the caches that ``runner.settled``
+    and ``runs.largest_stable_fraction`` read, as a sweep and its advice would: with symplectic Euler at
+    each of ``fractions`` of its critical step and at its largest stable fraction, and with implicit Euler
+    at its default step if the advisor tries it (``advise.IMPLICIT_MODELS``); none of these when
+    ``fractions`` is empty. Then each of ``runs`` ((integrator, max_steps) at the default step: the
+    stability study's cells, ``stability.settle_cells``). Returns how many settled (a run that diverges
+    or does not settle is left to the study, which reports it)."""
     from realtime import DivergenceError, NotConvergedError
 
     from .advise import IMPLICIT_MODELS
@@ -142,40 +148,58 @@ def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...]) -
     from .runs import largest_stable_fraction
 
     model = model_for(scene, model_name)
-    stable = largest_stable_fraction(scene, model_name)["stable"]
-    runs = [("symplectic-euler", f) for f in (*fractions, *([stable] if stable else []))]
-    runs += [("implicit-euler", None)] if model_name in IMPLICIT_MODELS else []
+    todo = []
+    if fractions:
+        stable = largest_stable_fraction(scene, model_name)["stable"]
+        todo += [("symplectic-euler", f, None) for f in (*fractions, *([stable] if stable else []))]
+        todo += [("implicit-euler", None, None)] if model_name in IMPLICIT_MODELS else []
+    todo += [(integrator, None, max_steps) for integrator, max_steps in runs]
     done = 0
-    for integrator, fraction in runs:
+    for integrator, fraction, max_steps in todo:
         try:
-            settled(scene, model, integrator, None, fraction)
+            settled(scene, model, integrator, None, fraction, **({"max_steps": max_steps} if max_steps else {}))
             done += 1
         except (DivergenceError, NotConvergedError):
             pass
     return done
 
 
-def settle_ahead(jobs: list[tuple[Scene, tuple[float, ...]]], workers: int | None = None, models=None) -> None:
+def settle_ahead(
+    jobs: list[tuple[Scene, tuple[float, ...]]], workers: int | None = None, models=None, cells=()
+) -> None:
     """Settle the static scenes of ``jobs`` ((scene, fractions of the critical step) pairs) with every
-    time-stepping model (or those of ``models``), ``workers`` processes at a time (default: the cores
-    this process may use), as their sweeps and advice would one after the other (``_settle_model``). The sweep then finds each
-    equilibrium cached and only times its steps, on a quiet machine: nothing is timed here. With one
-    worker or under mpirun nothing is settled here and the sweep settles as it goes."""
+    time-stepping model (or those of ``models``), and the stability study's ``cells`` ((scene, model,
+    integrator, max_steps) at the default step, ``stability.settle_cells``) not settled or tried yet,
+    ``workers`` processes at a time (default: the cores this process may use), as the sweeps, advice and
+    study would one after the other (``_settle_model``). They then find each equilibrium cached and
+    only time its steps, on a quiet machine: nothing is timed here. With one worker, one job or under
+    mpirun nothing is settled here and each settles as it goes."""
     from realtime import MODELS
     from realtime.models import QUASI_STATIC
 
-    models = sorted(
-        (m for m in models or MODELS if m not in QUASI_STATIC), key=lambda m: (_SETTLE_ORDER + (m,)).index(m)
-    )
+    from .runner import settled_path
+
+    order = _SETTLE_ORDER + tuple(sorted(MODELS))
+    models = sorted((m for m in models or MODELS if m not in QUASI_STATIC), key=order.index)
     todo = [
         (scene, m, tuple(fractions))
         for m in models
         for scene, fractions in sorted(jobs, key=lambda job: -job[0].mesh.n_tets)
         if scene.time.mode == "static"
     ]
+    runs: dict[tuple, list] = {}  # the cells by (scene, model), in their order
+    paths = []
+    for scene, m, integrator, max_steps in cells:
+        path = settled_path(scene, m, integrator, None, None, 1e-10, max_steps, None)
+        if m not in QUASI_STATIC and path not in SETTLED_AHEAD and not path.exists():
+            paths.append(path)
+            runs.setdefault((scene.sha256(), m), [scene, m, ()])[2] += ((integrator, max_steps),)
+    # after the sweeps' (longer) jobs, the costliest models first: the last to finish is a short one
+    todo += [(scene, m, (), r) for scene, m, r in sorted(runs.values(), key=lambda job: order.index(job[1]))]
     workers = _workers(workers, len(todo))
     if not workers:
         return
+    SETTLED_AHEAD.update(paths)
     log(f"settling: {len(todo)} model runs of static scenes on {workers} processes before the timed runs")
     for _ in _spawned(_settle_model, todo, workers):
         pass

@@ -33,7 +33,7 @@ from .prefetch import advice_jobs, settle_ahead, solve_references  # noqa: E402
 from .results import atomic_write_text  # noqa: E402
 from .runner import REFERENCE_DEFAULTS, git_commit, log, reference_result, run_model, versions  # noqa: E402
 from .scene import SceneError, load_scene  # noqa: E402
-from .stability import FAILED_REFERENCES, reference_jobs, stability  # noqa: E402
+from .stability import FAILED_REFERENCES, reference_jobs, settle_cells, stability  # noqa: E402
 from .sweep import default_fractions, sweep, sweep_csv  # noqa: E402
 
 DEFAULT_SCENES = ["cantilever", "cantilever-pull", "cantilever-dynamic", "stiff-inclusion"]
@@ -492,12 +492,13 @@ def write_report(
     if studies:
         jobs += reference_jobs(load_scene(STABILITY_SCENE))
     FAILED_REFERENCES.update(solve_references(jobs))  # the stability study does not solve these again
-    # the sections' steps and the advisor's (its sweep runs the default ones)
+    # the sections' steps, the advisor's (its sweep runs the default ones) and the stability study's cells
     settle_ahead(
         [
             (scene, tuple(dict.fromkeys([*section_fractions(scene, fractions), *default_fractions(scene)])))
             for scene in map(load_scene, scenes)
-        ]
+        ],
+        cells=settle_cells(load_scene(STABILITY_SCENE), STABILITY_MODELS) if studies else (),
     )
     sections, data = [], {"scenes": []}
     for s in scenes:
