@@ -34,7 +34,15 @@ from .errors import InputError
 from .linsolve import FACTOR_LIMIT, NO_FACTOR, factorise
 from .model import TOOL_ROTATION, Model, State, Tools
 from .spectra import max_eigenvalue
-from .steppers import CG, CGWork, _run_central_difference, _run_implicit_euler, _run_symplectic_euler
+from .steppers import (
+    CG,
+    CGWork,
+    SymplecticWork,
+    _run_central_difference,
+    _run_implicit_euler,
+    _run_symplectic_euler,
+    symplectic_work,
+)
 
 _JIT = dict(nogil=True, cache=True)
 
@@ -87,6 +95,7 @@ class _Prepared:
     reaction: np.ndarray  # (L, 3) N, the tools' force on the body in the last step
     version: int = 0  # set_forces calls: a stored acceleration from an older version is stale
     entries: dict = field(default_factory=dict)  # step loop -> its compiled entry point (_call)
+    symplectic: SymplecticWork | None = None  # these arrays for symplectic Euler's loop, made on its first call
 
     @staticmethod
     def of(model: Model) -> _Prepared:
@@ -282,11 +291,17 @@ class SymplecticEuler(Integrator):
         tools' force on the body in the last step, (L, 3) float64 N (``_tool_reaction``)."""
         p = self._prepare(model)
         dt, n = _check_step(model, state, dt, n)
-        bad = _call(p, _run_symplectic_euler, (
-            n, dt, float(state.t), model.force_kernel, model.data, p.scratch, model.points, p.per_dof, model.mass,
-            p.fext, p.tools, float(self.alpha), float(self.beta), p.bound, state.u, state.v, p.f, p.w, p.vt,
-            p.reaction,
-        ))  # fmt: skip
+        work = p.symplectic
+        if work is None:
+            work = p.symplectic = symplectic_work(
+                model.data, p.scratch, model.points, p.per_dof, model.mass, p.fext, p.tools, p.bound, p.f, p.w, p.vt,
+                p.reaction,
+            )  # fmt: skip
+        bad = _call(
+            p,
+            _run_symplectic_euler,
+            (n, dt, float(state.t), model.force_kernel, work, float(self.alpha), float(self.beta), state.u, state.v),
+        )
         if bad >= 0:
             self._diverged(model, state, bad, dt, dt_crit)
         state.t += n * dt
