@@ -37,11 +37,11 @@ from .spectra import max_eigenvalue
 from .steppers import (
     CG,
     CGWork,
-    SymplecticWork,
+    StepWork,
     _run_central_difference,
     _run_implicit_euler,
     _run_symplectic_euler,
-    symplectic_work,
+    step_work,
 )
 
 _JIT = dict(nogil=True, cache=True)
@@ -95,7 +95,7 @@ class _Prepared:
     reaction: np.ndarray  # (L, 3) N, the tools' force on the body in the last step
     version: int = 0  # set_forces calls: a stored acceleration from an older version is stale
     entries: dict = field(default_factory=dict)  # step loop -> its compiled entry point (_call)
-    symplectic: SymplecticWork | None = None  # these arrays for symplectic Euler's loop, made on its first call
+    work: StepWork | None = None  # these arrays as the explicit loops take them (step_work), made on first use
 
     @staticmethod
     def of(model: Model) -> _Prepared:
@@ -122,6 +122,16 @@ class _Prepared:
             np.zeros((len(vert), 3)),
             np.zeros((len(kind), 3)),
         )
+
+    def step_work(self) -> StepWork:
+        """This workspace's arrays in one StepWork (made on the first call), as the explicit loops take them."""
+        if self.work is None:
+            m = self.model
+            self.work = step_work(
+                m.data, self.scratch, m.points, m.mass, self.inv_mass, m.loading.free, self.per_dof, self.fext,
+                self.tools, self.bound, self.f, self.w, self.vt, self.reaction,
+            )  # fmt: skip
+        return self.work
 
 
 @dataclass
@@ -291,17 +301,8 @@ class SymplecticEuler(Integrator):
         tools' force on the body in the last step, (L, 3) float64 N (``_tool_reaction``)."""
         p = self._prepare(model)
         dt, n = _check_step(model, state, dt, n)
-        work = p.symplectic
-        if work is None:
-            work = p.symplectic = symplectic_work(
-                model.data, p.scratch, model.points, p.per_dof, model.mass, p.fext, p.tools, p.bound, p.f, p.w, p.vt,
-                p.reaction,
-            )  # fmt: skip
-        bad = _call(
-            p,
-            _run_symplectic_euler,
-            (n, dt, float(state.t), model.force_kernel, work, float(self.alpha), float(self.beta), state.u, state.v),
-        )
+        args = (n, dt, float(state.t), model.force_kernel, p.step_work(), float(self.alpha), float(self.beta))
+        bad = _call(p, _run_symplectic_euler, (*args, state.u, state.v))
         if bad >= 0:
             self._diverged(model, state, bad, dt, dt_crit)
         state.t += n * dt
@@ -334,11 +335,8 @@ class CentralDifference(Integrator):
             acc = (f0 + p.fext) * p.inv_mass[:, None] * lo.free
             state.acc = acc
         state.acc_key = key
-        bad = _call(p, _run_central_difference, (
-            n, dt, float(state.t), model.force_kernel, model.data, p.scratch, model.points, model.mass, p.inv_mass,
-            lo.free, p.fext, p.tools, float(self.alpha), float(self.beta), p.bound, state.u, state.v, acc, p.f,
-            p.w, p.vt, p.reaction,
-        ))  # fmt: skip
+        args = (n, dt, float(state.t), model.force_kernel, p.step_work(), float(self.alpha), float(self.beta))
+        bad = _call(p, _run_central_difference, (*args, state.u, state.v, acc))
         if bad >= 0:
             self._diverged(model, state, bad, dt, dt_crit)
         state.t += n * dt

@@ -100,40 +100,40 @@ def _damped_arg(u, v, beta, w):
 
 
 @structref.register
-class SymplecticWorkType(types.StructRef):
-    """numba's type of SymplecticWork (its fields' types as given, literals widened)."""
+class StepWorkType(types.StructRef):
+    """numba's type of StepWork (its fields' types as given, literals widened)."""
 
     def preprocess_fields(self, fields):
         return tuple((name, types.unliteral(t)) for name, t in fields)
 
 
-class SymplecticWork(structref.StructRefProxy):
-    """What _run_symplectic_euler reads and writes besides the state, for one model in one integrator's
+class StepWork(structref.StructRefProxy):
+    """What the explicit step loops read and write besides the state, for one model in one integrator's
     workspace, held by reference in one numba object: a call unboxes it in about 0.1 us, where the same
     25 arrays passed one by one took 1.3 us of a haptic loop's call (numba's entry point unboxes each).
     The arrays are the workspace's own, so what ``set_forces`` and ``set_tool`` write in place is read
-    by the next call. Fields: data and scratch (the force kernel's), points (N, 3) m, per_dof (3N, 3)
-    (_run_symplectic_euler), mass (N,) kg, fext (N, 3) N, tools (model.Tools), bound m, f and w
-    (N, 3), vt (P, 3) m/s, reaction (L, 3) N."""
+    by the next call. Fields: data and scratch (the force kernel's), points (N, 3) m, mass (N,) kg,
+    inv_mass (N,) 1/kg, free (N, 3) (the Loading's mask), per_dof (3N, 3) (_run_symplectic_euler),
+    fext (N, 3) N, tools (model.Tools), bound m, f and w (N, 3), vt (P, 3) m/s, reaction (L, 3) N."""
 
 
-structref.define_proxy(
-    SymplecticWork,
-    SymplecticWorkType,
-    ["data", "scratch", "points", "per_dof", "mass", "fext", "tools", "bound", "f", "w", "vt", "reaction"],
-)
+STEP_WORK_FIELDS = (
+    "data", "scratch", "points", "mass", "inv_mass", "free", "per_dof", "fext", "tools", "bound", "f", "w", "vt",
+    "reaction",
+)  # fmt: skip
+structref.define_proxy(StepWork, StepWorkType, list(STEP_WORK_FIELDS))
 
 
 @nb.njit(**_JIT)
-def symplectic_work(data, scratch, points, per_dof, mass, fext, tools, bound, f, w, vt, reaction):
-    """A SymplecticWork holding these arrays (not copies)."""
-    return SymplecticWork(data, scratch, points, per_dof, mass, fext, tools, bound, f, w, vt, reaction)
+def step_work(data, scratch, points, mass, inv_mass, free, per_dof, fext, tools, bound, f, w, vt, reaction):
+    """A StepWork holding these arrays (not copies), in the order of STEP_WORK_FIELDS."""
+    return StepWork(data, scratch, points, mass, inv_mass, free, per_dof, fext, tools, bound, f, w, vt, reaction)
 
 
 @nb.njit(**_JIT)
 def _run_symplectic_euler(n, dt, t0, force, work, alpha, beta, u, v):
     """n steps of v = (v + dt a(u)) / (1 + dt alpha); u += dt v. Returns -1 or the index of the step that blew up.
-    ``work``: a SymplecticWork; its ``reaction`` (L, 3) N receives the tools' force on the body in the last
+    ``work``: a StepWork; its ``reaction`` (L, 3) N receives the tools' force on the body in the last
     step (_tool_reaction), with the scheme's own discrete equation m (v_new - v_old) / dt = f(u_old) +
     f_ext - alpha m v_new + R.
 
@@ -171,13 +171,10 @@ def _run_symplectic_euler(n, dt, t0, force, work, alpha, beta, u, v):
 
 
 @nb.njit(**_JIT)
-def _run_central_difference(
-    n, dt, t0, force, data, scratch, points, mass, inv_mass, free, fext, tools, alpha, beta, bound, u, v, a, f, w,
-    vt, reaction,
-):  # fmt: skip
+def _run_central_difference(n, dt, t0, force, work, alpha, beta, u, v, a):
     """n steps of velocity Verlet (central difference): half kick, drift, force, half kick.
-    ``reaction`` (L, 3) N: the tools' force on the body at the end of the last step (_tool_reaction, with
-    the force at the new u and the tools' last velocity increment).
+    ``work``: a StepWork; its ``reaction`` (L, 3) N receives the tools' force on the body at the end of
+    the last step (_tool_reaction, with the force at the new u and the tools' last velocity increment).
 
     a (N, 3) holds the undamped acceleration (f_int + f_ext) / m at entry and at exit. Mass damping
     -alpha v is explicit in the first half kick and implicit in the second, v <- (v (1 - h alpha) +
@@ -186,6 +183,9 @@ def _run_central_difference(
     alpha (spectral radius <= 1 for omega dt < 2 and every alpha dt >= 0, checked on the 2x2
     amplification matrix).
     """
+    data, scratch, points, mass, inv_mass = work.data, work.scratch, work.points, work.mass, work.inv_mass
+    free, fext, tools, bound = work.free, work.fext, work.tools, work.bound
+    f, w, vt, reaction = work.f, work.w, work.vt, work.reaction
     tmp = np.empty(3)
     h = 0.5 * dt
     keep = 1.0 - h * alpha

@@ -435,12 +435,12 @@ import json
 import numpy as np
 from meshes import structured_box
 from realtime import Material, State, SymplecticEuler, build_model
-from realtime.steppers import _run_symplectic_euler, symplectic_work
+from realtime.steppers import _run_symplectic_euler, step_work
 mesh = structured_box((0.02, 0.01, 0.01), (2, 1, 1))
 model = build_model("linear-tm", mesh.points, mesh.tets, Material(young=3e3, poisson=0.3, density=1e3))
 SymplecticEuler(alpha=1.0).step(model, State.at_rest(mesh.n_vertices), 1e-5, 3)
 counts = [(sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values()))
-          for f in (_run_symplectic_euler, symplectic_work)]
+          for f in (_run_symplectic_euler, step_work)]
 print(json.dumps(counts))
 """
 
