@@ -96,6 +96,7 @@ class _Prepared:
     version: int = 0  # set_forces calls: a stored acceleration from an older version is stale
     entries: dict = field(default_factory=dict)  # step loop -> its compiled entry point (_call)
     work: StepWork | None = None  # these arrays as the explicit loops take them (step_work), made on first use
+    cg: CGWork | None = None  # implicit Euler's CG vectors, made on its first call
 
     @staticmethod
     def of(model: Model) -> _Prepared:
@@ -404,18 +405,17 @@ class ImplicitEuler(Integrator):
     def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None) -> np.ndarray:
         """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up. Returns the
         tools' force on the body in the last step, (L, 3) float64 N (``_run_implicit_euler``)."""
-        lo = model.loading
         p = self._prepare(model)
         dt, n = _check_step(model, state, dt, n)
         factored = self.preconditioner_for(model) == "factored"
         fac = self._factored(model, dt) if factored else NO_FACTOR
-        work = CGWork.like(state.u)
-        status, last, its, worst, spent = _call(p, _run_implicit_euler, (
-            n, dt, float(state.t), model.force_kernel, model.data, p.scratch, bool(model.linear), model.points,
-            model.mass, lo.free, p.fext, p.tools, float(self.alpha), float(self.beta), p.bound,
-            CG(float(self.tol), int(self.maxit), bool(factored), bool(self.budget)), fac, state.u, state.v, work, p.vt,
-            p.reaction,
-        ))  # fmt: skip
+        if p.cg is None:
+            p.cg = CGWork.like(state.u)
+        cg = CG(float(self.tol), int(self.maxit), bool(factored), bool(self.budget))
+        args = (n, dt, float(state.t), model.force_kernel, p.step_work(), bool(model.linear), float(self.alpha))
+        status, last, its, worst, spent = _call(
+            p, _run_implicit_euler, (*args, float(self.beta), cg, fac, state.u, state.v, p.cg)
+        )
         self.iterations, self.worst_iterations = int(its), int(worst)
         self.unconverged += int(spent)
         if status == 1:

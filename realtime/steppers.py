@@ -35,7 +35,8 @@ class CG(NamedTuple):
 
 class CGWork(NamedTuple):
     """Implicit Euler's (N, 3) float64 work arrays: the force f, K v, CG's r, z, p, A p and x, and two
-    for the tangent product."""
+    for the tangent product. The loop writes each before it reads it, so one set serves every call
+    (the integrator's workspace keeps it)."""
 
     f: np.ndarray
     kv: np.ndarray
@@ -268,11 +269,9 @@ def _precondition(factored, fac, cm, mass, r, z):
 
 
 @nb.njit(**_JIT)
-def _run_implicit_euler(
-    n, dt, t0, force, data, scratch, linear, points, mass, free, fext, tools, alpha, beta, bound, cg, fac, u, v,
-    work, vt, reaction,
-):  # fmt: skip
-    """n steps of linearised implicit Euler; returns (status, the step it stopped after or -1, total CG
+def _run_implicit_euler(n, dt, t0, force, work, linear, alpha, beta, cg, fac, u, v, cgw):
+    """n steps of linearised implicit Euler (``work`` a StepWork, of which this loop uses neither f nor w:
+    its force and CG's vectors are ``cgw``'s, a CGWork); returns (status, the step it stopped after or -1, total CG
     iterations, the most CG iterations one step took, the steps whose CG stopped at maxit). Status 0:
     all n steps done; 1: the step blew up; 2: its CG stopped at ``maxit`` above ``tol`` (the step is
     taken; the loop stops after it unless ``budget``, a fixed iteration budget as real-time simulators
@@ -287,7 +286,10 @@ def _run_implicit_euler(
     velocities the solve used (the new ones on the free components, the tools' old ones: the solve
     moved the tools' neighbours with those), so that the body's momentum balance closes.
     """
-    f, kv, r, z, p, ap, x, t1, t2 = work
+    data, scratch, points, mass = work.data, work.scratch, work.points, work.mass
+    free, fext, tools, bound = work.free, work.fext, work.tools, work.bound
+    vt, reaction = work.vt, work.reaction
+    f, kv, r, z, p, ap, x, t1, t2 = cgw
     tol, maxit, factored, budget = cg.tol, cg.maxit, cg.factored, cg.budget
     tmp = np.empty(3)
     cm = 1.0 + dt * alpha
