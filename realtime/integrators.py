@@ -96,7 +96,7 @@ class _Prepared:
     reaction: np.ndarray  # (L, 3) N, the tools' force on the body in the last step
     version: int = 0  # set_forces calls: a stored acceleration from an older version is stale
     entries: dict = field(default_factory=dict)  # step loop -> its compiled entry point (_call)
-    work: StepWork | None = None  # these arrays as the explicit loops take them (step_work), made on first use
+    work: StepWork | None = None  # these arrays as the step loops take them (step_work), made on first use
     cg: CGWork | None = None  # implicit Euler's CG vectors, made on its first call
 
     @staticmethod
@@ -127,7 +127,7 @@ class _Prepared:
         )
 
     def step_work(self) -> StepWork:
-        """This workspace's arrays in one StepWork (made on the first call), as the explicit loops take them."""
+        """This workspace's arrays in one StepWork (made on the first call), as the step loops take them."""
         if self.work is None:
             m = self.model
             self.work = step_work(

@@ -109,7 +109,7 @@ class StepWorkType(types.StructRef):
 
 
 class StepWork(structref.StructRefProxy):
-    """What the explicit step loops read and write besides the state, for one model in one integrator's
+    """What the step loops read and write besides the state, for one model in one integrator's
     workspace, held by reference in one numba object: a call unboxes it in about 0.1 us, where the same
     25 arrays passed one by one took 1.3 us of a haptic loop's call (numba's entry point unboxes each).
     The arrays are the workspace's own, so what ``set_forces`` and ``set_tool`` write in place is read
