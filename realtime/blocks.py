@@ -25,6 +25,8 @@ from typing import NamedTuple
 
 import numba as nb
 import numpy as np
+from numba.core import types
+from numba.extending import overload
 
 from .geometry import morton_order, shape_gradients
 from .material import Material, Materials
@@ -48,6 +50,21 @@ class BlockData(NamedTuple):
     geo: np.ndarray
     prm: np.ndarray
     everywhere: np.ndarray
+
+
+def in_type_of(x, c):
+    """The number ``c`` in the floating type of ``x`` (compiled code: a constant that keeps a float32
+    kernel in float32; numba types a literal such as 0.5 as float64, and float32 times float64 is
+    float64, so without it every product with a constant would widen to double)."""
+    return c
+
+
+@overload(in_type_of, inline="always")
+def _in_type_of(x, c):
+    if isinstance(x, types.Float):
+        ty = x
+        return lambda x, c: ty(c)
+    return None
 
 
 def tet_data(points: np.ndarray, tets: np.ndarray):
@@ -81,11 +98,12 @@ GEO_ROWS_U = np.uint64(GEO_ROWS * BLOCK)
 UBLOCK = np.uint64(BLOCK)
 
 
-def block_data(points: np.ndarray, tets: np.ndarray, material: Material | Materials):
+def block_data(points: np.ndarray, tets: np.ndarray, material: Material | Materials, dtype=np.float64):
     """The element kernels' geometry and coefficients in blocks of BLOCK tetrahedra.
 
     points (N, 3) float64 m; tets (M, 4) int64; ``material`` a Material or Materials (one per
-    tetrahedron). Returns tets (P, 4) int64, geo (GEO_ROWS P,) float64 and prm (P / BLOCK, 5) float64.
+    tetrahedron). Returns tets (P, 4) int64, geo (GEO_ROWS P,) and prm (P / BLOCK, 5), both ``dtype``
+    (float64, or float32 for a float32 model: computed in float64, then rounded once).
     The tetrahedra are grouped by material, each group in Morton order (neighbours share blocks; the
     kernels sum over all of them, so their order is internal) and padded to whole blocks with
     zero-volume tetrahedra on vertex 0, which contribute nothing: every block holds one material, whose
@@ -114,15 +132,16 @@ def block_data(points: np.ndarray, tets: np.ndarray, material: Material | Materi
         groups.append((tp, rows.reshape(GEO_ROWS, p // BLOCK, BLOCK).transpose(1, 0, 2).ravel()))
         prm.append(np.repeat(law_params(m)[None, :], p // BLOCK, axis=0))
     if not groups:
-        return np.zeros((0, 4), dtype=np.int64), np.zeros(0), np.zeros((0, 5))
+        return np.zeros((0, 4), dtype=np.int64), np.zeros(0, dtype), np.zeros((0, 5), dtype)
     tp = np.concatenate([t for t, _ in groups])
     geo = np.concatenate([g for _, g in groups])
-    return tp, np.ascontiguousarray(geo), np.ascontiguousarray(np.concatenate(prm))
+    return tp, np.ascontiguousarray(geo, dtype=dtype), np.ascontiguousarray(np.concatenate(prm), dtype=dtype)
 
 
-def block_scratch() -> tuple:
-    """The scratch of stvk_force: W (9 BLOCK,) float64, one block's displacement differences and forces."""
-    return (np.zeros(9 * BLOCK),)
+def block_scratch(dtype=np.float64) -> tuple:
+    """The scratch of stvk_force: W (9 BLOCK,) of the model's float type (float64 unless said), one
+    block's displacement differences and forces."""
+    return (np.zeros(9 * BLOCK, dtype),)
 
 
 @nb.njit(inline="always", **HOT)

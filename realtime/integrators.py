@@ -89,8 +89,8 @@ class _Prepared:
     tools: Tools  # the Loading's, with the targets (vector, angle, ramp) copied for set_tool
     bound: float  # m, the blow-up bound
     n_free: int  # the free components: implicit Euler's preconditioner depends on their count
-    f: np.ndarray  # (N, 3) force buffer
-    w: np.ndarray  # (N, 3) buffer for u + beta v
+    f: np.ndarray  # (N, 3) force buffer, the model's dtype
+    w: np.ndarray  # (N, 3) buffer for u + beta v, the model's dtype
     scratch: tuple  # the force kernel's own scratch (Model.new_scratch): this workspace's alone
     vt: np.ndarray  # (P, 3) m/s, the tool vertices' velocities before the last step
     reaction: np.ndarray  # (L, 3) N, the tools' force on the body in the last step
@@ -119,8 +119,8 @@ class _Prepared:
             tools,
             blowup_bound(model),
             int(np.count_nonzero(lo.free)),
-            np.empty((n, 3)),
-            np.empty((n, 3)),
+            np.empty((n, 3), model.dtype),
+            np.empty((n, 3), model.dtype),
             model.new_scratch(),
             np.zeros((len(vert), 3)),
             np.zeros((len(kind), 3)),
@@ -204,9 +204,10 @@ class Integrator:
 
 def _check_step(model: Model, state: State, dt, n) -> tuple[float, int]:
     """dt as a float and n as an int, after checking what a step is given: the State's u and v writable
-    C-contiguous (N, 3) float64 arrays of this model's N vertices (the kernels index them without bounds
-    checks, so a shorter array would be written past its end), its t a finite number, dt a positive
-    finite number of s and n a whole number of steps >= 0. Raises InputError naming what is wrong.
+    C-contiguous (N, 3) arrays of this model's N vertices and float type (Model.dtype; the kernels index
+    them without bounds checks, so a shorter array would be written past its end), its t a finite
+    number, dt a positive finite number of s and n a whole number of steps >= 0. Raises InputError
+    naming what is wrong.
 
     A haptic loop pays this at every call: what such a loop passes (Python floats and ints, the arrays
     it stepped last time) is accepted by exact type tests first, 0.5 us instead of 0.8; anything else
@@ -220,38 +221,36 @@ def _check_step(model: Model, state: State, dt, n) -> tuple[float, int]:
         and n >= 0
         and type(t) is float
         and -math.inf < t < math.inf
-        and _is_state_array(getattr(state, "u", None), shape)
-        and _is_state_array(getattr(state, "v", None), shape)
+        and _is_state_array(getattr(state, "u", None), shape, model.dtype)
+        and _is_state_array(getattr(state, "v", None), shape, model.dtype)
     ):
         return dt, n
-    return _checked_step(shape, state, dt, n)
+    return _checked_step(shape, model.dtype, state, dt, n)
 
 
-_FLOAT64 = np.dtype(np.float64)
-
-
-def _is_state_array(a, shape: tuple) -> bool:
-    if type(a) is not np.ndarray or a.shape != shape or a.dtype != _FLOAT64:
+def _is_state_array(a, shape: tuple, dtype: np.dtype) -> bool:
+    if type(a) is not np.ndarray or a.shape != shape or a.dtype != dtype:
         return False
     flags = a.flags
     return flags.c_contiguous and flags.writeable
 
 
-def _checked_step(shape: tuple, state: State, dt, n) -> tuple[float, int]:
+def _checked_step(shape: tuple, dtype: np.dtype, state: State, dt, n) -> tuple[float, int]:
     """_check_step's full check, with its one-line InputError."""
     for name in ("u", "v"):
         a = getattr(state, name, None)
         if not (
             isinstance(a, np.ndarray)
-            and a.dtype == np.float64
+            and a.dtype == dtype
             and a.shape == shape
             and a.flags.c_contiguous
             and a.flags.writeable
         ):
             got = f"{a.shape} {a.dtype} array" if isinstance(a, np.ndarray) else type(a).__name__
-            if isinstance(a, np.ndarray) and a.shape == shape and a.dtype == np.float64:
+            if isinstance(a, np.ndarray) and a.shape == shape and a.dtype == dtype:
                 got += " that is not C-contiguous and writable"
-            raise InputError(f"State.{name}: must be a writable C-contiguous {shape} float64 array, got a {got}")
+            why = "" if dtype == np.float64 else f" (the model was built with precision = {dtype.name!r})"
+            raise InputError(f"State.{name}: must be a writable C-contiguous {shape} {dtype} array, got a {got}{why}")
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
         raise InputError(f"step: n = {n!r}: must be a whole number of steps >= 0")
     if isinstance(dt, bool) or not isinstance(dt, (int, float, np.number)) or not (math.isfinite(dt) and dt > 0):
@@ -412,6 +411,11 @@ class ImplicitEuler(Integrator):
     def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None) -> np.ndarray:
         """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up. Returns the
         tools' force on the body in the last step, (L, 3) float64 N (``_run_implicit_euler``)."""
+        if model.precision != "float64":
+            raise InputError(
+                f"implicit-euler: {model.name} was built with precision = {model.precision!r}; its CG solves in "
+                "float64 only (step a float32 model with symplectic-euler or central-difference)"
+            )
         p = self._prepare(model)
         dt, n = _check_step(model, state, dt, n)
         factored = self._preconditioner(p.n_free) == "factored"

@@ -35,6 +35,9 @@ def no_scratch() -> tuple:
     return NO_SCRATCH
 
 
+#: The float types a model may run in (Model.precision): numpy's name -> dtype.
+PRECISIONS = {"float64": np.dtype(np.float64), "float32": np.dtype(np.float32)}
+
 TOOL_TRANSLATION = 0
 TOOL_ROTATION = 1
 #: How a tool travels from 0 at t = 0 to its full value at t = ramp: "linear" (a constant speed, with
@@ -199,8 +202,9 @@ class State:
     """What an integrator advances.
 
     Attributes:
-        u: (N, 3) float64 displacement from the rest positions, m.
-        v: (N, 3) float64 velocity, m/s.
+        u: (N, 3) displacement from the rest positions, m, in the model's float type (Model.dtype:
+            float64, or float32 for a float32 model).
+        v: (N, 3) velocity, m/s, the same type.
         t: time, s.
         steps: number of steps taken.
         acc: (N, 3) float64 acceleration, m/s^2, kept by integrators that need it between calls
@@ -217,8 +221,9 @@ class State:
     acc_key: tuple | None = None
 
     @staticmethod
-    def at_rest(n_vertices: int) -> State:
-        return State(u=np.zeros((n_vertices, 3)), v=np.zeros((n_vertices, 3)))
+    def at_rest(n_vertices: int, dtype=np.float64) -> State:
+        """u = v = 0 for N = ``n_vertices``, in ``dtype`` (a model's ``dtype``: Model.rest_state)."""
+        return State(u=np.zeros((n_vertices, 3), dtype), v=np.zeros((n_vertices, 3), dtype))
 
     def copy(self) -> State:
         acc = None if self.acc is None else self.acc.copy()
@@ -245,6 +250,9 @@ class Model:
             its output (each caller that steps the model at the same time as another needs its own).
         rest_stiffness_of: the model's own ``rest_stiffness`` (a function of the model).
         eigenvalue_bound_of: the model's own ``element_eigenvalue_bound`` (a function of the model).
+        precision: "float64", or "float32": the force kernel's data, the state and the force buffers
+            in single precision, the kernel computing in it (the models of FLOAT32_MODELS; the
+            geometry, masses and loads stay float64, the updates compute in float64 and round).
     """
 
     name: str
@@ -261,10 +269,20 @@ class Model:
     new_scratch: Callable[[], tuple] = no_scratch
     rest_stiffness_of: Callable | None = None
     eigenvalue_bound_of: Callable | None = None
+    precision: str = "float64"
 
     @property
     def n_vertices(self) -> int:
         return len(self.points)
+
+    @property
+    def dtype(self) -> np.dtype:
+        """The float type of the state, the force buffers and the force kernel's arithmetic."""
+        return PRECISIONS[self.precision]
+
+    def rest_state(self) -> State:
+        """A State at rest for this model (u = v = 0 in its ``dtype``)."""
+        return State.at_rest(self.n_vertices, self.dtype)
 
     @property
     def materials(self) -> Materials:
@@ -272,10 +290,11 @@ class Model:
         return Materials.of(self.material, len(self.tets))
 
     def internal_force(self, u: np.ndarray) -> np.ndarray:
-        """Internal elastic force (N, 3) float64, N, at displacement u (N, 3) m (with scratch of its own:
-        safe beside any other call)."""
-        f = np.empty_like(u, dtype=float)
-        self.force_kernel(self.data, self.new_scratch(), np.ascontiguousarray(u, dtype=float), f)
+        """Internal elastic force (N, 3), N, at displacement u (N, 3) m, both in the model's ``dtype`` (u
+        is rounded to it; with scratch of its own: safe beside any other call)."""
+        u = np.ascontiguousarray(u, dtype=self.dtype)
+        f = np.empty_like(u)
+        self.force_kernel(self.data, self.new_scratch(), u, f)
         return f
 
     def rest_stiffness(self):
@@ -302,8 +321,8 @@ class Model:
             )
 
     def elastic_energy(self, u: np.ndarray) -> float:
-        """Elastic energy, J, at displacement u (N, 3) m."""
-        return float(self.energy_kernel(self.data, np.ascontiguousarray(u, dtype=float)))
+        """Elastic energy, J, at displacement u (N, 3) m (rounded to the model's ``dtype``)."""
+        return float(self.energy_kernel(self.data, np.ascontiguousarray(u, dtype=self.dtype)))
 
     def kinetic_energy(self, v: np.ndarray) -> float:
         """Kinetic energy sum m |v|^2 / 2, J, for velocities v (N, 3) m/s."""
@@ -336,6 +355,15 @@ class Model:
     def reaction(self, u: np.ndarray) -> np.ndarray:
         """Total force (3,) N the tools exert on the body at static equilibrium (tool_reactions summed)."""
         return self.tool_reactions(u).sum(axis=0)
+
+
+def check_float64(model: Model, what: str) -> None:
+    """InputError unless ``model`` is float64: a float32 model's kernel reads rounded copies of the
+    tensors, which changing the mesh in place would not reach."""
+    if model.precision != "float64":
+        raise InputError(
+            f"{what}: {model.name} was built with precision = {model.precision!r}; only a float64 model can change its mesh"
+        )
 
 
 def lumped_masses(points: np.ndarray, tets: np.ndarray, density) -> np.ndarray:

@@ -7,6 +7,7 @@ Every builder takes plain arrays (points (N, 3) float64 m; tets (M, 4) int, posi
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 import scipy.sparse as sp
@@ -18,7 +19,7 @@ from .errors import InputError
 from .geometry import shape_gradients, signed_volumes, unique_edges
 from .hybrid import HybridData, hybrid_energy, hybrid_force, hybrid_scratch
 from .material import Material, Materials
-from .model import Loading, Model, lumped_masses, no_scratch, prepare_mesh
+from .model import PRECISIONS, Loading, Model, check_float64, lumped_masses, no_scratch, prepare_mesh
 from .springs import SpringData, spring_energy, spring_force
 from .stvk import stvk_energy, stvk_force
 from .tensor_mass import TensorMass, assemble_blocks, element_elasticity
@@ -26,17 +27,22 @@ from .threaded import block_kernel, check_threads, linear_tm_kernel
 
 
 def build_linear_tm(
-    points, tets, material: Material | Materials, loading: Loading | None = None, threads: int = 1
+    points,
+    tets,
+    material: Material | Materials,
+    loading: Loading | None = None,
+    threads: int = 1,
+    precision: str = "float64",
 ) -> Model:
     """Linear tensor-mass (Cotin et al. 2000), isotropic or transversely isotropic.
 
     f = -K u with K the P1 linear stiffness; the law ``material.law`` is ignored (always linear).
-    ``threads`` > 1: the force on that many threads (realtime.threaded).
+    ``threads`` > 1: the force on that many threads (realtime.threaded). ``precision``: Model.precision.
     """
     threads = check_threads(threads)
     points, tets = prepare_mesh(points, tets)
     tm = TensorMass(points, tets, material)
-    force, energy, data, scratch = linear_tm_kernel(tm, threads)
+    force, energy, data, scratch = linear_tm_kernel(tm, threads, PRECISIONS[precision])
     return _model(
         "linear-tm",
         points,
@@ -48,6 +54,7 @@ def build_linear_tm(
         data,
         True,
         scratch,
+        precision=precision,
         tensors=tm,
         generation=tm.generation,
         threads=threads,
@@ -70,6 +77,7 @@ def cut(model: Model, which) -> Model:
     tm = model.extra.get("tensors")
     if model.name != "linear-tm" or tm is None:
         raise InputError(f"cut: {model.name} does not support cutting (linear-tm does)")
+    check_float64(model, "cut")
     which = np.unique(np.asarray(which, dtype=np.int64))
     tm.remove(which)
     removed = tm.tets[which]
@@ -108,7 +116,7 @@ def tet_eigenvalue_bound(model: Model) -> float:
 
 def spring_rest_stiffness(model: Model):
     """The springs' stiffness at rest, scipy CSR (3N, 3N) N/m: k e e^T on each edge of direction e."""
-    X, edges, k = model.data.points, model.data.edges, model.data.stiffness
+    X, edges, k = model.points, model.data.edges, model.extra["stiffness"]
     d = X[edges[:, 1]] - X[edges[:, 0]]
     d /= np.linalg.norm(d, axis=1)[:, None]
     b = k[:, None, None] * d[:, :, None] * d[:, None, :]
@@ -140,6 +148,7 @@ def _model(
     scratch=no_scratch,
     rest=tet_rest_stiffness,
     bound=tet_eigenvalue_bound,
+    precision="float64",
     **extra,
 ) -> Model:
     if loading is not None:
@@ -159,21 +168,30 @@ def _model(
         eigenvalue_bound_of=bound,
         linear=linear,
         extra=extra,
+        precision=precision,
     )
 
 
 def build_stvk_tm(
-    points, tets, material: Material | Materials, loading: Loading | None = None, threads: int = 1
+    points,
+    tets,
+    material: Material | Materials,
+    loading: Loading | None = None,
+    threads: int = 1,
+    precision: str = "float64",
 ) -> Model:
     """Non-linear StVK tensor-mass (Picinbono et al. 2003), isotropic or transversely isotropic, with
     the volume penalty when ``material.volume_penalty`` > 0. Rotation invariant. ``threads`` > 1: the
-    force on that many threads (realtime.threaded)."""
+    force on that many threads (realtime.threaded). ``precision``: Model.precision."""
     threads = check_threads(threads)
     points, tets = prepare_mesh(points, tets)
-    btets, geo, prm = block_data(points, tets, material)
+    dtype = PRECISIONS[precision]
+    btets, geo, prm = block_data(points, tets, material, dtype)
     data = BlockData(btets, geo, prm, np.ones(len(btets), dtype=np.bool_))
-    kernel = block_kernel(stvk_force, stvk_energy, block_scratch, data, len(points), threads)
-    return _model("stvk-tm", points, tets, material, loading, *kernel[:3], False, kernel[3], threads=threads)
+    kernel = block_kernel(stvk_force, stvk_energy, partial(block_scratch, dtype), data, len(points), threads)
+    return _model(
+        "stvk-tm", points, tets, material, loading, *kernel[:3], False, kernel[3], precision=precision, threads=threads
+    )
 
 
 def build_corotational_tm(
@@ -257,17 +275,21 @@ def spring_stiffness(points, tets, edges, material: Material | Materials) -> np.
     return acc / length2
 
 
-def build_mass_spring(points, tets, material: Material | Materials, loading: Loading | None = None) -> Model:
+def build_mass_spring(
+    points, tets, material: Material | Materials, loading: Loading | None = None, precision: str = "float64"
+) -> Model:
     """Mass-spring network on the mesh edges (Delingette 1998; Liu 2002), lumped FEM masses.
 
     Damping: the integrators' Rayleigh stiffness term evaluates the spring forces at u + beta v, which
-    is a dashpot c = beta k along each spring.
+    is a dashpot c = beta k along each spring. ``precision``: Model.precision.
     """
     points, tets = prepare_mesh(points, tets)
     edges = unique_edges(tets)
     k = spring_stiffness(points, tets, edges, material)
-    rest = np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)
-    data = SpringData(points, edges, k, rest)
+    vectors = points[edges[:, 1]] - points[edges[:, 0]]
+    dtype = PRECISIONS[precision]
+    rest = np.linalg.norm(vectors, axis=1)
+    data = SpringData(vectors.astype(dtype), edges, k.astype(dtype), rest.astype(dtype))
     return _model(
         "mass-spring",
         points,
@@ -280,6 +302,7 @@ def build_mass_spring(points, tets, material: Material | Materials, loading: Loa
         False,
         rest=spring_rest_stiffness,
         bound=spring_eigenvalue_bound,
+        precision=precision,
         stiffness=k,
     )
 
@@ -341,6 +364,9 @@ MODELS: dict[str, Callable[..., Model]] = {
     "adaptive-tm": build_adaptive_tm,
 }
 
+#: Models that can be built with precision = "float32" (Model.precision). corotational-tm is not among
+#: them: its polar decomposition iterates to a float64 tolerance.
+FLOAT32_MODELS = ("linear-tm", "stvk-tm", "mass-spring")
 #: Models that jump to equilibrium instead of integrating in time (their integrator is QuasiStatic).
 QUASI_STATIC = ("precomputed", "condensed", "ffd")
 #: Models without mechanics (no internal force, no energy): what a force-field test cannot test.
@@ -350,9 +376,19 @@ GEOMETRIC = ("ffd",)
 def build_model(
     name: str, points, tets, material: Material | Materials, loading: Loading | None = None, **options
 ) -> Model:
-    """Build the model registered under ``name``."""
+    """Build the model registered under ``name``. ``options`` go to its builder; ``precision``
+    ("float64", the default, or "float32" for FLOAT32_MODELS) is checked here for every model."""
     try:
         builder = MODELS[name]
     except KeyError:
         raise InputError(f"model = {name!r}: must be one of {', '.join(MODELS)}") from None
+    precision = options.pop("precision", "float64")
+    if precision not in PRECISIONS:
+        raise InputError(f"precision = {precision!r}: must be one of {', '.join(PRECISIONS)}")
+    if precision != "float64":
+        if name not in FLOAT32_MODELS:
+            raise InputError(
+                f"precision = {precision!r}: {name} runs in float64 only ({', '.join(FLOAT32_MODELS)} run in float32)"
+            )
+        options["precision"] = precision
     return builder(np.asarray(points), np.asarray(tets), material, loading, **options)

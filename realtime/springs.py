@@ -11,31 +11,45 @@ from .blocks import HOT, JIT
 
 
 class SpringData(NamedTuple):
-    """spring_force's data: points (N, 3) float64 m, edges (E, 2) int64, stiffness (E,) float64 N/m,
-    rest_length (E,) float64 m."""
+    """spring_force's data: edge_vectors (E, 3) m, the rest vector X_j - X_i of each edge (i, j), edges
+    (E, 2) int64, stiffness (E,) N/m, rest_length (E,) m (|X_j - X_i|, computed in float64). The float
+    arrays are all of the model's float type."""
 
-    points: np.ndarray
+    edge_vectors: np.ndarray
     edges: np.ndarray
     stiffness: np.ndarray
     rest_length: np.ndarray
 
 
+@nb.njit(inline="always", **HOT)
+def _stretch(e, edges, L, u, k):
+    """d = x_j - x_i = e_k + (u_j - u_i) of edge k, |d| and its stretch |d| - L_k, the latter as
+    (2 e.du + du.du) / (|d| + L_k): the same number as |d| - L_k, without the cancellation that costs
+    |d| - L_k its leading digits when the stretch is small (in float32, all of them below a strain of
+    1e-7; the difference of positions X_j + u_j - X_i - u_i loses as many again). Zero at rest exactly."""
+    i, j = edges[k, 0], edges[k, 1]
+    du0, du1, du2 = u[j, 0] - u[i, 0], u[j, 1] - u[i, 1], u[j, 2] - u[i, 2]
+    e0, e1, e2 = e[k, 0], e[k, 1], e[k, 2]
+    d0, d1, d2 = e0 + du0, e1 + du1, e2 + du2
+    length = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    grow = (e0 + e0 + du0) * du0 + (e1 + e1 + du1) * du1 + (e2 + e2 + du2) * du2
+    return i, j, d0, d1, d2, length, grow / (length + L[k])
+
+
 @nb.njit(**HOT)
 def spring_force(data, scratch, u, f):
-    """Edge springs: f_i += k_ij (|x_j - x_i| - L_ij) (x_j - x_i) / |x_j - x_i| (Delingette 1998).
+    """Edge springs: f_i += k_ij (|x_j - x_i| - L_ij) (x_j - x_i) / |x_j - x_i| (Delingette 1998), the
+    stretch as _stretch evaluates it.
 
-    data: SpringData.   scratch: model.NO_SCRATCH (unused).
+    data: SpringData.   scratch: model.NO_SCRATCH (unused).   u: (N, 3) displacement, m.
+    f: (N, 3) force, N (overwritten). u, f and the data's float arrays all float64, or all float32
+    (a float32 model: the kernel then computes in float32).
     """
-    X, edges, k, L = data
+    e, edges, k, L = data
     f[:] = 0.0
-    for e in range(edges.shape[0]):
-        i = edges[e, 0]
-        j = edges[e, 1]
-        d0 = X[j, 0] + u[j, 0] - X[i, 0] - u[i, 0]
-        d1 = X[j, 1] + u[j, 1] - X[i, 1] - u[i, 1]
-        d2 = X[j, 2] + u[j, 2] - X[i, 2] - u[i, 2]
-        length = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        s = k[e] * (length - L[e]) / length
+    for m in range(edges.shape[0]):
+        i, j, d0, d1, d2, length, stretch = _stretch(e, edges, L, u, m)
+        s = k[m] * stretch / length
         f[i, 0] += s * d0
         f[i, 1] += s * d1
         f[i, 2] += s * d2
@@ -46,12 +60,10 @@ def spring_force(data, scratch, u, f):
 
 @nb.njit(**JIT)
 def spring_energy(data, u):
-    """sum_e k_e (|x_j - x_i| - L_e)^2 / 2, J."""
-    X, edges, k, L = data
+    """sum_e k_e (|x_j - x_i| - L_e)^2 / 2, J (the stretch as spring_force evaluates it)."""
+    e, edges, k, L = data
     w = 0.0
-    for e in range(edges.shape[0]):
-        i = edges[e, 0]
-        j = edges[e, 1]
-        d = X[j] + u[j] - X[i] - u[i]
-        w += 0.5 * k[e] * (np.sqrt(d @ d) - L[e]) ** 2
+    for m in range(edges.shape[0]):
+        stretch = _stretch(e, edges, L, u, m)[6]
+        w += 0.5 * k[m] * stretch * stretch
     return w

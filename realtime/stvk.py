@@ -6,7 +6,20 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .blocks import BLOCK, GEO_ROWS_U, HOT, JIT, ROW, UBLOCK, block_grad_u, gather, lane_in, lane_out, scatter_block
+from .blocks import (
+    BLOCK,
+    GEO_ROWS_U,
+    HOT,
+    JIT,
+    ROW,
+    UBLOCK,
+    block_grad_u,
+    gather,
+    in_type_of,
+    lane_in,
+    lane_out,
+    scatter_block,
+)
 from .laws import stvk_energy as stvk_density
 from .laws import volume_penalty_energy
 
@@ -14,7 +27,8 @@ from .laws import volume_penalty_energy
 @nb.njit(inline="always", **HOT)
 def _pk2(e00, e11, e22, e01, e02, e12, lam, mu2, a0, a1, a2, dlam, dmu, fibre):
     """S = lam tr(E) I + 2 mu E + dlam (a.Ea) a (x) a + dmu (a (x) Ea + Ea (x) a), the six components
-    (00, 11, 22, 01, 02, 12) of the StVK law (Picinbono et al. 2003, eq. 9) for the strain E."""
+    (00, 11, 22, 01, 02, 12) of the StVK law (Picinbono et al. 2003, eq. 9) for the strain E, in the
+    floating type of the arguments."""
     ltr = lam * (e00 + e11 + e22)
     s00 = mu2 * e00 + ltr
     s11 = mu2 * e11 + ltr
@@ -27,9 +41,10 @@ def _pk2(e00, e11, e22, e01, e02, e12, lam, mu2, a0, a1, a2, dlam, dmu, fibre):
         q1 = e01 * a0 + e11 * a1 + e12 * a2
         q2 = e02 * a0 + e12 * a1 + e22 * a2
         c = dlam * (a0 * q0 + a1 * q1 + a2 * q2)
-        s00 += c * a0 * a0 + 2.0 * dmu * a0 * q0
-        s11 += c * a1 * a1 + 2.0 * dmu * a1 * q1
-        s22 += c * a2 * a2 + 2.0 * dmu * a2 * q2
+        dmu2 = dmu + dmu
+        s00 += c * a0 * a0 + dmu2 * a0 * q0
+        s11 += c * a1 * a1 + dmu2 * a1 * q1
+        s22 += c * a2 * a2 + dmu2 * a2 * q2
         s01 += c * a0 * a1 + dmu * (a0 * q1 + q0 * a1)
         s02 += c * a0 * a2 + dmu * (a0 * q2 + q0 * a2)
         s12 += c * a1 * a2 + dmu * (a1 * q2 + q1 * a2)
@@ -42,22 +57,24 @@ def stvk_block(W, geo, gb, prm, minus_linear):
     W[(3 a + r) BLOCK + q] = V (P g_{a+1})_r, with P = (I + H) S(E) + kappa (J - 1) cof F the StVK
     stress; with ``minus_linear``, less the linear stress sigma(eps) of the same law (no penalty: the
     linear tensor-mass has none), which is the hybrid model's correction.
-    W: (9 BLOCK,) float64 scratch; geo: block_data's geo; gb: uint64 offset of the block in geo;
-    prm: (5,) float64 the block's row of block_data's prm.
+    W: (9 BLOCK,) scratch; geo: block_data's geo; gb: uint64 offset of the block in geo;
+    prm: (5,) the block's row of block_data's prm. All three of one floating type, float64 or float32,
+    in which the block is computed (its constants in_type_of it).
     """
-    lam, mu2, dlam, dmu, kappa = prm[0], 2.0 * prm[1], prm[2], prm[3], prm[4]
+    lam, mu2, dlam, dmu, kappa = prm[0], prm[1] + prm[1], prm[2], prm[3], prm[4]
+    half, one = in_type_of(lam, 0.5), in_type_of(lam, 1.0)
     fibre = dlam != 0.0 or dmu != 0.0
     for q in range(UBLOCK):
         H, g, v = lane_in(W, geo, gb, q)
         a0, a1, a2 = geo[gb + ROW[10] + q], geo[gb + ROW[11] + q], geo[gb + ROW[12] + q]
         h00, h01, h02, h10, h11, h12, h20, h21, h22 = H
         # Green-Lagrange E = (H + H^T + H^T H) / 2
-        e00 = h00 + 0.5 * (h00 * h00 + h10 * h10 + h20 * h20)
-        e11 = h11 + 0.5 * (h01 * h01 + h11 * h11 + h21 * h21)
-        e22 = h22 + 0.5 * (h02 * h02 + h12 * h12 + h22 * h22)
-        e01 = 0.5 * (h01 + h10 + h00 * h01 + h10 * h11 + h20 * h21)
-        e02 = 0.5 * (h02 + h20 + h00 * h02 + h10 * h12 + h20 * h22)
-        e12 = 0.5 * (h12 + h21 + h01 * h02 + h11 * h12 + h21 * h22)
+        e00 = h00 + half * (h00 * h00 + h10 * h10 + h20 * h20)
+        e11 = h11 + half * (h01 * h01 + h11 * h11 + h21 * h21)
+        e22 = h22 + half * (h02 * h02 + h12 * h12 + h22 * h22)
+        e01 = half * (h01 + h10 + h00 * h01 + h10 * h11 + h20 * h21)
+        e02 = half * (h02 + h20 + h00 * h02 + h10 * h12 + h20 * h22)
+        e12 = half * (h12 + h21 + h01 * h02 + h11 * h12 + h21 * h22)
         s00, s11, s22, s01, s02, s12 = _pk2(e00, e11, e22, e01, e02, e12, lam, mu2, a0, a1, a2, dlam, dmu, fibre)
         # P = (I + H) S
         p00 = h00 * s00 + h01 * s01 + h02 * s02
@@ -71,7 +88,7 @@ def stvk_block(W, geo, gb, prm, minus_linear):
         p22 = h20 * s02 + h21 * s12 + h22 * s22
         if minus_linear:
             l00, l11, l22, l01, l02, l12 = _pk2(
-                h00, h11, h22, 0.5 * (h01 + h10), 0.5 * (h02 + h20), 0.5 * (h12 + h21),
+                h00, h11, h22, half * (h01 + h10), half * (h02 + h20), half * (h12 + h21),
                 lam, mu2, a0, a1, a2, dlam, dmu, fibre,
             )  # fmt: skip
             s00, s11, s22, s01, s02, s12 = s00 - l00, s11 - l11, s22 - l22, s01 - l01, s02 - l02, s12 - l12
@@ -85,13 +102,17 @@ def stvk_block(W, geo, gb, prm, minus_linear):
         p21 += s12
         p22 += s22
         if kappa != 0.0:
-            f00, f01, f02 = 1.0 + h00, h01, h02
-            f10, f11, f12 = h10, 1.0 + h11, h12
-            f20, f21, f22 = h20, h21, 1.0 + h22
+            f00, f01, f02 = one + h00, h01, h02
+            f10, f11, f12 = h10, one + h11, h12
+            f20, f21, f22 = h20, h21, one + h22
             c00 = f11 * f22 - f12 * f21
             c01 = f12 * f20 - f10 * f22
             c02 = f10 * f21 - f11 * f20
-            k = kappa * (f00 * c00 + f01 * c01 + f02 * c02 - 1.0)
+            # J - 1 = tr H + (the principal 2x2 minors of H) + det H: det F - 1 itself would lose the
+            # leading digits of a small volume change (in float32, all of them below 1e-7)
+            minors = h00 * h11 - h01 * h10 + h00 * h22 - h02 * h20 + h11 * h22 - h12 * h21
+            det_h = h00 * (h11 * h22 - h12 * h21) + h01 * (h12 * h20 - h10 * h22) + h02 * (h10 * h21 - h11 * h20)
+            k = kappa * (h00 + h11 + h22 + minors + det_h)
             p00 += k * c00
             p01 += k * c01
             p02 += k * c02
@@ -119,7 +140,8 @@ def stvk_force(data, scratch, u, f):
     """StVK tensor-mass force (Picinbono et al. 2003), with fibre terms and the volume penalty.
 
     data: blocks.BlockData.   scratch: blocks.block_scratch().
-    u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
+    u: (N, 3) displacement, m.   f: (N, 3) force, N (overwritten). Both, and the data's geo and prm and
+    the scratch, float64, or all float32 (a float32 model: the kernel then computes in float32).
     """
     tets, geo, prm, everywhere = data
     f[:] = 0.0

@@ -9,11 +9,21 @@ with g_a the gradient of the barycentric function of vertex a and C the linear e
 around a vertex gives the *vertex tensor* T_ii and around an edge (i < j) the *edge tensor* T_ij; the
 internal force is
 
-    f_i = -T_ii u_i - sum_{j > i} T_ij u_j - sum_{j < i} T_ji^T u_i
+    f_i = -T_ii u_i - sum_{j > i} T_ij u_j - sum_{j < i} T_ji^T u_j
 
 i.e. f = -K u with K the assembled P1 stiffness, stored once per edge (half of a symmetric block
 sparse matrix). The tensors are kept per tetrahedron too, so that removing tetrahedra (cutting)
 subtracts exactly their contribution from the touched vertices and edges.
+
+The kernel evaluates the same force in difference form. Each element's stiffness annihilates
+translations, so every block row of K sums to zero, T_ii = -sum_{j != i} K_ij, and
+
+    f_i = -sum_{j > i} T_ij (u_j - u_i) - sum_{j < i} T_ji^T (u_j - u_i)
+
+which never reads the vertex tensors. The sum above cancels: for a smooth u, |K u| is smaller than
+|K| |u| by the square of the number of elements across the body, and that many leading digits of
+each product are lost (in float32, the force's relative error grew to 2e-4 on a settled beam). The
+differences lose none of them.
 """
 
 from __future__ import annotations
@@ -209,42 +219,42 @@ class TensorMass:
         blocks = np.concatenate([self.vertex_tensors, self.edge_tensors, self.edge_tensors.transpose(0, 2, 1)])
         return assemble_blocks(i, j, blocks, n)
 
-    def kernel_data(self) -> TensorData:
+    def kernel_data(self, dtype=np.float64) -> TensorData:
         """The tuple the force kernel ``linear_tm_force`` takes, laid out for one forward pass:
         vertex tensors (N,3,3), cols (E,) int64 (the larger end j of each edge), edge tensors (E,3,3),
         and row_start (N+1,) int64: the edges (i, j > i) of vertex i are row_start[i]:row_start[i+1]
-        (``edges`` is sorted by i). Contiguous arrays; no stride-2 index reads in the hot loop."""
+        (``edges`` is sorted by i). Contiguous arrays; no stride-2 index reads in the hot loop. The
+        tensors are this object's own arrays in float64 (what cutting updates in place is what the
+        kernel reads), or rounded copies in float32 (a float32 model, which cannot be cut)."""
         row_start = np.searchsorted(self.edges[:, 0], np.arange(self.n_vertices + 1)).astype(np.int64)
         return TensorData(
-            np.ascontiguousarray(self.vertex_tensors),
+            np.ascontiguousarray(self.vertex_tensors, dtype=dtype),
             np.ascontiguousarray(self.edges[:, 1]),
-            np.ascontiguousarray(self.edge_tensors),
+            np.ascontiguousarray(self.edge_tensors, dtype=dtype),
             row_start,
         )
 
 
 @nb.njit(inline="always", **_HOT)
-def linear_rows(vt, cols, et, row_start, lo, hi, u, f):
+def linear_rows(cols, et, row_start, lo, hi, u, f):
     """linear_tm_force's pass over the vertex rows lo .. hi - 1, adding into f (N, 3) N: vertex i
-    gathers -T_ii u_i - sum_j T_ij u_j over its edges (i, j > i) in registers and scatters -T_ij^T u_i
-    to each j; f_i is written once. Each edge tensor is loaded once into registers."""
+    gathers -sum_j T_ij (u_j - u_i) over its edges (i, j > i) in registers and scatters
+    T_ij^T (u_j - u_i) to each j; f_i is written once. Each edge tensor is loaded once into registers."""
     for i in range(lo, hi):
         ui0, ui1, ui2 = u[i, 0], u[i, 1], u[i, 2]
-        a0 = f[i, 0] - (vt[i, 0, 0] * ui0 + vt[i, 0, 1] * ui1 + vt[i, 0, 2] * ui2)
-        a1 = f[i, 1] - (vt[i, 1, 0] * ui0 + vt[i, 1, 1] * ui1 + vt[i, 1, 2] * ui2)
-        a2 = f[i, 2] - (vt[i, 2, 0] * ui0 + vt[i, 2, 1] * ui1 + vt[i, 2, 2] * ui2)
+        a0, a1, a2 = f[i, 0], f[i, 1], f[i, 2]
         for e in range(row_start[i], row_start[i + 1]):
             j = cols[e]
             t00, t01, t02 = et[e, 0, 0], et[e, 0, 1], et[e, 0, 2]
             t10, t11, t12 = et[e, 1, 0], et[e, 1, 1], et[e, 1, 2]
             t20, t21, t22 = et[e, 2, 0], et[e, 2, 1], et[e, 2, 2]
-            uj0, uj1, uj2 = u[j, 0], u[j, 1], u[j, 2]
-            a0 -= t00 * uj0 + t01 * uj1 + t02 * uj2
-            a1 -= t10 * uj0 + t11 * uj1 + t12 * uj2
-            a2 -= t20 * uj0 + t21 * uj1 + t22 * uj2
-            f[j, 0] -= t00 * ui0 + t10 * ui1 + t20 * ui2
-            f[j, 1] -= t01 * ui0 + t11 * ui1 + t21 * ui2
-            f[j, 2] -= t02 * ui0 + t12 * ui1 + t22 * ui2
+            d0, d1, d2 = u[j, 0] - ui0, u[j, 1] - ui1, u[j, 2] - ui2
+            a0 -= t00 * d0 + t01 * d1 + t02 * d2
+            a1 -= t10 * d0 + t11 * d1 + t12 * d2
+            a2 -= t20 * d0 + t21 * d1 + t22 * d2
+            f[j, 0] += t00 * d0 + t10 * d1 + t20 * d2
+            f[j, 1] += t01 * d0 + t11 * d1 + t21 * d2
+            f[j, 2] += t02 * d0 + t12 * d1 + t22 * d2
         f[i, 0] = a0
         f[i, 1] = a1
         f[i, 2] = a2
@@ -252,18 +262,20 @@ def linear_rows(vt, cols, et, row_start, lo, hi, u, f):
 
 @nb.njit(**_HOT)
 def linear_tm_force(data, scratch, u, f):
-    """f = -K u from vertex and edge tensors, in one pass over the vertices (linear_rows).
+    """f = -K u from the edge tensors in difference form (the module's docstring), in one pass over the
+    vertices (linear_rows).
 
-    data: TensorData.   scratch: model.NO_SCRATCH (unused).
-    u: (N, 3) float64 displacement, m.   f: (N, 3) float64 output force, N (overwritten).
+    data: TensorData (its vertex tensors are not read).   scratch: model.NO_SCRATCH (unused).
+    u: (N, 3) displacement, m.   f: (N, 3) output force, N (overwritten). u, f and the tensors all
+    float64, or all float32 (a float32 model: the kernel then computes in float32).
     """
-    vt, cols, et, row_start = data
+    cols, et, row_start = data.cols, data.edge_tensors, data.row_start
     n = u.shape[0]
     for i in range(n):
         f[i, 0] = 0.0
         f[i, 1] = 0.0
         f[i, 2] = 0.0
-    linear_rows(vt, cols, et, row_start, 0, n, u, f)
+    linear_rows(cols, et, row_start, 0, n, u, f)
 
 
 @nb.njit(**_JIT)

@@ -59,16 +59,17 @@ def balanced_chunks(cost: np.ndarray, threads: int) -> np.ndarray:
     return np.maximum.accumulate(bounds).astype(np.int64)
 
 
-def threaded_scratch(serial_scratch, threads: int, n_vertices: int) -> tuple:
+def threaded_scratch(serial_scratch, threads: int, n_vertices: int, dtype=np.float64) -> tuple:
     """Scratch of a threaded kernel: each array of ``serial_scratch()`` stacked once per thread
-    ((T,) + its shape), then F (T, N, 3) float64, each thread's forces, N."""
+    ((T,) + its shape and dtype), then F (T, N, 3) of the model's float type ``dtype``, each thread's
+    forces, N."""
     one = serial_scratch()
-    return tuple(np.zeros((threads,) + a.shape) for a in one) + (np.zeros((threads, n_vertices, 3)),)
+    return tuple(np.zeros((threads,) + a.shape, a.dtype) for a in one) + (np.zeros((threads, n_vertices, 3), dtype),)
 
 
-def scratch_factory(serial_scratch, threads: int, n_vertices: int):
+def scratch_factory(serial_scratch, threads: int, n_vertices: int, dtype=np.float64):
     """Model.new_scratch of a threaded kernel (threaded_scratch with these arguments)."""
-    return partial(threaded_scratch, serial_scratch, threads, n_vertices)
+    return partial(threaded_scratch, serial_scratch, threads, n_vertices, dtype)
 
 
 def check_threads(threads) -> int:
@@ -142,9 +143,9 @@ def _corotational_chunk(tets, geo, prm, everywhere, W, R, Fb, b0, b1, u, f):
 
 
 @nb.njit(**HOT)
-def _linear_chunk(vt, cols, et, row_start, lo, hi, u, f):
+def _linear_chunk(cols, et, row_start, lo, hi, u, f):
     f[:, :] = 0.0
-    linear_rows(vt, cols, et, row_start, lo, hi, u, f)
+    linear_rows(cols, et, row_start, lo, hi, u, f)
 
 
 @nb.njit(**PAR)
@@ -182,10 +183,10 @@ def linear_tm_force_threaded(data, scratch, u, f):
     data: Threaded(TensorData, chunks over vertices).   scratch: threaded_scratch(no_scratch, T, N).
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
     """
-    (vt, cols, et, row_start), chunks = data
+    (_, cols, et, row_start), chunks = data
     F = scratch[1]
     for t in nb.prange(chunks.shape[0] - 1):
-        _linear_chunk(vt, cols, et, row_start, chunks[t], chunks[t + 1], u, F[t])
+        _linear_chunk(cols, et, row_start, chunks[t], chunks[t + 1], u, F[t])
     sum_threads(F, f)
 
 
@@ -195,22 +196,23 @@ def block_chunks(n_blocks: int, threads: int) -> np.ndarray:
 
 
 def row_chunks(row_start: np.ndarray, threads: int) -> np.ndarray:
-    """Chunks of vertex rows for ``threads`` threads, balanced by each row's work (its vertex tensor
-    and its edges (i, j > i), each read once): row_start (N + 1,) int64 as in TensorData."""
+    """Chunks of vertex rows for ``threads`` threads, balanced by each row's work (its own row, and its
+    edges (i, j > i), each read once): row_start (N + 1,) int64 as in TensorData."""
     return balanced_chunks(1.0 + np.diff(row_start).astype(float), threads)
 
 
-def linear_tm_kernel(tm, threads: int = 1) -> tuple:
-    """(force, energy, data, new_scratch) of linear tensor-mass on TensorMass ``tm``: the serial
-    kernel for one thread, else the threaded one with its rows split for ``threads``."""
-    data = tm.kernel_data()
+def linear_tm_kernel(tm, threads: int = 1, dtype=np.float64) -> tuple:
+    """(force, energy, data, new_scratch) of linear tensor-mass on TensorMass ``tm`` in the float type
+    ``dtype``: the serial kernel for one thread, else the threaded one with its rows split for
+    ``threads``."""
+    data = tm.kernel_data(dtype)
     if threads == 1:
         return linear_tm_force, linear_tm_energy, data, no_scratch
     return (
         THREADED[linear_tm_force.__name__],
         partial(threaded_energy, linear_tm_energy),
         Threaded(data, row_chunks(data.row_start, threads)),
-        scratch_factory(no_scratch, threads, tm.n_vertices),
+        scratch_factory(no_scratch, threads, tm.n_vertices, dtype),
     )
 
 
@@ -222,8 +224,9 @@ def threaded_energy(serial, data: Threaded, u: np.ndarray) -> float:
 
 def block_kernel(force, energy, scratch, data, n_vertices: int, threads: int) -> tuple:
     """(force, energy, data, new_scratch) of an element model (stvk-tm, corotational-tm) whose serial
-    kernels are ``force`` and ``energy`` on BlockData ``data`` with scratch ``scratch``: those for one
-    thread, else their threaded versions (THREADED) with the blocks split for ``threads``."""
+    kernels are ``force`` and ``energy`` on BlockData ``data`` with scratch ``scratch`` (a function
+    returning it): those for one thread, else their threaded versions (THREADED) with the blocks split
+    for ``threads``, in the float type of the data's geometry."""
     if threads == 1:
         return force, energy, data, scratch
     chunks = block_chunks(len(data.tets) // BLOCK, threads)
@@ -231,7 +234,7 @@ def block_kernel(force, energy, scratch, data, n_vertices: int, threads: int) ->
         THREADED[force.__name__],
         partial(threaded_energy, energy),
         Threaded(data, chunks),
-        scratch_factory(scratch, threads, n_vertices),
+        scratch_factory(scratch, threads, n_vertices, data.geo.dtype),
     )
 
 

@@ -24,7 +24,7 @@ from scipy.sparse.csgraph import connected_components
 from .errors import InputError
 from .geometry import TET_FACES, signed_volumes
 from .material import Material
-from .model import Loading, Model
+from .model import Loading, Model, check_float64
 from .threaded import linear_tm_kernel
 
 #: Two vertices are joined only where they coincide: within this fraction of the mesh's size.
@@ -36,6 +36,7 @@ def _tensors(model: Model, what: str):
     if model.name != "linear-tm" or tm is None:
         raise InputError(f"{what}: {model.name} does not support topology changes (linear-tm does)")
     model.check_current()
+    check_float64(model, what)
     return tm
 
 

@@ -101,12 +101,12 @@ def bandwidth(footprint_bytes: float, seconds: float = 0.2) -> float:
 #: tetrahedron ("tet"), vertex ("vertex") or edge ("edge"). stvk-tm (isotropic, no penalty):
 #: gather 9, H 45, Green-Lagrange strain 45, second Piola-Kirchhoff stress 12, P = (I + H) S 54,
 #: V P g 54, scatter 18 flops = 237; bytes: GEO_ROWS rows of geometry and 4 int64 vertex indices.
-#: linear-tm: 18 flops and 72 + 8 bytes (tensor, row start) a vertex plus 36 flops and 80 bytes
-#: (tensor, column) an edge. mass-spring: 30 flops and 32 bytes (two int64 ends, k, L) an edge.
+#: linear-tm (difference form): 8 bytes (row start) a vertex, and 39 flops (3 differences, two 3x3
+#: products) and 80 bytes (tensor, column) an edge. mass-spring: 30 flops and 32 bytes (two int64 ends, k, L) an edge.
 #: scipy's BSR product: 18 flops and 80 bytes (block, column index) a 3x3 block.
 KERNEL_WORK = {
     "stvk-tm": {"tet": (237.0, 8.0 * GEO_ROWS + 32.0)},
-    "linear-tm": {"vertex": (18.0, 80.0), "edge": (36.0, 80.0)},
+    "linear-tm": {"vertex": (0.0, 8.0), "edge": (39.0, 80.0)},
     "mass-spring": {"edge": (30.0, 32.0)},
 }
 #: Symplectic Euler's update per vertex: 3 components of (2 FMA + 3 mul/add) flops; bytes: the per-dof
