@@ -334,6 +334,7 @@ def cmd_sweep(args) -> int:
         largest_stable=not args.no_largest_stable,
         use_cache=not args.no_cache,
         comm=comm,
+        float32=args.float32,
     )
     if not _rank0(comm):
         return 0
@@ -581,6 +582,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--dts", type=_positive, nargs="+", help="time steps in seconds")
     s.add_argument("--integrator", default="symplectic-euler", choices=sorted(INTEGRATORS))
     s.add_argument("--no-largest-stable", action="store_true", help="skip the search for the largest stable step")
+    s.add_argument(
+        "--float32",
+        action="store_true",
+        help="run each row of linear-tm, stvk-tm and mass-spring again in float32 and report its distance from the "
+        "float64 run beside the model's error (explicit integrators)",
+    )
     s.add_argument("--csv", help="also write the table as CSV")
     s.add_argument("--no-cache", action="store_true")
     s.add_argument("--json", action="store_true")

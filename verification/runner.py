@@ -26,13 +26,13 @@ import numpy as np
 import realtime
 from meshes import TetMesh
 from realtime import DivergenceError, ImplicitEuler, State, SymplecticEuler, build_model, make_integrator, solve_static
-from realtime.models import QUASI_STATIC
+from realtime.models import FLOAT32_MODELS, QUASI_STATIC
 from realtime.quasistatic import QuasiStatic
 from realtime.spectra import max_eigenvalue, min_eigenvalue
 from realtime.statics import solve_static_implicit
 
 from .loading import build_loading
-from .metrics import compute
+from .metrics import compute, rel_l2
 from .results import Result, atomic_write
 from .scene import Scene
 
@@ -536,7 +536,7 @@ def trajectory(model, integ, dt: float, times: np.ndarray, dt_crit: float | None
     two steps around each instant (quasi-static models: their equilibrium at each instant, all
     vertices). Returns displacement (T, V, 3) m of all the model's vertices (``observed`` picks the
     scene's) and reaction (T, 3) N."""
-    state = State.at_rest(model.n_vertices)
+    state = model.rest_state()
     out_u = np.zeros((len(times), model.n_vertices, 3))
     out_r = np.zeros((len(times), 3))
     if isinstance(integ, QuasiStatic):  # no history: the equilibrium with the tools where they are at t
@@ -577,8 +577,9 @@ def _run_dynamic(scene: Scene, model, integrator: str, dt, dt_fraction, build_s:
     u, reaction = trajectory(model, integ, dt, times, dt_crit=dt_crit)
     run_s = time.perf_counter() - t1
     slow = isinstance(integ, (ImplicitEuler, QuasiStatic))
+    last = u[-1].astype(model.dtype)
     timing = time_steps(
-        model, integ, dt, State(u=u[-1].copy(), v=np.zeros_like(u[-1]), t=ts.end), n=5 if slow else 100, repeats=7
+        model, integ, dt, State(u=last, v=np.zeros_like(last), t=ts.end), n=5 if slow else 100, repeats=7
     )
     meta = {
         "solver": "realtime",
@@ -737,6 +738,30 @@ def versions() -> dict:
     }
 
 
+def float32_twin(scene: Scene, res: Result) -> dict:
+    """The run of ``res`` (a float64 explicit run of a model in FLOAT32_MODELS) again with its model
+    built in float32, at the same dt: on a dynamic scene the same trajectory, on a static one the same
+    number of settling steps (``solve_static``'s ``steps``: a float32 residual cannot say when to
+    stop). Returns the float32 run's displacement (T, N, 3) m and its meta: dt, settle_steps and the
+    step timing (``time_steps``)."""
+    m = res.meta
+    t0 = time.perf_counter()
+    model = model_for(scene, m["model"], precision="float32")
+    build_s = time.perf_counter() - t0
+    if scene.time.mode == "dynamic":
+        twin = _run_dynamic(scene, model, m["integrator"], m["dt"], None, build_s, {"precision": "float32"})
+        return {"displacement": twin.displacement, "dt": m["dt"], "settle_steps": None, **_timing(twin.meta)}
+    static = solve_static(model, dt=m["dt"], steps=m["static"]["steps"])
+    integ = make_integrator(m["integrator"], scene.time.damping_mass, scene.time.damping_stiffness)
+    timing = time_steps(model, integ, m["dt"], static.state.copy())
+    u = observed(model, static.state.u).astype(np.float64)[None]
+    return {"displacement": u, "dt": m["dt"], "settle_steps": static.steps, **_timing(timing)}
+
+
+def _timing(meta: dict) -> dict:
+    return {k: meta[k] for k in ("step_us", "step_us_min", "step_us_max")}
+
+
 def compare(
     scene: Scene,
     model_name: str,
@@ -747,6 +772,7 @@ def compare(
     max_steps: int = 2_000_000,
     vtk: str | None = None,
     budget: bool = True,
+    float32: bool = False,
     **ref_options,
 ) -> dict:
     """Metrics of one model run against the scene's reference (docs/architecture.md section 6).
@@ -754,6 +780,9 @@ def compare(
     A diverging run gives {"status": "diverged", ...} with the step, dt and dt_crit instead of errors.
     ``vtk`` (a directory or a .pvd path) also writes both displacements and the pointwise error at every
     output time as one ParaView series. ``budget`` adds ``error_budget`` (see ``error_budget``).
+    ``float32``: for a model of FLOAT32_MODELS under an explicit integrator, the row's ``float32`` holds
+    its float32 twin (``float32_twin``): rel_l2_vs_float64, its distance from this run by the row's own
+    metric, beside its rel_l2 against the reference, and its step times; None for the other models.
     """
     ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
     # a quasi-static model has its own update whatever integrator was asked for
@@ -803,10 +832,20 @@ def compare(
         )
     m = res.meta
     parts = error_budget(scene, model_name, res, ref, integrator, max_steps) if budget else None
+    single = None
+    if float32 and model_name in FLOAT32_MODELS and integrator != "implicit-euler":
+        twin = float32_twin(scene, res)
+        u32 = twin.pop("displacement")
+        single = {
+            **twin,
+            "rel_l2_vs_float64": rel_l2(u32, res.displacement),
+            "rel_l2": rel_l2(u32, ref.displacement),
+        }
     return {
         **base,
         "status": "ok",
         "error_budget": parts,
+        "float32": single,
         "dt": m["dt"],
         "dt_crit": m["dt_crit"],
         "dt_crit_element": m.get("dt_crit_element"),

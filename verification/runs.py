@@ -61,12 +61,12 @@ def cached_compare(
     use_cache: bool = True,
     max_steps: int = 2_000_000,
     budget: bool = True,
+    float32: bool = False,
 ) -> dict:
     """``runner.compare`` through the run cache. The row says whether it came from the cache."""
     ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
-    path = (
-        cache_dir() / "runs" / f"{scene.name}-{run_key(scene, model, integrator, dt, fraction, ref_opts, budget)}.json"
-    )
+    key = run_key(scene, model, integrator, dt, fraction, ref_opts, budget, {"float32": True} if float32 else None)
+    path = cache_dir() / "runs" / f"{scene.name}-{key}.json"
     if use_cache and path.exists():
         row = json.loads(path.read_text())
         row["cached"] = True
@@ -81,6 +81,7 @@ def cached_compare(
         reference=ref,
         max_steps=max_steps,
         budget=budget,
+        float32=float32,
     )
     row["fraction"] = fraction
     if use_cache:

@@ -70,11 +70,14 @@ def sweep(
     largest_stable: bool = True,
     use_cache: bool = True,
     comm=None,
+    float32: bool = False,
 ) -> dict:
     """Models x time steps -> rows of metrics and the Pareto front of error (rel_l2) against step_us.
 
     Default: every model at ``default_fractions(scene)`` of its critical step, plus (``largest_stable``) each
-    explicit model at the largest stable fraction that ``largest_stable_fraction`` finds.
+    explicit model at the largest stable fraction that ``largest_stable_fraction`` finds. ``float32``:
+    each row of a model that runs in float32 also carries its float32 twin (``runner.compare``), whose
+    distance from the float64 run stands beside the model's error.
     """
     models = list(models or MODELS)
     if fractions is None and dts is None:
@@ -104,7 +107,9 @@ def sweep(
         fraction = item["fraction"]
         if fraction == "largest-stable":
             fraction = largest_stable_fraction(scene, item["model"], integrator, use_cache=use_cache)["stable"]
-            row = cached_compare(scene, item["model"], integrator, None, fraction, ref, use_cache=use_cache)
+            row = cached_compare(
+                scene, item["model"], integrator, None, fraction, ref, use_cache=use_cache, float32=float32
+            )
             row["largest_stable"] = True
         else:
             row = cached_compare(
@@ -115,6 +120,7 @@ def sweep(
                 fraction,
                 ref,
                 use_cache=use_cache,
+                float32=float32,
             )
         rows.append({**row, "plan_index": k})
         if progress:
@@ -164,23 +170,36 @@ def sweep_csv(result: dict) -> str:
         "pareto",
     ]
     parts = ("mesh", "model", "time")
-    lines = [",".join(cols + [f"budget_{p}" for p in parts])]
+    single = ("rel_l2_vs_float64", "rel_l2", "step_us")
+    lines = [",".join(cols + [f"budget_{p}" for p in parts] + [f"float32_{c}" for c in single])]
     for r in result["rows"]:
         budget = r.get("error_budget") or {}
-        values = [r.get(c) for c in cols] + [budget.get(p) for p in parts]
+        twin = r.get("float32") or {}
+        values = [r.get(c) for c in cols] + [budget.get(p) for p in parts] + [twin.get(c) for c in single]
         lines.append(",".join("" if v is None else str(v) for v in values))
     return "\n".join(lines) + "\n"
 
 
+def _float32_cells(r: dict) -> str:
+    """A row's float32 columns: its twin's distance from the float64 run and its step time; '-' where
+    the row has no twin (that model or integrator runs in float64 only)."""
+    twin = r.get("float32")
+    if not twin:
+        return f" {'-':>10} {'-':>9}"
+    return f" {twin['rel_l2_vs_float64']:>10.2g} {twin['step_us']:>9.1f}"
+
+
 def format_sweep(result: dict) -> str:
     est = result["reference"].get("ref_err_estimate")
+    twins = any(r.get("float32") for r in result["rows"])
     out = [
         f"sweep {result['scene']}: reference {result['reference']['law']} P{result['reference']['degree']}, "
         f"own error estimate {est:.3g}"
         if est is not None
         else f"sweep {result['scene']}"
     ]
-    out.append(f"{'model':<16} {'dt (s)':>10} {'dt/crit':>8} {'rel_l2':>10} {'reaction':>9} {'step us':>9} {'Hz':>9}  ")
+    head = f"{'model':<16} {'dt (s)':>10} {'dt/crit':>8} {'rel_l2':>10} {'reaction':>9} {'step us':>9} {'Hz':>9}"
+    out.append(head + (f" {'f32 vs f64':>10} {'f32 us':>9}" if twins else "") + "  ")
     for r in result["rows"]:
         if r["status"] != "ok":
             out.append(f"{r['model']:<16} {r['dt']:>10.3g} {r['dt'] / r['dt_crit']:>8.2f} diverged at step {r['step']}")
@@ -192,7 +211,7 @@ def format_sweep(result: dict) -> str:
         flag += " (at reference accuracy)" if r["at_reference_accuracy"] else ""
         out.append(
             f"{r['model']:<16} {dt:>10} {ratio:>8} {r['rel_l2']:>10.4g} {reaction:>9} {r['step_us']:>9.1f} "
-            f"{r['rate_hz']:>9.0f} {flag}"
+            f"{r['rate_hz']:>9.0f}{_float32_cells(r) if twins else ''} {flag}"
         )
     out.append(f"Pareto front (error against step time): {', '.join(result['pareto'])}")
     out.append(f"{result['computed']} runs computed, {result['cached']} from the cache")
