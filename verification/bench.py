@@ -28,7 +28,7 @@ from meshes import stored_mesh
 from meshes.store import STORED
 from realtime import Loading, Material, State, SymplecticEuler, build_model
 from realtime.geometry import unique_edges
-from realtime.models import nonlinear_fraction
+from realtime.models import FLOAT32_MODELS, nonlinear_fraction
 from realtime.quasistatic import QuasiStatic
 
 from .roofline import Roofline, bsr_work, step_work
@@ -183,6 +183,21 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                     "nonlinear_fraction": nonlinear_fraction(model.tets, state.u, model.extra["threshold"])
                 }
         cases += haptic
+        # the float32 kernels (build_model's precision), beside their float64 rows
+        for model_name in FLOAT32_MODELS:
+            log(f"bench: {name} {model_name}, float32")
+            model = build_model(model_name, mesh.points, mesh.tets, iso, loading, precision="float32")
+            one = next(c for c in cases if c["name"] == model_name)
+            u = u0.astype(np.float32)
+            state = State(u=u, v=np.zeros_like(u))
+            cases.append(
+                {
+                    **one,
+                    "name": f"{model_name}, float32",
+                    "precision": "float32",
+                    "fn": _step_case(SymplecticEuler(), model, state, one["dt"], n),
+                }
+            )
         # the threaded kernels on every core (realtime.threaded), beside their one-thread rows
         threads = min(os.cpu_count() or 1, THREADS)
         for model_name in ("linear-tm", "corotational-tm", "stvk-tm") if threads > 1 else ():
@@ -290,7 +305,8 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
             _place_on_roofline(roof, c, work)
             rows.append(c)
         for c in rows:
-            if c["mesh"] == name and c.get("threads"):  # measured in the same rounds as the one-thread row of its model
+            if c["mesh"] == name and (c.get("threads") or c.get("precision")):
+                # measured in the same rounds as the one-thread float64 row of its model
                 one = next(r for r in rows if r["mesh"] == name and r["name"] == c["model"])
                 c["speedup"] = one["step_us"] / c["step_us"]
     return {
@@ -318,7 +334,7 @@ def format_table(out: dict) -> str:
                 continue
             note = f"  ({r['nonlinear_fraction']:.0%} of tetrahedra non-linear)" if "nonlinear_fraction" in r else ""
             if "speedup" in r:
-                note += f"  {r['speedup']:.2f}x its one-thread row"
+                note += f"  {r['speedup']:.2f}x its {'float64' if r.get('precision') else 'one-thread'} row"
             if "roofline_us" in r:
                 note += (
                     f"  roofline {r['roofline_us']:.1f} us ({r['roofline_limit']}): {r['roofline_fraction']:.0%} of it"
