@@ -89,6 +89,8 @@ class _Prepared:
     tools: Tools  # the Loading's, with the targets (vector, angle, ramp) copied for set_tool
     bound: float  # m, the blow-up bound
     n_free: int  # the free components: implicit Euler's preconditioner depends on their count
+    shape: tuple  # (N, 3), the State's arrays' shape
+    dtype: np.dtype  # the State's arrays' float type (Model.dtype)
     f: np.ndarray  # (N, 3) force buffer, the model's dtype
     w: np.ndarray  # (N, 3) buffer for u + beta v, the model's dtype
     scratch: tuple  # the force kernel's own scratch (Model.new_scratch): this workspace's alone
@@ -119,6 +121,8 @@ class _Prepared:
             tools,
             blowup_bound(model),
             int(np.count_nonzero(lo.free)),
+            (n, 3),
+            model.dtype,
             np.empty((n, 3), model.dtype),
             np.empty((n, 3), model.dtype),
             model.new_scratch(),
@@ -207,13 +211,20 @@ def _check_step(model: Model, state: State, dt, n) -> tuple[float, int]:
     C-contiguous (N, 3) arrays of this model's N vertices and float type (Model.dtype; the kernels index
     them without bounds checks, so a shorter array would be written past its end), its t a finite
     number, dt a positive finite number of s and n a whole number of steps >= 0. Raises InputError
-    naming what is wrong.
+    naming what is wrong."""
+    return _check_state((len(model.points), 3), model.dtype, state, dt, n)
 
-    A haptic loop pays this at every call: what such a loop passes (Python floats and ints, the arrays
-    it stepped last time) is accepted by exact type tests first, 0.5 us instead of 0.8; anything else
-    goes through ``_checked_step``, which accepts numpy scalars too and names what is wrong."""
-    shape = (len(model.points), 3)
-    t = getattr(state, "t", None)
+
+def _check_state(shape: tuple, dtype: np.dtype, state: State, dt, n) -> tuple[float, int]:
+    """_check_step for a model of state arrays ``shape`` and ``dtype`` (an integrator's workspace keeps
+    both). A haptic loop pays this at every call: what such a loop passes (Python floats and ints, the
+    arrays it stepped last time) is accepted by exact type and identity tests first (numpy's built-in
+    dtypes are singletons), 0.5 us on an AVX2 EPYC instead of 0.95; anything else goes through
+    ``_checked_step``, which accepts numpy scalars too and names what is wrong."""
+    try:
+        u, v, t = state.u, state.v, state.t
+    except AttributeError:
+        return _checked_step(shape, dtype, state, dt, n)
     if (
         type(dt) is float
         and 0.0 < dt < math.inf
@@ -221,18 +232,17 @@ def _check_step(model: Model, state: State, dt, n) -> tuple[float, int]:
         and n >= 0
         and type(t) is float
         and -math.inf < t < math.inf
-        and _is_state_array(getattr(state, "u", None), shape, model.dtype)
-        and _is_state_array(getattr(state, "v", None), shape, model.dtype)
+        and type(u) is np.ndarray
+        and type(v) is np.ndarray
+        and u.dtype is dtype
+        and v.dtype is dtype
+        and u.shape == shape
+        and v.shape == shape
     ):
-        return dt, n
-    return _checked_step(shape, model.dtype, state, dt, n)
-
-
-def _is_state_array(a, shape: tuple, dtype: np.dtype) -> bool:
-    if type(a) is not np.ndarray or a.shape != shape or a.dtype != dtype:
-        return False
-    flags = a.flags
-    return flags.c_contiguous and flags.writeable
+        fu, fv = u.flags, v.flags
+        if fu.c_contiguous and fu.writeable and fv.c_contiguous and fv.writeable:
+            return dt, n
+    return _checked_step(shape, dtype, state, dt, n)
 
 
 def _checked_step(shape: tuple, dtype: np.dtype, state: State, dt, n) -> tuple[float, int]:
@@ -302,7 +312,7 @@ class SymplecticEuler(Integrator):
         """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up. Returns the
         tools' force on the body in the last step, (L, 3) float64 N (``_tool_reaction``)."""
         p = self._prepare(model)
-        dt, n = _check_step(model, state, dt, n)
+        dt, n = _check_state(p.shape, p.dtype, state, dt, n)
         args = (n, dt, float(state.t), model.force_kernel, p.step_work(), float(self.alpha), float(self.beta))
         bad = _call(p, _run_symplectic_euler, (*args, state.u, state.v))
         if bad >= 0:
@@ -321,7 +331,7 @@ class CentralDifference(Integrator):
         """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up. Returns the
         tools' force on the body at the end of the last step, (L, 3) float64 N (``_tool_reaction``)."""
         p = self._prepare(model)
-        dt, n = _check_step(model, state, dt, n)
+        dt, n = _check_state(p.shape, p.dtype, state, dt, n)
         lo = model.loading
         acc = state.acc
         key = (id(p), p.version)  # the acceleration is stale after set_forces (or from another model)
@@ -417,7 +427,7 @@ class ImplicitEuler(Integrator):
                 "float64 only (step a float32 model with symplectic-euler or central-difference)"
             )
         p = self._prepare(model)
-        dt, n = _check_step(model, state, dt, n)
+        dt, n = _check_state(p.shape, p.dtype, state, dt, n)
         factored = self._preconditioner(p.n_free) == "factored"
         fac = self._factored(model, dt) if factored else NO_FACTOR
         if p.cg is None:
