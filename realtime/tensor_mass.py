@@ -21,9 +21,10 @@ translations, so every block row of K sums to zero, T_ii = -sum_{j != i} K_ij, a
     f_i = -sum_{j > i} T_ij (u_j - u_i) - sum_{j < i} T_ji^T (u_j - u_i)
 
 which never reads the vertex tensors. The sum above cancels: for a smooth u, |K u| is smaller than
-|K| |u| by the square of the number of elements across the body, and that many leading digits of
-each product are lost (in float32, the force's relative error grew to 2e-4 on a settled beam). The
-differences lose none of them.
+|K| |u| by about the square of the number of elements across the body, and each product loses that
+many leading digits (in float32, a 2000-step run on a cube drifted 2.9e-5 from float64). The terms of
+the difference form are as small as the differences, so only the cancellation between the edges'
+terms is left, one factor of that number instead of two (the same run: 2.2e-7).
 """
 
 from __future__ import annotations
