@@ -31,6 +31,7 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     """A short benchmark on the stored beam: the rows whose work is a fixed count (linear-tm, stvk-tm,
     mass-spring, scipy's product) carry their flops, bytes, bound and achieved fraction, and the table
     prints them beside the measured ceilings; the others carry none."""
+    from realtime.models import FLOAT32_MODELS
     from verification.bench import format_table, run
 
     out = run(meshes=("beam",), repeats=1, steps=2)
@@ -46,9 +47,14 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
         )
         assert r["roofline_fraction"] == pytest.approx(r["roofline_us"] / r["step_us"])
     assert "roofline_us" not in rows["corotational-tm"] and "roofline_us" not in rows["stvk-tm (transverse + penalty)"]
+    for m in FLOAT32_MODELS:  # beside their float64 rows, with no roofline (the peak measured is float64's)
+        r = rows[f"{m}, float32"]
+        assert r["precision"] == "float32" and "roofline_us" not in r
+        assert r["speedup"] == pytest.approx(rows[m]["step_us"] / r["step_us"])
     table = format_table(out)
     assert "FMA peak" in table and "triad GB/s by data size" in table
     assert len(re.findall(r"roofline [\d.]+ us \((compute|memory)\): \d+% of it", table)) == len(placed)
+    assert len(re.findall(r"\d\.\d\dx its float64 row", table)) == len(FLOAT32_MODELS)
 
 
 def test_bench_peers_without_the_peers_says_how_to_get_them(capsys):
