@@ -62,11 +62,17 @@ def _polar_step(r, scaled):
 #: A Newton step that changes R by less than 1e-6 (Frobenius; the constants are squared changes) ends
 #: the polar iteration: convergence is quadratic, so the new iterate is within about 1e-12 of the
 #: rotation (a 1e-9 test took one more step, 10% of corotational-tm's force, to confirm round-off).
-#: Scaling stops below a change of 1e-2.
 _POLAR_DONE = 1e-12
 
 
-_POLAR_SCALED = 1e-4
+#: The steps are scaled only while some change exceeds 1 (a singular value beyond about 2.4 or below
+#: 0.4): a scaled step costs two roots and a division, twice an unscaled one on the cube of the
+#: benchmark, and near the rotation its factor is 1 anyway. The first step is unscaled, unless an
+#: element is squashed below _POLAR_SQUASHED of its volume: an unscaled step adds F^-T, whose
+#: round-off (eps / smallest singular value) would land on the other directions of R (1.8e-12 of the
+#: force at a millionth, against 4e-15 scaled; tests/test_models.py).
+_POLAR_SCALED = 1.0
+_POLAR_SQUASHED = 0.1
 
 
 @nb.njit(inline="always", **HOT)
@@ -83,11 +89,12 @@ def _polar(F):
             U[:, 2] = -U[:, 2]
         Q = U @ Vt
         return Q[0, 0], Q[0, 1], Q[0, 2], Q[1, 0], Q[1, 1], Q[1, 2], Q[2, 0], Q[2, 1], Q[2, 2]
-    r, change = F, 1.0
+    r, scaled = F, _det(F) < _POLAR_SQUASHED
     for _ in range(30):
-        r, change = _polar_step(r, change > _POLAR_SCALED)
+        r, change = _polar_step(r, scaled)
         if change < _POLAR_DONE:
             break
+        scaled = change > _POLAR_SCALED
     return r
 
 
@@ -106,24 +113,37 @@ def _det(F):
 
 @nb.njit(inline="always", **HOT)
 def _corotated_pk1(F, r, lam, mu):
-    """P = R sigma(sym(R^T F) - I), R (row-major 9-tuple) the polar rotation of F: the stress of the
-    corotated energy lam/2 tr(S - I)^2 + mu |S - I|^2, S = R^T F."""
+    """P = 2 mu (F - R) + lam tr(R^T F - I) R, R (row-major 9-tuple) the polar rotation of F: the
+    stress of the corotated energy lam/2 tr(S - I)^2 + mu |S - I|^2, S = R^T F. It is R sigma(S - I),
+    sigma the linear law, written with R S = F (36 flops against 81 for the rotated stress)."""
     f00, f01, f02, f10, f11, f12, f20, f21, f22 = F
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
-    s00 = r00 * f00 + r10 * f10 + r20 * f20 - 1.0
-    s11 = r01 * f01 + r11 * f11 + r21 * f21 - 1.0
-    s22 = r02 * f02 + r12 * f12 + r22 * f22 - 1.0
-    s01 = 0.5 * (r00 * f01 + r10 * f11 + r20 * f21 + r01 * f00 + r11 * f10 + r21 * f20)
-    s02 = 0.5 * (r00 * f02 + r10 * f12 + r20 * f22 + r02 * f00 + r12 * f10 + r22 * f20)
-    s12 = 0.5 * (r01 * f02 + r11 * f12 + r21 * f22 + r02 * f01 + r12 * f11 + r22 * f21)
-    ltr = lam * (s00 + s11 + s22)
-    t00, t11, t22 = 2.0 * mu * s00 + ltr, 2.0 * mu * s11 + ltr, 2.0 * mu * s22 + ltr
-    t01, t02, t12 = 2.0 * mu * s01, 2.0 * mu * s02, 2.0 * mu * s12
+    c = lam * (
+        (r00 * f00 + r10 * f10 + r20 * f20 - 1.0)
+        + (r01 * f01 + r11 * f11 + r21 * f21 - 1.0)
+        + (r02 * f02 + r12 * f12 + r22 * f22 - 1.0)
+    )
+    a = 2.0 * mu
     return (
-        r00 * t00 + r01 * t01 + r02 * t02, r00 * t01 + r01 * t11 + r02 * t12, r00 * t02 + r01 * t12 + r02 * t22,
-        r10 * t00 + r11 * t01 + r12 * t02, r10 * t01 + r11 * t11 + r12 * t12, r10 * t02 + r11 * t12 + r12 * t22,
-        r20 * t00 + r21 * t01 + r22 * t02, r20 * t01 + r21 * t11 + r22 * t12, r20 * t02 + r21 * t12 + r22 * t22,
+        a * (f00 - r00) + c * r00, a * (f01 - r01) + c * r01, a * (f02 - r02) + c * r02,
+        a * (f10 - r10) + c * r10, a * (f11 - r11) + c * r11, a * (f12 - r12) + c * r12,
+        a * (f20 - r20) + c * r20, a * (f21 - r21) + c * r21, a * (f22 - r22) + c * r22,
     )  # fmt: skip
+
+
+@nb.njit(inline="always", **HOT)
+def _polar_pass(R, scaled):
+    """One Newton step (_polar_step) on every lane of the block's rotations R (10 BLOCK,) float64, in
+    place. Returns how many lanes changed by _POLAR_DONE or more, and how many by more than
+    _POLAR_SCALED."""
+    active = 0
+    far = 0  # an integer count: a max would not vectorise
+    for q in range(UBLOCK):
+        n, change = _polar_step(lane_rows(R, ROW[0], q), scaled)
+        lane_store(R, q, n)
+        active += change >= _POLAR_DONE
+        far += change > _POLAR_SCALED
+    return active, far
 
 
 @nb.njit(inline="always", **HOT)
@@ -134,26 +154,27 @@ def _corotational_block(W, R, Fb, geo, gb, lam, mu):
     R (10 BLOCK,) float64 (rows 0..8 the rotation), until the slowest has converged; those that
     converged earlier take a few more steps at round-off. The steps are scaled while the block's largest
     change is above _POLAR_SCALED (a block-wide choice, so that unscaled steps take no roots). Inverted
-    ones start
-    from R = I (which stays put) and take the SVD afterwards, one at a time. Fb (9 BLOCK,) keeps each
+    ones start from R = I (which stays put) and take the SVD afterwards, one at a time. Fb (9 BLOCK,) keeps each
     lane's F for the stress, which reads it back instead of forming it again (45 flops a tetrahedron).
     """
     inverted = 0
+    squashed = 0
     for q in range(UBLOCK):
         F = _plus_identity(lane_in(W, geo, gb, q)[0])
         lane_store(Fb, q, F)
-        ok = _det(F) > 1e-12
+        d = _det(F)
+        ok = d > 1e-12
         lane_store(R, q, F if ok else (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
         inverted += not ok
-    scaled = True  # one decision for the whole block: a branch per lane would keep both paths' roots
+        squashed += d < _POLAR_SQUASHED
+    scaled = squashed > 0
     for _ in range(30):
-        active = 0
-        far = 0  # lanes still far from orthogonal (an integer count: a max would not vectorise)
-        for q in range(UBLOCK):
-            n, change = _polar_step(lane_rows(R, ROW[0], q), scaled)
-            lane_store(R, q, n)
-            active += change >= _POLAR_DONE
-            far += change > _POLAR_SCALED
+        # one decision for the whole block, taken outside the lane loop: a branch inside it would be
+        # if-converted, and every step would pay the scaled one's roots
+        if scaled:
+            active, far = _polar_pass(R, True)
+        else:
+            active, far = _polar_pass(R, False)
         if active == 0:
             break
         scaled = far > 0
@@ -176,7 +197,7 @@ def corotational_scratch() -> tuple:
 
 @nb.njit(**HOT)
 def corotational_force(data, scratch, u, f):
-    """Corotational linear force: f_a -= V R sigma(sym(R^T F) - I) g_a, R the polar rotation of F.
+    """Corotational linear force: f_a -= V R sigma(R^T F - I) g_a, R the polar rotation of F.
 
     This is the exact gradient of W(F) = lam/2 tr(S - I)^2 + mu |S - I|^2, S = R^T F the polar stretch
     (the "corotated" energy; SOFA's TetrahedronFEMForceField, method "polar").

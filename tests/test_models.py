@@ -350,22 +350,16 @@ def test_stvk_element_loop_compiles_to_simd():
     assert packed >= 50, f"{packed} packed FMAs: the StVK element loop is no longer vectorised"
 
 
-def test_corotational_rotations_against_numpy_svd(rng):
-    """The block kernel's polar rotations (scaled Newton on a whole block; the SVD, one element at a
-    time, for inverted ones) against numpy's SVD of every element's F, on a displacement large enough
-    to invert some elements. Newton stops at |dR| < 1e-9, whose error is its square: the forces
-    agree to round-off (measured 4e-16; the bound 1e-13 is about 500 eps, for sums over 2465
-    elements)."""
+def _corotational_force_by_svd(mesh, u):
+    """The corotational force (N, 3) N at u (N, 3) m from numpy's SVD of every element's F, with the
+    sign of the smallest singular direction flipped for inverted ones (R stays a rotation), and the
+    rotated stress R sigma(sym(R^T F) - I) as SOFA writes it."""
     from realtime.geometry import shape_gradients
 
-    mesh = cylinder()
-    model = build_model("corotational-tm", mesh.points, mesh.tets, ISO)
-    u = 5e-3 * rng.standard_normal(mesh.points.shape)  # half the edge length
     g, vol = shape_gradients(mesh.points, mesh.tets)
     F = np.eye(3) + np.einsum("eai,eaj->eij", u[mesh.tets], g)
-    assert np.sum(np.linalg.det(F) <= 0) > 10  # the SVD path is exercised
     U, _, Vt = np.linalg.svd(F)
-    U[np.linalg.det(U) * np.linalg.det(Vt) < 0, :, 2] *= -1  # R stays a rotation
+    U[np.linalg.det(U) * np.linalg.det(Vt) < 0, :, 2] *= -1
     R = U @ Vt
     S = np.einsum("eki,ekj->eij", R, F) - np.eye(3)
     S = 0.5 * (S + S.transpose(0, 2, 1))
@@ -373,7 +367,52 @@ def test_corotational_rotations_against_numpy_svd(rng):
     P = R @ sigma
     f = np.zeros_like(u)
     np.add.at(f, mesh.tets, -vol[:, None, None] * np.einsum("eij,eaj->eai", P, g))
+    return f, F
+
+
+def test_corotational_rotations_against_numpy_svd(rng):
+    """The block kernel's polar rotations (Newton on a whole block; the SVD, one element at a time,
+    for inverted ones) against numpy's SVD of every element's F, on a displacement large enough to
+    invert some elements. Newton stops at |dR| < 1e-6, whose error is about its square: the forces
+    agree to round-off (measured 4e-16; the bound 1e-13 is about 500 eps, for sums over 2465
+    elements)."""
+    mesh = cylinder()
+    model = build_model("corotational-tm", mesh.points, mesh.tets, ISO)
+    u = 5e-3 * rng.standard_normal(mesh.points.shape)  # half the edge length
+    f, F = _corotational_force_by_svd(mesh, u)
+    assert np.sum(np.linalg.det(F) <= 0) > 10  # the SVD path is exercised
     assert np.linalg.norm(model.internal_force(u) - f) / np.linalg.norm(f) < 1e-13
+
+
+@pytest.mark.parametrize(
+    "stretches",
+    [(1e3, 1.0, 1.0), (1e-6, 1.0, 1.0), (30.0, 0.05, 2.0), (1.0 + 1e-9, 1.0, 1.0 - 1e-9), (2.5, 0.4, 1.0)],
+)
+def test_corotational_polar_iteration_converges_at_extreme_stretches(stretches):
+    """The polar iteration starts unscaled and scales only while a step changes R by more than 1
+    (realtime.corotational): an element stretched a thousandfold, or squashed to a millionth of its
+    volume but not inverted, must still reach numpy's SVD rotation within its 30 steps, and so must
+    the strains a simulation meets. An affine displacement gives every element the same F = Q1
+    diag(stretches) Q2^T (random rotations Q1, Q2). The force is compared in the norm of its terms
+    (each vertex's forces from its elements), since an affine field's interior forces cancel. Measured
+    4e-15 of that scale, 7e-14 at a stretch of 1e3 (F's own round-off, scaled by the stretch); an
+    unscaled first step at a millionth of the volume gave 1.8e-12, above the bound of 1e-12."""
+    from realtime.geometry import shape_gradients
+
+    rng = np.random.default_rng(7)
+    q1, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    q2, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    q1 *= np.sign(np.linalg.det(q1))
+    q2 *= np.sign(np.linalg.det(q2))
+    Fa = q1 @ np.diag(stretches) @ q2.T
+    mesh = cylinder()
+    model = build_model("corotational-tm", mesh.points, mesh.tets, ISO)
+    u = mesh.points @ (Fa - np.eye(3)).T
+    f, F = _corotational_force_by_svd(mesh, u)
+    assert np.allclose(F, Fa, rtol=0, atol=1e-9 * max(stretches))
+    g, vol = shape_gradients(mesh.points, mesh.tets)
+    scale = np.abs(vol).max() * np.abs(g).max() * ISO.lam * max(stretches)
+    assert np.abs(model.internal_force(u) - f).max() < 1e-12 * scale
 
 
 def test_the_engines_numba_cache_is_cleared_when_any_of_its_sources_changes(tmp_path):
