@@ -161,8 +161,9 @@ def _corotational_chunk(tets, geo, prm, everywhere, W, R, Fb, b0, b1, u, f):
 
 @nb.njit(**HOT)
 def _linear_chunk(cols, et, row_start, lo, hi, u, f):
-    f[:, :] = 0.0
-    linear_rows(cols, et, row_start, lo, hi, u, f)
+    f1 = f.reshape(-1)
+    f1[:] = 0.0
+    linear_rows(cols, et.reshape(-1), row_start, lo, hi, u.reshape(-1), f1)
 
 
 @nb.njit(**PAR)
