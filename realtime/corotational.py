@@ -213,10 +213,11 @@ def corotational_force(data, scratch, u, f):
 def corotational_blocks(tets, geo, prm, everywhere, W, R, Fb, b0, b1, u, f):
     """corotational_force's pass over the blocks b0 .. b1 - 1 of BlockData's arrays, adding into f
     (N, 3) N; W, R, Fb the arrays of corotational_scratch()."""
+    t1, u1, f1 = tets.reshape(-1), u.reshape(-1), f.reshape(-1)
     for b in range(b0, b1):
-        gather(tets, b * BLOCK, u, W)
+        gather(t1, b * BLOCK, u1, W)
         _corotational_block(W, R, Fb, geo, np.uint64(b) * GEO_ROWS_U, prm[b, 0], prm[b, 1])
-        scatter_block(tets, b * BLOCK, W, f, everywhere)
+        scatter_block(t1, b * BLOCK, W, f1, everywhere)
 
 
 @nb.njit(**JIT)

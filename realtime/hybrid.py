@@ -49,6 +49,7 @@ def hybrid_force(data, scratch, u, f):
     thr2 = threshold[0] * threshold[0]
     for i in range(u.shape[0]):
         moved[i] = u[i, 0] * u[i, 0] + u[i, 1] * u[i, 1] + u[i, 2] * u[i, 2] > thr2
+    t1, u1, f1 = tets.reshape(-1), u.reshape(-1), f.reshape(-1)
     for b in range(tets.shape[0] // BLOCK):
         e0 = b * BLOCK
         count = 0
@@ -57,9 +58,9 @@ def hybrid_force(data, scratch, u, f):
             count += flags[e]
         if count == 0:
             continue
-        gather(tets, e0, u, W)
+        gather(t1, e0, u1, W)
         stvk_block(W, geo, np.uint64(b) * GEO_ROWS_U, prm[b], True)
-        scatter_block(tets, e0, W, f, flags)
+        scatter_block(t1, e0, W, f1, flags)
 
 
 @nb.njit(**JIT)

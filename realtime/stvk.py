@@ -129,10 +129,11 @@ def stvk_block(W, geo, gb, prm, minus_linear):
 def stvk_blocks(tets, geo, prm, everywhere, W, b0, b1, u, f):
     """stvk_force's pass over the blocks b0 .. b1 - 1 of BlockData's arrays, adding into f (N, 3) N;
     W (9 BLOCK,) scratch."""
+    t1, u1, f1 = tets.reshape(-1), u.reshape(-1), f.reshape(-1)
     for b in range(b0, b1):
-        gather(tets, b * BLOCK, u, W)
+        gather(t1, b * BLOCK, u1, W)
         stvk_block(W, geo, np.uint64(b) * GEO_ROWS_U, prm[b], False)
-        scatter_block(tets, b * BLOCK, W, f, everywhere)
+        scatter_block(t1, b * BLOCK, W, f1, everywhere)
 
 
 @nb.njit(**HOT)
