@@ -41,6 +41,8 @@ from .steppers import (
     _run_central_difference,
     _run_implicit_euler,
     _run_symplectic_euler,
+    se_update,
+    se_update_threads,
     step_work,
 )
 
@@ -136,7 +138,7 @@ class _Prepared:
             m = self.model
             self.work = step_work(
                 m.data, self.scratch, m.points, m.mass, self.inv_mass, m.loading.free, self.per_dof, self.fext,
-                self.tools, self.bound, self.f, self.w, self.vt, self.reaction,
+                self.tools, self.bound, self.f, self.w, self.vt, self.reaction, int(m.extra.get("threads", 1)),
             )  # fmt: skip
         return self.work
 
@@ -313,7 +315,8 @@ class SymplecticEuler(Integrator):
         tools' force on the body in the last step, (L, 3) float64 N (``_tool_reaction``)."""
         p = self._prepare(model)
         dt, n = _check_state(p.shape, p.dtype, state, dt, n)
-        args = (n, dt, float(state.t), model.force_kernel, p.step_work(), float(self.alpha), float(self.beta))
+        update = se_update_threads if model.extra.get("threads", 1) > 1 else se_update
+        args = (n, dt, float(state.t), model.force_kernel, update, p.step_work(), float(self.alpha), float(self.beta))
         bad = _call(p, _run_symplectic_euler, (*args, state.u, state.v))
         if bad >= 0:
             self._diverged(model, state, bad, dt, dt_crit)
