@@ -164,6 +164,8 @@ def se_update(p1, u1, v1, f1, dt, damp, bound, parts):
 
 @nb.njit(**_JIT)
 def _se_update_part(p1, u1, v1, f1, dt, damp, bound, lo, hi):
+    """_se_update in a compiled call of its own, for se_update_threads' parallel loop (the threaded force
+    kernels' chunks are called the same way)."""
     return _se_update(p1, u1, v1, f1, dt, damp, bound, lo, hi)
 
 
