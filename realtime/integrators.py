@@ -98,6 +98,7 @@ class _Prepared:
     scratch: tuple  # the force kernel's own scratch (Model.new_scratch): this workspace's alone
     vt: np.ndarray  # (P, 3) m/s, the tool vertices' velocities before the last step
     reaction: np.ndarray  # (L, 3) N, the tools' force on the body in the last step
+    threads: int  # the threads of the model's force (Model.extra), on which symplectic Euler's update runs
     version: int = 0  # set_forces calls: a stored acceleration from an older version is stale
     entries: dict = field(default_factory=dict)  # step loop -> its compiled entry point (_call)
     work: StepWork | None = None  # these arrays as the step loops take them (step_work), made on first use
@@ -130,6 +131,7 @@ class _Prepared:
             model.new_scratch(),
             np.zeros((len(vert), 3)),
             np.zeros((len(kind), 3)),
+            int(model.extra.get("threads", 1)),
         )
 
     def step_work(self) -> StepWork:
@@ -138,7 +140,7 @@ class _Prepared:
             m = self.model
             self.work = step_work(
                 m.data, self.scratch, m.points, m.mass, self.inv_mass, m.loading.free, self.per_dof, self.fext,
-                self.tools, self.bound, self.f, self.w, self.vt, self.reaction, int(m.extra.get("threads", 1)),
+                self.tools, self.bound, self.f, self.w, self.vt, self.reaction, self.threads,
             )  # fmt: skip
         return self.work
 
@@ -315,7 +317,7 @@ class SymplecticEuler(Integrator):
         tools' force on the body in the last step, (L, 3) float64 N (``_tool_reaction``)."""
         p = self._prepare(model)
         dt, n = _check_state(p.shape, p.dtype, state, dt, n)
-        update = se_update_threads if model.extra.get("threads", 1) > 1 else se_update
+        update = se_update_threads if p.threads > 1 else se_update
         args = (n, dt, float(state.t), model.force_kernel, update, p.step_work(), float(self.alpha), float(self.beta))
         bad = _call(p, _run_symplectic_euler, (*args, state.u, state.v))
         if bad >= 0:
