@@ -350,6 +350,45 @@ def test_stvk_element_loop_compiles_to_simd():
     assert packed >= 50, f"{packed} packed FMAs: the StVK element loop is no longer vectorised"
 
 
+@pytest.mark.parametrize(
+    "model_name, kernel",
+    [
+        ("linear-tm", "tensor_mass.linear_tm_force"),
+        ("stvk-tm", "stvk.stvk_force"),
+        ("mass-spring", "springs.spring_force"),
+    ],
+)
+def test_the_indexed_loops_neither_wrap_signed_indices_nor_multiply_by_strides(model_name, kernel):
+    """The indexed loops (linear-tm's edges, the element kernels' gather and scatter, the springs) read
+    flat views with unsigned offsets: numba wraps a negative signed index around (an arithmetic shift by
+    63 to take its sign, then an and and an add) and indexes a 2-D or 3-D array by its run-time strides
+    (a multiplication), and those instructions cost a fifth of these loops (realtime/blocks.py). With
+    signed 2-D indexing the compiled kernels held 11 to 33 such shifts and 23 to 35 multiplications
+    each (d7d124b); now at most 1 and 3, outside the loops. corotational-tm and hybrid-tm share stvk-tm's
+    gather and scatter (corotational-tm's SVD path for inverted elements indexes small 2-D arrays, so a
+    count over its whole code says nothing of its loops). Compiled afresh: numba shows no assembly for
+    cached code. x86-64 only (the instructions are named)."""
+    import importlib
+    import platform
+    import re
+
+    import numba
+
+    from realtime import blocks
+
+    if platform.machine() not in ("x86_64", "AMD64"):
+        pytest.skip("the assembly checked is x86-64's")
+    module, name = kernel.split(".")
+    fn = getattr(importlib.import_module(f"realtime.{module}"), name)
+    mesh = structured_box((0.04, 0.01, 0.01), (4, 1, 1))
+    model = build_model(model_name, mesh.points, mesh.tets, ISO)
+    compiled = numba.njit(**{**blocks.HOT, "cache": False})(fn.py_func)
+    compiled(model.data, model.new_scratch(), np.zeros_like(mesh.points), np.zeros_like(mesh.points))
+    asm = compiled.inspect_asm(compiled.signatures[0])
+    assert len(re.findall(r"\bsar[ql]?\s+\$63,", asm)) <= 2, "a signed index is wrapped around again"
+    assert len(re.findall(r"\bimul[ql]?\b", asm)) <= 4, "an array is indexed by its run-time strides again"
+
+
 def _corotational_force_by_svd(mesh, u):
     """The corotational force (N, 3) N at u (N, 3) m from numpy's SVD of every element's F, with the
     sign of the smallest singular direction flipped for inverted ones (R stays a rotation), and the
