@@ -62,7 +62,7 @@ def balanced_chunks(cost: np.ndarray, threads: int) -> np.ndarray:
 #: Bytes between one thread's scratch and the next's. Back to back, the lines at the end of thread 0's
 #: block and the start of thread 1's, written by both cores every block, were also pulled in by the
 #: other core's prefetcher: on the liver-x10 the two-thread stvk-tm force took 870 to 920 us with no
-#: gap or one of 128 bytes, and 817 to 833 us with a gap of 512 bytes or more (up to 12 KB; this
+#: gap or one of 128 bytes, and 817 to 834 us with a gap of 512 bytes or more (up to 8 KB; this
 #: AVX2 EPYC, one process measuring each gap twice).
 PAD_BYTES = 1024
 
