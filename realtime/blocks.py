@@ -144,25 +144,29 @@ def block_scratch(dtype=np.float64) -> tuple:
     return (np.zeros(9 * BLOCK, dtype),)
 
 
-_U1, _U2, _U3, _U4, _U6 = np.uint64(1), np.uint64(2), np.uint64(3), np.uint64(4), np.uint64(6)
+#: Unsigned index constants of the engine's indexed loops (gather and scatter, linear-tm's edges, the
+#: springs, symplectic Euler's update), which read flat views of their arrays with uint64 offsets made
+#: once per call: numba wraps a negative signed index around (a sign test and two more instructions per
+#: access), and indexes a 2-D or 3-D array by its run-time strides (a multiplication per access); in
+#: loops that only load and store, those instructions were a fifth of the time. tests/test_models.py
+#: counts them in the compiled kernels.
+U1, U2, U3, U4, U5, U6, U7, U8, U9 = (np.uint64(k) for k in range(1, 10))
 
 
 @nb.njit(inline="always", **HOT)
 def _corners(t1, e):
     """3 i_0 .. 3 i_3 (uint64): the flat offsets of tetrahedron e's vertices, t1 the (P, 4) tets flat."""
-    be = _U4 * np.uint64(e)
+    be = U4 * np.uint64(e)
     return (
-        _U3 * np.uint64(t1[be]),
-        _U3 * np.uint64(t1[be + _U1]),
-        _U3 * np.uint64(t1[be + _U2]),
-        _U3 * np.uint64(t1[be + _U3]),
+        U3 * np.uint64(t1[be]),
+        U3 * np.uint64(t1[be + U1]),
+        U3 * np.uint64(t1[be + U2]),
+        U3 * np.uint64(t1[be + U3]),
     )
 
 
-# gather and scatter_block index flat views, made once per force call, with unsigned offsets: signed
-# indices make numba wrap negative ones around, and (N, 3) arrays are indexed by their run-time
-# strides; both cost instructions in loops that are nothing but indexed loads and stores (stvk-tm on
-# liver-x10: 1446 against 1302 us, same bits; a view made per block kept 4% of it).
+# gather and scatter_block index flat views, made once per force call, with the unsigned constants above
+# (stvk-tm on liver-x10: 1446 against 1302 us, same bits; a view made per block kept 4% of it).
 @nb.njit(inline="always", **HOT)
 def gather(t1, e0, u1, W):
     """W[(3 r + a) BLOCK + q] = u[i_{a+1}, r] - u[i_0, r] for the tetrahedra e0 .. e0 + BLOCK - 1; t1
@@ -172,9 +176,9 @@ def gather(t1, e0, u1, W):
         for r in range(3):
             c = np.uint64(r)
             x0 = u1[i0 + c]
-            W[(_U3 * c) * UBLOCK + q] = u1[i1 + c] - x0
-            W[(_U3 * c + _U1) * UBLOCK + q] = u1[i2 + c] - x0
-            W[(_U3 * c + _U2) * UBLOCK + q] = u1[i3 + c] - x0
+            W[(U3 * c) * UBLOCK + q] = u1[i1 + c] - x0
+            W[(U3 * c + U1) * UBLOCK + q] = u1[i2 + c] - x0
+            W[(U3 * c + U2) * UBLOCK + q] = u1[i3 + c] - x0
 
 
 @nb.njit(inline="always", **HOT)
@@ -188,7 +192,7 @@ def scatter_block(t1, e0, W, f1, mask):
         i0, i1, i2, i3 = _corners(t1, e)
         for r in range(3):
             c = np.uint64(r)
-            w1, w2, w3 = W[c * UBLOCK + q], W[(_U3 + c) * UBLOCK + q], W[(_U6 + c) * UBLOCK + q]
+            w1, w2, w3 = W[c * UBLOCK + q], W[(U3 + c) * UBLOCK + q], W[(U6 + c) * UBLOCK + q]
             f1[i1 + c] -= w1
             f1[i2 + c] -= w2
             f1[i3 + c] -= w3

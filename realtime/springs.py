@@ -7,7 +7,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from .blocks import HOT, JIT
+from .blocks import HOT, JIT, U1, U2, U3
 
 
 class SpringData(NamedTuple):
@@ -21,9 +21,6 @@ class SpringData(NamedTuple):
     rest_length: np.ndarray
 
 
-_1, _2, _3 = np.uint64(1), np.uint64(2), np.uint64(3)
-
-
 @nb.njit(inline="always", **HOT)
 def _stretch(e, edges, L, u, k):
     """d = x_j - x_i = e_k + (u_j - u_i) of edge k (uint64), |d| and its stretch |d| - L_k, the latter
@@ -33,12 +30,12 @@ def _stretch(e, edges, L, u, k):
     Returns the flat offsets 3 i and 3 j too.
 
     e (3 E,) m, edges (2 E,) int64 and u (3 N,) m flat views of SpringData's arrays and the displacement,
-    read with unsigned offsets (signed ones are wrapped around when negative, and 2-D arrays are read
-    by their run-time strides: the liver-x10's force took 691 us that way, 641 flat, same bits)."""
-    bi, bj = _3 * np.uint64(edges[_2 * k]), _3 * np.uint64(edges[_2 * k + _1])
-    be = _3 * k
-    du0, du1, du2 = u[bj] - u[bi], u[bj + _1] - u[bi + _1], u[bj + _2] - u[bi + _2]
-    e0, e1, e2 = e[be], e[be + _1], e[be + _2]
+    read with unsigned offsets (blocks.U1 ...: the liver-x10's force took 691 us with 2-D signed
+    indexing, 641 flat, same bits)."""
+    bi, bj = U3 * np.uint64(edges[U2 * k]), U3 * np.uint64(edges[U2 * k + U1])
+    be = U3 * k
+    du0, du1, du2 = u[bj] - u[bi], u[bj + U1] - u[bi + U1], u[bj + U2] - u[bi + U2]
+    e0, e1, e2 = e[be], e[be + U1], e[be + U2]
     d0, d1, d2 = e0 + du0, e1 + du1, e2 + du2
     length = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     grow = (e0 + e0 + du0) * du0 + (e1 + e1 + du1) * du1 + (e2 + e2 + du2) * du2
@@ -61,11 +58,11 @@ def spring_force(data, scratch, u, f):
         bi, bj, d0, d1, d2, length, stretch = _stretch(e1, edges1, L, u1, m)
         s = k[m] * stretch / length
         f1[bi] += s * d0
-        f1[bi + _1] += s * d1
-        f1[bi + _2] += s * d2
+        f1[bi + U1] += s * d1
+        f1[bi + U2] += s * d2
         f1[bj] -= s * d0
-        f1[bj + _1] -= s * d1
-        f1[bj + _2] -= s * d2
+        f1[bj + U1] -= s * d1
+        f1[bj + U2] -= s * d2
 
 
 @nb.njit(**JIT)

@@ -35,6 +35,7 @@ import numba as nb
 import numpy as np
 import scipy.sparse as sp
 
+from .blocks import U1, U2, U3, U4, U5, U6, U7, U8, U9
 from .errors import InputError
 from .geometry import shape_gradients, unique_edges
 from .laws import linear_elasticity_tensor
@@ -236,13 +237,6 @@ class TensorMass:
         )
 
 
-#: Index constants of linear_rows, unsigned: a signed index makes numba wrap negative ones around (a
-#: sign test and two more instructions per array access), and reading (N, 3) and (E, 3, 3) arrays by
-#: their run-time strides costs a multiplication each. On flat views with unsigned indices the loop
-#: is 20% faster (liver-x10: 503 against 405 us, same bits).
-_1, _2, _3, _9 = np.uint64(1), np.uint64(2), np.uint64(3), np.uint64(9)
-
-
 @nb.njit(inline="always", **_HOT)
 def linear_rows(cols, et, row_start, lo, hi, u, f):
     """linear_tm_force's pass over the vertex rows lo .. hi - 1, adding into f: vertex i gathers
@@ -250,27 +244,29 @@ def linear_rows(cols, et, row_start, lo, hi, u, f):
     to each j; f_i is written once. Each edge tensor is loaded once into registers.
 
     cols (E,) int64, row_start (N + 1,) int64 as in TensorData; et (9 E,) the edge tensors, u (3 N,)
-    m and f (3 N,) N flat (row-major views of the (E, 3, 3) and (N, 3) arrays)."""
+    m and f (3 N,) N flat (row-major views of the (E, 3, 3) and (N, 3) arrays), read with unsigned
+    offsets (blocks.U1 ...: 20% faster than 2-D signed indexing, liver-x10 503 against 405 us, same
+    bits)."""
     for i in range(lo, hi):
-        bi = _3 * np.uint64(i)
-        ui0, ui1, ui2 = u[bi], u[bi + _1], u[bi + _2]
-        a0, a1, a2 = f[bi], f[bi + _1], f[bi + _2]
+        bi = U3 * np.uint64(i)
+        ui0, ui1, ui2 = u[bi], u[bi + U1], u[bi + U2]
+        a0, a1, a2 = f[bi], f[bi + U1], f[bi + U2]
         for e in range(np.uint64(row_start[i]), np.uint64(row_start[i + 1])):
-            bj = _3 * np.uint64(cols[e])
-            be = _9 * e
-            t00, t01, t02 = et[be], et[be + _1], et[be + _2]
-            t10, t11, t12 = et[be + _3], et[be + np.uint64(4)], et[be + np.uint64(5)]
-            t20, t21, t22 = et[be + np.uint64(6)], et[be + np.uint64(7)], et[be + np.uint64(8)]
-            d0, d1, d2 = u[bj] - ui0, u[bj + _1] - ui1, u[bj + _2] - ui2
+            bj = U3 * np.uint64(cols[e])
+            be = U9 * e
+            t00, t01, t02 = et[be], et[be + U1], et[be + U2]
+            t10, t11, t12 = et[be + U3], et[be + U4], et[be + U5]
+            t20, t21, t22 = et[be + U6], et[be + U7], et[be + U8]
+            d0, d1, d2 = u[bj] - ui0, u[bj + U1] - ui1, u[bj + U2] - ui2
             a0 -= t00 * d0 + t01 * d1 + t02 * d2
             a1 -= t10 * d0 + t11 * d1 + t12 * d2
             a2 -= t20 * d0 + t21 * d1 + t22 * d2
             f[bj] += t00 * d0 + t10 * d1 + t20 * d2
-            f[bj + _1] += t01 * d0 + t11 * d1 + t21 * d2
-            f[bj + _2] += t02 * d0 + t12 * d1 + t22 * d2
+            f[bj + U1] += t01 * d0 + t11 * d1 + t21 * d2
+            f[bj + U2] += t02 * d0 + t12 * d1 + t22 * d2
         f[bi] = a0
-        f[bi + _1] = a1
-        f[bi + _2] = a2
+        f[bi + U1] = a1
+        f[bi + U2] = a2
 
 
 @nb.njit(**_HOT)
