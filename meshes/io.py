@@ -1,9 +1,13 @@
-"""Reading and writing tetrahedral meshes: gmsh format 1 by our own reader, the rest through meshio."""
+"""Reading and writing tetrahedral meshes: gmsh format 1 by our own reader, the rest through meshio,
+and the gmsh files meshio cannot read through gmsh itself."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -24,10 +28,13 @@ _GMSH1_TYPES = {1: "line", 3: "quad", 5: "hexahedron", 6: "wedge", 7: "pyramid",
 
 class _Cells:
     """What a reader hands on: points (N, 3), tetrahedra (M, 4) as the file numbers them (0-based),
-    surface triangles (F, 3) with their tags, tetrahedron tags, group names, other cell types, and the
-    tetrahedra's numeric cell data (fields)."""
+    surface triangles (F, 3) with their tags, tetrahedron tags, group names, other cell types, the
+    tetrahedra's numeric cell data (fields), and the tag that means "in no group" (gmsh's 0) if the
+    format has one."""
 
-    def __init__(self, points, tets, tet_tags=None, tris=None, tri_tags=None, names=None, others=(), fields=None):
+    def __init__(
+        self, points, tets, tet_tags=None, tris=None, tri_tags=None, names=None, others=(), fields=None, no_group=None
+    ):
         self.points = np.asarray(points, dtype=np.float64)
         self.tets = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
         self.tet_tags = None if tet_tags is None else np.asarray(tet_tags, dtype=np.int64)
@@ -36,6 +43,7 @@ class _Cells:
         self.names = names or {}
         self.others = sorted(set(others))
         self.fields = fields or {}  # name -> (M,) float64, a value per tetrahedron (the file's cell data)
+        self.no_group = no_group
 
 
 def _is_gmsh1(path: Path) -> bool:
@@ -127,6 +135,7 @@ def _read_gmsh1(path: Path) -> _Cells:
         index(tris, "triangle"),
         tri_tags,
         others=others,
+        no_group=0,
     )
 
 
@@ -134,10 +143,32 @@ def _read_gmsh1(path: Path) -> _Cells:
 TAG_DATA = ("gmsh:physical", "gmsh:geometrical", "medit:ref")
 
 
-def _read_meshio(path: Path) -> _Cells:
+class _MeshioError(Exception):
+    """meshio could not read a file: the reason, from its exception or from what it printed."""
+
+
+def _quiet_meshio_read(path: Path):
+    """meshio.read, with what it prints (and warns) kept from the terminal: for a .msh it tries the
+    ANSYS reader first and prints that reader's (empty) error on stdout, a blank line in the middle of
+    ``tissuebench check``; for a file no reader takes it prints an "Error:" line and calls
+    sys.exit(1). Raises _MeshioError with the most specific reason: its exception's message, else what
+    its last "Error:" said."""
     import meshio
 
-    m = meshio.read(path)
+    chatter = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # numpy's, from meshio's parsing of a broken file
+            return meshio.read(path)
+    except (Exception, SystemExit) as exc:
+        said = " ".join(chatter.getvalue().split())  # rich wraps its lines at 80 columns
+        text = str(exc).strip() if not isinstance(exc, SystemExit) or "Error:" not in said else ""
+        reason = text.splitlines()[0] if text else said.rsplit("Error:", 1)[-1].strip()
+        raise _MeshioError(reason or type(exc).__name__) from None
+
+
+def _read_meshio(path: Path) -> _Cells:
+    m = _quiet_meshio_read(path)
     tets, tet_tags, tris, tri_tags = [], [], [], []
     phys = m.cell_data.get("gmsh:physical") or m.cell_data.get("medit:ref")
     for i, cells in enumerate(m.cells):
@@ -173,7 +204,99 @@ def _read_meshio(path: Path) -> _Cells:
         names,
         [c.type for c in m.cells if c.type not in ("tetra", "triangle")],
         fields,
+        0 if "gmsh:physical" in m.cell_data else None,
     )
+
+
+def _is_gmsh(path: Path) -> bool:
+    """Whether ``path`` is a gmsh file of format 2 or 4 (a .msh starting with $MeshFormat)."""
+    if path.suffix.lower() != ".msh":
+        return False
+    with open(path, "rb") as fh:
+        for line in fh:
+            if line.strip():
+                return line.strip() == b"$MeshFormat"
+    return False
+
+
+#: gmsh's element type numbers, by the names meshio gives them (the names read_mesh's errors use).
+_GMSH_TYPES = {2: "triangle", 4: "tetra", 11: "tetra10", 8: "line3", 9: "triangle6", **_GMSH1_TYPES}
+
+
+def _read_by_gmsh(path: Path) -> _Cells:
+    """A gmsh file of format 2 or 4 read by gmsh itself (python3-gmsh), for the files gmsh writes that
+    meshio cannot read: saved with Mesh.SaveAll = 1 beside physical groups, gmsh 4.1 lists the
+    elements of untagged entities too, and meshio stops at its "Incompatible cell data
+    'gmsh:physical'". Tetrahedra (the corners of quadratic ones) of every volume, with the first
+    physical tag of their volume (0 for a volume in none), and the triangles of tagged surfaces with
+    theirs; group names; the other element types, by meshio's names. Element data ($ElementData) is
+    not read here."""
+    import gmsh
+
+    gmsh.initialize(readConfigFiles=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.open(str(path))
+        node_tags, coords, _ = gmsh.model.mesh.getNodes()
+        if len(node_tags) == 0:
+            raise ValueError("no nodes")
+        index = np.full(int(node_tags.max()) + 1, -1, dtype=np.int64)
+        index[node_tags.astype(np.int64)] = np.arange(len(node_tags))
+        tagged = bool(gmsh.model.getPhysicalGroups())
+        blocks = {2: ([], []), 3: ([], [])}
+        for dim, keep in ((3, (4, 11)), (2, (2,))):
+            for _, entity in gmsh.model.getEntities(dim):
+                groups = gmsh.model.getPhysicalGroupsForEntity(dim, entity)
+                if dim == 2 and len(groups) == 0:
+                    continue  # an untagged surface's triangles name no vertices
+                types, _, nodes = gmsh.model.mesh.getElements(dim, entity)
+                for etype, conn in zip(types, nodes, strict=True):
+                    if etype in keep:
+                        per = gmsh.model.mesh.getElementProperties(etype)[3]
+                        conn = index[conn.astype(np.int64).reshape(-1, per)[:, : dim + 1]]
+                        blocks[dim][0].append(conn)
+                        blocks[dim][1].append(np.full(len(conn), int(groups[0]) if len(groups) else 0))
+        names = {int(tag): gmsh.model.getPhysicalName(dim, tag) for dim, tag in gmsh.model.getPhysicalGroups()}
+        others = [
+            _GMSH_TYPES.get(int(t), gmsh.model.mesh.getElementProperties(t)[0])
+            for t in gmsh.model.mesh.getElementTypes()
+            if t not in (2, 4)
+        ]
+        points = coords.reshape(-1, 3)
+    finally:
+        gmsh.finalize()
+    cat = lambda a, k: np.concatenate(a) if a else np.zeros((0, k) if k else 0, np.int64)  # noqa: E731
+    (tets, tet_tags), (tris, tri_tags) = blocks[3], blocks[2]
+    return _Cells(
+        points,
+        cat(tets, 4),
+        cat(tet_tags, 0) if tagged else None,
+        cat(tris, 3),
+        cat(tri_tags, 0) if tagged else None,
+        {k: v for k, v in names.items() if v},
+        others,
+        no_group=0,
+    )
+
+
+def _read_cells(path: Path) -> _Cells:
+    """The file's raw cells by the reader its format needs: ours for gmsh format 1, meshio for the rest,
+    and gmsh itself for the gmsh files meshio fails on. InvalidMeshError if none can read it."""
+    if _is_gmsh1(path):
+        return _read_gmsh1(path)
+    try:
+        return _read_meshio(path)
+    except InvalidMeshError:
+        raise
+    except (Exception, SystemExit) as exc:  # meshio raises many types, SystemExit among them
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    if _is_gmsh(path):
+        try:
+            return _read_by_gmsh(path)
+        except Exception as exc:
+            why = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            reason = f"meshio: {reason}; gmsh: {why}"
+    raise InvalidMeshError(f"{path}: cannot read it as a mesh ({reason})")
 
 
 def _quadratic_note(cells: _Cells) -> list[str]:
@@ -200,13 +323,7 @@ def read_mesh(path: str | os.PathLike, scale: float = 1.0) -> TetMesh:
         raise FileNotFoundError(f"{path}: no such mesh file")
     if not (isinstance(scale, (int, float)) and np.isfinite(scale) and scale > 0):
         raise InvalidMeshError(f"{path}: scale = {scale!r} must be a positive number")
-    try:
-        cells = _read_gmsh1(path) if _is_gmsh1(path) else _read_meshio(path)
-    except InvalidMeshError:
-        raise
-    except (Exception, SystemExit) as exc:  # meshio raises many types, SystemExit among them
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise InvalidMeshError(f"{path}: cannot read it as a mesh ({reason})") from None
+    cells = _read_cells(path)
     if len(cells.tets) == 0:
         raise InvalidMeshError(
             f"{path}: not a linear tetrahedral mesh (cell types: {cells.others or ['none']}"
@@ -277,12 +394,16 @@ def _clean(path: Path, c: _Cells, scale: float) -> TetMesh:
         notes.append(f"turned {int(negative.sum())} tetrahedra{mixed} to positive orientation (tetrahedron {first}...)")
     vertex_tags, cell_tags = {}, {}
     if tet_tags is not None:
-        for t in np.unique(tet_tags):
+        for t in np.unique(tet_tags[tet_tags != c.no_group]):
             cell_tags[c.names.get(int(t), str(int(t)))] = np.flatnonzero(tet_tags == t).astype(np.int64)
     if c.tri_tags is not None and len(tris):
-        for t in np.unique(c.tri_tags):
+        for t in np.unique(c.tri_tags[c.tri_tags != c.no_group]):
             v = compact[np.unique(tris[c.tri_tags == t])]
             vertex_tags[c.names.get(int(t), str(int(t)))] = np.unique(v[v >= 0]).astype(np.int64)
+    unused = sorted(set(c.names.values()) - set(cell_tags) - set(vertex_tags))
+    if unused:
+        # gmsh 2.2 saved with Mesh.SaveAll = 1 keeps $PhysicalNames but writes every element's tag as 0
+        notes.append(f"the file names groups that tag no tetrahedron or triangle: {', '.join(unused)}")
     mesh = TetMesh(
         points,
         tets,

@@ -63,6 +63,71 @@ def test_every_format_a_user_has_is_read(tmp_path, name, fmt):
     assert back.notes == ()
 
 
+def _gmsh_box(path: Path, version: float, groups: bool, save_all: bool, binary: bool) -> None:
+    """A 10 x 2 x 2 cm box meshed and saved by gmsh itself, with the options its users set: the volume
+    and the x = 0 face in physical groups ("tissue", "clamp") or none, Mesh.SaveAll, binary."""
+    import gmsh
+
+    gmsh.initialize(readConfigFiles=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.occ.addBox(0, 0, 0, 0.1, 0.02, 0.02)
+        gmsh.model.occ.synchronize()
+        if groups:
+            gmsh.model.setPhysicalName(3, gmsh.model.addPhysicalGroup(3, [1]), "tissue")
+            gmsh.model.setPhysicalName(2, gmsh.model.addPhysicalGroup(2, [1]), "clamp")  # the face x = 0
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.01)
+        gmsh.model.mesh.generate(3)
+        gmsh.option.setNumber("Mesh.MshFileVersion", version)
+        gmsh.option.setNumber("Mesh.SaveAll", int(save_all))
+        gmsh.option.setNumber("Mesh.Binary", int(binary))
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
+
+
+@pytest.mark.parametrize("version", [2.2, 4.1])
+@pytest.mark.parametrize(
+    "groups, save_all, binary", [(False, False, False), (True, False, False), (True, True, False), (True, True, True)]
+)
+def test_files_gmsh_itself_writes_are_read_silently(tmp_path, capfd, version, groups, save_all, binary):
+    """What gmsh writes, not meshio: with physical groups and Mesh.SaveAll = 1, gmsh 4.1 lists the
+    untagged surfaces' elements too, which meshio refuses ("Incompatible cell data"), so gmsh reads
+    those itself. Every variant gives the whole box, the named groups as tags (gmsh's group 0 is
+    none), and prints nothing (meshio printed a blank line on stdout for every .msh, its ANSYS
+    reader's empty error). gmsh 2.2 with SaveAll writes no element's group: a note says so."""
+    _gmsh_box(tmp_path / "box.msh", version, groups, save_all, binary)
+    m = read_mesh(tmp_path / "box.msh")
+    assert capfd.readouterr() == ("", "")
+    assert m.n_tets > 100 and np.isclose(m.volumes().sum(), 0.1 * 0.02 * 0.02, rtol=1e-12)
+    lost = groups and save_all and version == 2.2  # gmsh writes every element's group as 0 then
+    assert m.notes == (("the file names groups that tag no tetrahedron or triangle: clamp, tissue",) if lost else ())
+    if groups and not lost:
+        assert np.array_equal(m.cell_tags["tissue"], np.arange(m.n_tets))
+        clamp = m.vertex_tags["clamp"]
+        assert len(clamp) > 4 and np.all(m.points[clamp, 0] == 0.0)
+        assert np.array_equal(clamp, np.flatnonzero(m.points[:, 0] == 0.0))
+    else:
+        assert m.cell_tags == {} and m.vertex_tags == {}
+
+
+def test_a_file_no_reader_takes_is_one_quiet_line(tmp_path, capfd):
+    """meshio prints its readers' errors and calls sys.exit(1) for a .msh it cannot place: read_mesh
+    says why in its one line and lets nothing else through; a gmsh file that both meshio and gmsh
+    fail on names both reasons."""
+    (tmp_path / "notes.msh").write_text("hello\n")
+    with pytest.raises(InvalidMeshError) as err:
+        read_mesh(tmp_path / "notes.msh")
+    assert capfd.readouterr() == ("", "")
+    assert str(err.value) == f"{tmp_path / 'notes.msh'}: cannot read it as a mesh (Couldn't read file " + (
+        f"{tmp_path / 'notes.msh'} as either of ansys, gmsh)"
+    )
+    (tmp_path / "cut.msh").write_text("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\nbroken\n")
+    with pytest.raises(InvalidMeshError, match=r"cut\.msh: cannot read it as a mesh \(meshio: .*; gmsh: Could not"):
+        read_mesh(tmp_path / "cut.msh")
+    assert capfd.readouterr() == ("", "")
+
+
 def test_quadratic_tetrahedra_give_their_corners(tmp_path):
     """A second-order gmsh mesh: the linear mesh of its corners, said in a note."""
     import meshio
