@@ -188,6 +188,8 @@ class Integrator:
         frame moves them."""
         p = self._prepare(model)
         kind = p.tools.kind
+        if len(kind) == 0:
+            raise InputError(f"set_tool: tool = {tool!r}: {model.name} was built with no tools (Loading.tool_vertex)")
         if not isinstance(tool, (int, np.integer)) or not 0 <= tool < len(kind):
             raise InputError(f"set_tool: tool = {tool!r}: must be an index in 0..{len(kind) - 1}")
         if kind[tool] == TOOL_ROTATION:

@@ -289,10 +289,25 @@ class Model:
         """The material of each tetrahedron of ``tets`` (Materials.of ``material``)."""
         return Materials.of(self.material, len(self.tets))
 
+    def nodal(self, what: str, value) -> np.ndarray:
+        """``value`` as a C-contiguous (N, 3) array of the model's ``dtype`` (a copy only where needed),
+        or InputError naming ``what`` and what it got: the kernels index (N, 3) arrays without bounds
+        checks, so a shorter one would be read or written past its end (a (3, 3) u given to
+        internal_force corrupted the heap and aborted the process)."""
+        try:
+            a = np.ascontiguousarray(value, dtype=self.dtype)
+        except (TypeError, ValueError):
+            raise InputError(
+                f"{what}: must be an ({self.n_vertices}, 3) array of numbers, got {type(value).__name__}"
+            ) from None
+        if a.shape != (self.n_vertices, 3):
+            raise InputError(f"{what}: must have shape ({self.n_vertices}, 3) (the model's vertices), got {a.shape}")
+        return a
+
     def internal_force(self, u: np.ndarray) -> np.ndarray:
         """Internal elastic force (N, 3), N, at displacement u (N, 3) m, both in the model's ``dtype`` (u
         is rounded to it; with scratch of its own: safe beside any other call)."""
-        u = np.ascontiguousarray(u, dtype=self.dtype)
+        u = self.nodal("internal_force: u", u)
         f = np.empty_like(u)
         self.force_kernel(self.data, self.new_scratch(), u, f)
         return f
@@ -322,10 +337,11 @@ class Model:
 
     def elastic_energy(self, u: np.ndarray) -> float:
         """Elastic energy, J, at displacement u (N, 3) m (rounded to the model's ``dtype``)."""
-        return float(self.energy_kernel(self.data, np.ascontiguousarray(u, dtype=self.dtype)))
+        return float(self.energy_kernel(self.data, self.nodal("elastic_energy: u", u)))
 
     def kinetic_energy(self, v: np.ndarray) -> float:
         """Kinetic energy sum m |v|^2 / 2, J, for velocities v (N, 3) m/s."""
+        v = self.nodal("kinetic_energy: v", v)
         return float(0.5 * np.sum(self.mass[:, None] * v * v))
 
     def tool_displacement(self, t: float) -> np.ndarray:
@@ -342,6 +358,7 @@ class Model:
         the force with inertia and damping is what the integrators' ``step`` returns.
         """
         lo = self.loading
+        u = self.nodal("tool_reactions: u", u)
         out = np.zeros((len(lo.tool_kind), 3))
         if len(lo.tool_vertex) == 0:
             return out

@@ -15,7 +15,7 @@ import scipy.sparse as sp
 from .adaptive import build_adaptive_tm
 from .blocks import BlockData, block_data, block_scratch
 from .corotational import corotational_energy, corotational_force, corotational_scratch
-from .errors import InputError
+from .errors import InputError, index_array
 from .geometry import shape_gradients, signed_volumes, unique_edges
 from .hybrid import HybridData, hybrid_energy, hybrid_force, hybrid_scratch
 from .material import Material, Materials
@@ -78,7 +78,7 @@ def cut(model: Model, which) -> Model:
     if model.name != "linear-tm" or tm is None:
         raise InputError(f"cut: {model.name} does not support cutting (linear-tm does)")
     check_float64(model, "cut")
-    which = np.unique(np.asarray(which, dtype=np.int64))
+    which = np.unique(index_array("cut: which", which, len(tm.tets)))
     tm.remove(which)
     removed = tm.tets[which]
     mass = model.mass.copy()

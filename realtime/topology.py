@@ -21,7 +21,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .errors import InputError
+from .errors import InputError, index_array
 from .geometry import TET_FACES, signed_volumes
 from .material import Material
 from .model import Loading, Model, check_float64
@@ -98,10 +98,10 @@ def slit(model: Model, faces) -> tuple[Model, np.ndarray]:
     ``suture`` takes to join them back.
     """
     tm = _tensors(model, "slit")
-    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    n = model.n_vertices
+    faces = index_array("slit: face", faces, n, width=3)
     alive = np.flatnonzero(tm.alive)
     tet_faces = np.sort(tm.tets[alive][:, TET_FACES].reshape(-1, 3), axis=1)  # (4 A, 3)
-    n = model.n_vertices
     key = (tet_faces[:, 0] * n + tet_faces[:, 1]) * n + tet_faces[:, 2]
     slit_keys = set()
     for f in np.sort(faces, axis=1):
@@ -161,11 +161,8 @@ def suture(model: Model, pairs) -> Model:
     dropped if it and every vertex after it are now unused copies a slit appended.
     """
     tm = _tensors(model, "suture")
-    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     n = model.n_vertices
-    if np.any((pairs < 0) | (pairs >= n)):
-        bad = pairs[np.any((pairs < 0) | (pairs >= n), axis=1)][0]
-        raise InputError(f"suture: pair {bad.tolist()} names a vertex outside 0..{n - 1}")
+    pairs = index_array("suture: pair", pairs, n, width=2)
     size = float(np.ptp(model.points, axis=0).max())
     gap = np.linalg.norm(model.points[pairs[:, 0]] - model.points[pairs[:, 1]], axis=1)
     if np.any(gap > COINCIDE * size) or np.any(pairs[:, 0] == pairs[:, 1]):

@@ -389,6 +389,9 @@ def test_frame_inputs_are_checked_with_one_line_errors():
             integ.set_forces(model, args)
     with pytest.raises(InputError, match=r"set_tool: tool = 1: must be an index in 0..0"):
         integ.set_tool(model, 1, translation=[0.0, 0.0, 1e-3])
+    bare = build_model("linear-tm", mesh.points, mesh.tets, MAT)
+    with pytest.raises(InputError, match=r"set_tool: tool = 0: linear-tm was built with no tools"):
+        SymplecticEuler().set_tool(bare, 0, translation=[0.0, 0.0, 1e-3])
     with pytest.raises(InputError, match=r"set_tool: tool 0 translates: give translation \(3,\) m"):
         integ.set_tool(model, 0, angle=0.1)
     with pytest.raises(InputError, match=r"translation: must have shape \(3,\), got \(2,\)"):
@@ -438,3 +441,38 @@ def test_a_settling_below_its_round_off_floor_stops_there_whatever_the_order_of_
     monkeypatch.setattr(statics, "FLOOR_FACTOR", 0.0)  # the stall rule alone
     stalled = statics.solve_static(model, dt=dt, rtol=1e-12)
     assert stalled.steps > 1.5 * runs[1]
+
+
+@pytest.mark.parametrize("name", ["linear-tm", "stvk-tm", "mass-spring", "condensed"])
+def test_a_wrong_array_given_to_a_models_methods_is_a_one_line_error(name):
+    """The force and energy kernels index (N, 3) arrays without bounds checks: a (3, 3) u given to
+    Model.internal_force wrote past its output and the process aborted ("corrupted size vs.
+    prev_size"). Every method that takes a nodal field checks its shape first, and names itself."""
+    from realtime import InputError
+    from realtime.spectra import max_eigenvalue
+
+    mesh, load = _pulled_beam()
+    model = build_model(name, mesh.points, mesh.tets, MAT, load)
+    n = mesh.n_vertices
+    calls = {
+        "internal_force: u": model.internal_force,
+        "elastic_energy: u": model.elastic_energy,
+        "kinetic_energy: v": model.kinetic_energy,
+        "tool_reactions: u": model.tool_reactions,
+        "max_eigenvalue: u": lambda u: max_eigenvalue(model, u),
+    }
+    for what, call in calls.items():
+        for bad, got in (
+            (np.zeros((3, 3)), r"\(3, 3\)"),
+            (np.zeros(3 * n), rf"\({3 * n},\)"),
+            (np.zeros((n, 3, 1)), ""),
+        ):
+            with pytest.raises(
+                InputError, match=rf"^{what}: must have shape \({n}, 3\) \(the model's vertices\), got {got}"
+            ):
+                call(bad)
+        with pytest.raises(InputError, match=rf"^{what}: must be an \({n}, 3\) array of numbers, got str"):
+            call("zeros")
+    # the right shape as a list, or in another float type, is taken as it is
+    assert model.internal_force(np.zeros((n, 3)).tolist()).shape == (n, 3)
+    assert model.elastic_energy(np.zeros((n, 3), np.float32)) == 0.0

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from meshes import stored_mesh, structured_box
-from realtime import MODELS, Material, State, build_model
+from realtime import MODELS, InputError, Material, State, build_model
 from realtime.models import GEOMETRIC, QUASI_STATIC, cut
 from reference.fem import ElasticityProblem
 from reference.problem import Problem
@@ -238,6 +238,18 @@ def test_cutting_equals_rebuild():
     assert np.all(cut_model.loading.free[orphans] == 0.0)
     with pytest.raises(ValueError, match="already removed"):
         cut_model.extra["tensors"].remove(first[:1])
+    with pytest.raises(ValueError, match="already removed"):
+        cut(cut_model, first[:1])
+    # numpy would take -1 as the last tetrahedron, and truncate 0.5 to the first: both refused
+    m = mesh.n_tets
+    for which, message in (
+        ([m], rf"cut: which: {m} is outside 0..{m - 1}"),
+        ([-1], rf"cut: which: -1 is outside 0..{m - 1}"),
+        ([0.5], r"cut: which: must be whole-number indices, got float64 values such as 0.5"),
+        ([[0, 1]], r"cut: which: must be a list of indices, got shape \(1, 2\)"),
+    ):
+        with pytest.raises(InputError, match=message):
+            cut(cut_model, which)
 
 
 def test_corotational_refuses_fibres():

@@ -109,3 +109,13 @@ def test_bad_topology_changes_are_one_line_errors():
         slit(model, [[0, 1, 2]])
     with pytest.raises(InputError, match="stvk-tm does not support topology changes"):
         slit(build_model("stvk-tm", mesh.points, mesh.tets, HOST), slit_faces(mesh))
+    n = mesh.n_vertices
+    for call, message in (
+        (lambda: suture(model, [[0, n]]), rf"suture: pair: \[0, {n}\] is outside 0..{n - 1}"),
+        (lambda: suture(model, [[0, 1, 2]]), r"suture: pair: must have shape \(K, 2\), got \(1, 3\)"),
+        (lambda: suture(model, [[0.5, 1]]), r"suture: pair: must be whole-number indices"),
+        (lambda: slit(model, [[0, 1, -1]]), rf"slit: face: \[0, 1, -1\] is outside 0..{n - 1}"),
+        (lambda: slit(model, [[0, 1], [2, 3]]), r"slit: face: must have shape \(K, 3\), got \(2, 2\)"),
+    ):
+        with pytest.raises(InputError, match=message):
+            call()
