@@ -93,8 +93,11 @@ def fiber_lambda(young: float, young_fiber: float, fiber_shear: float = 0.0) -> 
     return young_fiber - young - 2.0 * fiber_shear
 
 
-def check_elastic_constants(young: float, poisson: float, density: float | None = None) -> None:
-    """Raise MaterialError unless E > 0, -1 < nu < 0.5 and (if given) rho > 0."""
+def check_elastic_constants(young: float, poisson: float, density: float) -> None:
+    """Raise MaterialError unless E > 0, -1 < nu < 0.5 and rho > 0, each a number."""
+    for name, value in (("young", young), ("poisson", poisson), ("density", density)):
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+            raise MaterialError(f"{name} = {value!r}: must be a number, got {type(value).__name__}")
     if not (math.isfinite(young) and young > 0.0):
         raise MaterialError(f"young = {young!r}: Young's modulus must be a positive number of Pa")
     if not (math.isfinite(poisson) and -1.0 < poisson < 0.5):
@@ -102,7 +105,7 @@ def check_elastic_constants(young: float, poisson: float, density: float | None 
             f"poisson = {poisson!r}: Poisson's ratio must lie in (-1, 0.5); 0.5 is incompressible, "
             "which a displacement formulation cannot represent (use 0.4999 or volume_penalty)"
         )
-    if density is not None and not (math.isfinite(density) and density > 0.0):
+    if not (math.isfinite(density) and density > 0.0):
         raise MaterialError(f"density = {density!r}: must be a positive number of kg/m^3")
 
 

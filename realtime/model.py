@@ -148,6 +148,9 @@ class Loading:
             if len(a) and (a.min() < 0 or a.max() >= upper):
                 bad = int(np.argmax((a < 0) | (a >= upper)))
                 raise LoadingError(f"Loading.{name}[{bad}] = {a[bad]}: must lie in 0..{upper - 1}")
+        if not np.all((self.free == 0.0) | (self.free == 1.0)):
+            bad = tuple(int(i) for i in np.argwhere((self.free != 0.0) & (self.free != 1.0))[0])
+            raise LoadingError(f"Loading.free{list(bad)} = {self.free[bad]}: must be 1 (free) or 0 (held)")
         if len(self.tool_ramp) and self.tool_ramp.min() < 0.0:
             bad = int(np.argmin(self.tool_ramp))
             raise LoadingError(f"Loading.tool_ramp[{bad}] = {self.tool_ramp[bad]}: must be >= 0 s")

@@ -222,6 +222,8 @@ def _engine_inputs():
         ("free", np.ones((5, 3)), "Loading.free: must be a (16, 3) float64 array, got (5, 3) float64"),
         ("external_force", np.full((16, 3), np.nan), "Loading.external_force[0, 0]: must be finite"),
         ("tool_ramp", np.array([-1.0]), "Loading.tool_ramp[0] = -1.0: must be >= 0 s"),
+        # a free mask of 2 doubled the component's inverse mass in every update, silently
+        ("free", np.full((16, 3), 2.0), "Loading.free[0, 0] = 2.0: must be 1 (free) or 0 (held)"),
     ],
 )
 @pytest.mark.parametrize("model", ["linear-tm", "stvk-tm", "precomputed"])

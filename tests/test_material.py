@@ -46,6 +46,9 @@ def test_picinbono_liver_constants():
         ("young", -5.0),
         ("density", 0.0),
         ("young", math.nan),
+        ("young", "5e5"),  # a TypeError from math.isfinite before
+        ("density", None),
+        ("poisson", True),
     ],
 )
 def test_bad_constants_name_the_field(field, value):
