@@ -18,26 +18,26 @@ class LoadingError(InputError):
     """A Loading or a model option with a wrong shape, dtype, index range or value."""
 
 
-def index_array(what: str, value, n: int, width: int | None = None) -> np.ndarray:
+def index_array(what: str, value, n: int, width: int | None = None, error: type[InputError] = InputError) -> np.ndarray:
     """``value`` as an int64 array of indices into n things ((K,), or (K, width) if ``width``), or
-    InputError naming ``what`` and the first bad entry: indices must be whole numbers (numpy would
+    ``error`` naming ``what`` and the first bad entry: indices must be whole numbers (numpy would
     truncate 0.5 to 0) in 0 .. n - 1 (numpy would take -1 as the last one)."""
     a = np.asarray(value)
     if a.size == 0:
         return np.zeros((0,) if width is None else (0, width), np.int64)
     if a.dtype.kind not in "iu" and not (a.dtype.kind == "f" and np.all(np.isfinite(a)) and np.all(a == np.round(a))):
-        raise InputError(f"{what}: must be whole-number indices, got {a.dtype} values such as {a.ravel()[0]!r}")
+        raise error(f"{what}: must be whole-number indices, got {a.dtype} values such as {a.ravel()[0]!r}")
     a = a.astype(np.int64)
     if width is not None:
         if a.ndim == 1 and a.size == width:
             a = a.reshape(1, width)
         if a.ndim != 2 or a.shape[1] != width:
-            raise InputError(f"{what}: must have shape (K, {width}), got {np.shape(value)}")
+            raise error(f"{what}: must have shape (K, {width}), got {np.shape(value)}")
     elif a.ndim > 1:
-        raise InputError(f"{what}: must be a list of indices, got shape {a.shape}")
+        raise error(f"{what}: must be a list of indices, got shape {a.shape}")
     bad = (a < 0) | (a >= n)
     if bad.any():
         first = a.reshape(len(a), -1)[np.any(bad.reshape(len(a), -1), axis=1)][0]
         shown = first.tolist() if width is not None else int(first[0])
-        raise InputError(f"{what}: {shown} is outside 0..{n - 1}")
+        raise error(f"{what}: {shown} is outside 0..{n - 1}")
     return a.reshape(-1) if width is None else a

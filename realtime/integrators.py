@@ -154,6 +154,15 @@ class Integrator:
     _prepared: _Prepared | None = field(default=None, init=False, repr=False, compare=False)
     name = "base"
 
+    def __post_init__(self) -> None:
+        for key in ("alpha", "beta"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not 0.0 <= value < math.inf:
+                raise InputError(
+                    f"{self.name}: {key} = {value!r}: a Rayleigh damping coefficient must be a number >= 0 "
+                    f"({'1/s' if key == 'alpha' else 's'}; a negative one feeds energy in)"
+                )
+
     def critical_dt(self, model: Model, omega2: float | None = None) -> float:
         """dt_crit = (2 / omega_max)(sqrt(1 + xi^2) - xi), s. Pass omega2 if already known."""
         w2 = max_eigenvalue(model) if omega2 is None else omega2
@@ -399,6 +408,10 @@ class ImplicitEuler(Integrator):
     ):
         super().__init__(alpha=alpha, beta=beta)
         self.budget, self.unconverged = budget, 0
+        if isinstance(tol, bool) or not isinstance(tol, (int, float, np.number)) or not 0.0 < tol < 1.0:
+            raise InputError(f"implicit-euler: tol = {tol!r}: CG's relative tolerance must be a number in (0, 1)")
+        if isinstance(maxit, bool) or not isinstance(maxit, (int, np.integer)) or maxit < 1:
+            raise InputError(f"implicit-euler: maxit = {maxit!r}: must be a whole number of CG iterations >= 1")
         if preconditioner not in PRECONDITIONERS:
             raise InputError(f"preconditioner = {preconditioner!r}: must be one of {', '.join(PRECONDITIONERS)}")
         self.tol, self.maxit, self.iterations, self.worst_iterations = tol, maxit, 0, 0

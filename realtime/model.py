@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from .errors import InputError, LoadingError
+from .errors import InputError, LoadingError, index_array
 from .geometry import check_tets, lumped_volumes, signed_volumes
 from .material import Material, Materials
 
@@ -163,7 +163,7 @@ class Loading:
         (linearly; 0: at once) on the components ``mask`` (P, 3) or (3,) float64 holds (default all three),
         with the given ``free`` and ``external_force`` (the tool's components need not be cleared in
         ``free``: the tools overwrite them)."""
-        vertices = np.asarray(vertices, dtype=np.int64)
+        vertices = index_array("Loading.translating_tool: vertices", vertices, len(free), error=LoadingError)
         mask = np.ones(3) if mask is None else np.asarray(mask, dtype=np.float64)
         return Loading(
             free=free,

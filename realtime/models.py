@@ -6,6 +6,7 @@ Every builder takes plain arrays (points (N, 3) float64 m; tets (M, 4) int, posi
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable
 from functools import partial
 
@@ -228,8 +229,8 @@ def build_hybrid_tm(
     if threshold is None:
         e = unique_edges(tets)
         threshold = 0.1 * float(np.linalg.norm(points[e[:, 0]] - points[e[:, 1]], axis=1).mean())
-    if not threshold >= 0.0:
-        raise InputError(f"hybrid-tm: threshold = {threshold!r} must be >= 0 m")
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.number)) or not threshold >= 0.0:
+        raise InputError(f"hybrid-tm: threshold = {threshold!r} must be a number >= 0 m")
     btets, geo, prm = block_data(points, tets, material)
     data = HybridData(tm.kernel_data(), btets, geo, prm, np.array([float(threshold)]))
     n_points, n_padded = len(points), len(btets)
@@ -391,4 +392,8 @@ def build_model(
                 f"precision = {precision!r}: {name} runs in float64 only ({', '.join(FLOAT32_MODELS)} run in float32)"
             )
         options["precision"] = precision
+    accepted = [k for k in inspect.signature(builder).parameters if k not in ("points", "tets", "material", "loading")]
+    unknown = sorted(set(options) - set(accepted))
+    if unknown:
+        raise InputError(f"{name}: option {unknown[0]!r} is not one of its options ({', '.join(accepted) or 'none'})")
     return builder(np.asarray(points), np.asarray(tets), material, loading, **options)

@@ -476,3 +476,50 @@ def test_a_wrong_array_given_to_a_models_methods_is_a_one_line_error(name):
     # the right shape as a list, or in another float type, is taken as it is
     assert model.internal_force(np.zeros((n, 3)).tolist()).shape == (n, 3)
     assert model.elastic_energy(np.zeros((n, 3), np.float32)) == 0.0
+
+
+@pytest.mark.parametrize("integrator", [SymplecticEuler, CentralDifference, ImplicitEuler])
+def test_integrator_settings_are_checked_when_made(integrator):
+    """A NaN damping coefficient surfaced as a divergence "at step 0", a negative one fed energy in
+    without a word, and a string was a TypeError in the middle of a step."""
+    from realtime import InputError
+
+    for key, value in (("alpha", float("nan")), ("alpha", -10.0), ("beta", -1e-3), ("beta", "x"), ("alpha", True)):
+        with pytest.raises(InputError, match=rf"^{integrator.name}: {key} = .*: a Rayleigh damping coefficient must"):
+            integrator(**{key: value})
+    assert integrator(alpha=2.0, beta=1e-4).alpha == 2.0  # numbers >= 0 are taken
+
+
+def test_implicit_euler_cg_settings_are_checked():
+    from realtime import InputError
+
+    for kwargs, message in (
+        ({"tol": 0.0}, r"tol = 0.0: CG's relative tolerance must be a number in \(0, 1\)"),
+        ({"tol": float("nan")}, r"tol = nan"),
+        ({"maxit": 0}, r"maxit = 0: must be a whole number of CG iterations >= 1"),
+        ({"maxit": 10.5}, r"maxit = 10.5"),
+    ):
+        with pytest.raises(InputError, match=r"^implicit-euler: " + message):
+            ImplicitEuler(**kwargs)
+
+
+def test_model_options_are_checked_by_name_and_type():
+    """An option a model does not take was a TypeError from its builder's signature; a threshold that
+    is not a number, a TypeError from a comparison; tool vertices given as fractions were truncated."""
+    from realtime import InputError, LoadingError
+
+    mesh = stored_mesh("beam")
+    with pytest.raises(
+        InputError, match=r"^linear-tm: option 'treads' is not one of its options \(threads, precision\)"
+    ):
+        build_model("linear-tm", mesh.points, mesh.tets, MAT, treads=2)
+    with pytest.raises(InputError, match=r"^hybrid-tm: threshold = 'a' must be a number >= 0 m"):
+        build_model("hybrid-tm", mesh.points, mesh.tets, MAT, threshold="a")
+    free, zero = np.ones((mesh.n_vertices, 3)), np.zeros((mesh.n_vertices, 3))
+    n = mesh.n_vertices
+    for vertices, message in (
+        ([n], rf"vertices: {n} is outside 0..{n - 1}"),
+        ([0.5], r"vertices: must be whole-number indices"),
+    ):
+        with pytest.raises(LoadingError, match=r"^Loading.translating_tool: " + message):
+            Loading.translating_tool(free, zero, vertices, (0.0, 0.0, 1e-3))
