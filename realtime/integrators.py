@@ -26,6 +26,7 @@ or becomes NaN raises ``DivergenceError`` naming the step, dt and dt_crit.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -152,6 +153,7 @@ class Integrator:
     alpha: float = 0.0
     beta: float = 0.0
     _prepared: _Prepared | None = field(default=None, init=False, repr=False, compare=False)
+    _busy: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
     name = "base"
 
     def __post_init__(self) -> None:
@@ -162,6 +164,24 @@ class Integrator:
                     f"{self.name}: {key} = {value!r}: a Rayleigh damping coefficient must be a number >= 0 "
                     f"({'1/s' if key == 'alpha' else 's'}; a negative one feeds energy in)"
                 )
+
+    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None) -> np.ndarray:
+        """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up (``dt_crit``,
+        if known, goes into its message). Returns the tools' force on the body, (L, 3) float64 N.
+
+        An integrator steps in one thread at a time: its workspace (force buffers, the kernel's
+        scratch) is its own, and two calls at once would overwrite each other's forces and return
+        wrong states without a word. A call made while another thread's is running raises InputError
+        instead; give each thread its own integrator (they may share the model)."""
+        if not self._busy.acquire(False):
+            raise InputError(
+                f"{self.name}: this integrator is already stepping in another thread; give each thread its own "
+                "integrator (they may share the model)"
+            )
+        try:
+            return self._step(model, state, dt, n, dt_crit)
+        finally:
+            self._busy.release()
 
     def critical_dt(self, model: Model, omega2: float | None = None) -> float:
         """dt_crit = (2 / omega_max)(sqrt(1 + xi^2) - xi), s. Pass omega2 if already known."""
@@ -323,14 +343,17 @@ class SymplecticEuler(Integrator):
 
     name = "symplectic-euler"
 
-    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None) -> np.ndarray:
-        """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up. Returns the
-        tools' force on the body in the last step, (L, 3) float64 N (``_tool_reaction``)."""
+    def _step(self, model: Model, state: State, dt: float, n: int, dt_crit: float | None) -> np.ndarray:
+        """``step``; the tools' force is the last step's (``_tool_reaction``)."""
         p = self._prepare(model)
         dt, n = _check_state(p.shape, p.dtype, state, dt, n)
         update = se_update_threads if p.threads > 1 else se_update
-        args = (n, dt, float(state.t), model.force_kernel, update, p.step_work(), float(self.alpha), float(self.beta))
-        bad = _call(p, _run_symplectic_euler, (*args, state.u, state.v))
+        work, alpha, beta = p.step_work(), float(self.alpha), float(self.beta)
+        bad = _call(
+            p,
+            _run_symplectic_euler,
+            (n, dt, float(state.t), model.force_kernel, update, work, alpha, beta, state.u, state.v),
+        )
         if bad >= 0:
             self._diverged(model, state, bad, dt, dt_crit)
         state.t += n * dt
@@ -343,9 +366,8 @@ class CentralDifference(Integrator):
 
     name = "central-difference"
 
-    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None) -> np.ndarray:
-        """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up. Returns the
-        tools' force on the body at the end of the last step, (L, 3) float64 N (``_tool_reaction``)."""
+    def _step(self, model: Model, state: State, dt: float, n: int, dt_crit: float | None) -> np.ndarray:
+        """``step``; the tools' force is the one at the end of the last step (``_tool_reaction``)."""
         p = self._prepare(model)
         dt, n = _check_state(p.shape, p.dtype, state, dt, n)
         lo = model.loading
@@ -438,9 +460,8 @@ class ImplicitEuler(Integrator):
     def critical_dt(self, model: Model, omega2: float | None = None) -> float:
         return math.inf  # A-stable for linear models; the non-linear ones are checked by the blow-up bound
 
-    def step(self, model: Model, state: State, dt: float, n: int = 1, dt_crit: float | None = None) -> np.ndarray:
-        """Advance ``state`` in place by n steps of dt (s); raises DivergenceError on blow-up. Returns the
-        tools' force on the body in the last step, (L, 3) float64 N (``_run_implicit_euler``)."""
+    def _step(self, model: Model, state: State, dt: float, n: int, dt_crit: float | None) -> np.ndarray:
+        """``step``; the tools' force is the last step's (``_run_implicit_euler``)."""
         if model.precision != "float64":
             raise InputError(
                 f"implicit-euler: {model.name} was built with precision = {model.precision!r}; its CG solves in "
