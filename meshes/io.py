@@ -46,14 +46,21 @@ class _Cells:
         self.no_group = no_group
 
 
-def _is_gmsh1(path: Path) -> bool:
+def _msh_header(path: Path) -> bytes | None:
+    """The first non-blank line of a .msh file: b"$NOD" in gmsh's format 1, b"$MeshFormat" in 2 and 4
+    (None for another suffix or an empty file)."""
     if path.suffix.lower() != ".msh":
-        return False
+        return None
     with open(path, "rb") as fh:
         for line in fh:
             if line.strip():
-                return line.strip() == b"$NOD"
-    return False
+                return line.strip()
+    return None
+
+
+def _cat(blocks: list, width: int) -> np.ndarray:
+    """The int64 blocks (K_i, width) (or (K_i,) for width 0) one after the other; empty if none."""
+    return np.concatenate(blocks) if blocks else np.zeros((0, width) if width else 0, np.int64)
 
 
 def _read_gmsh1(path: Path) -> _Cells:
@@ -194,29 +201,17 @@ def _read_meshio(path: Path) -> _Cells:
         raise InvalidMeshError(f"{path}: points have shape {points.shape}, need (N, 3)")
     if points.shape[1] == 2:
         raise InvalidMeshError(f"{path}: points are 2-dimensional, need 3")
-    cat = lambda a, k: np.concatenate(a) if a else np.zeros((0, k) if k else 0, np.int64)  # noqa: E731
     return _Cells(
         points,
-        cat(tets, 4),
-        cat(tet_tags, 0) if phys is not None else None,
-        cat(tris, 3),
-        cat(tri_tags, 0) if phys is not None else None,
+        _cat(tets, 4),
+        _cat(tet_tags, 0) if phys is not None else None,
+        _cat(tris, 3),
+        _cat(tri_tags, 0) if phys is not None else None,
         names,
         [c.type for c in m.cells if c.type not in ("tetra", "triangle")],
         fields,
         0 if "gmsh:physical" in m.cell_data else None,
     )
-
-
-def _is_gmsh(path: Path) -> bool:
-    """Whether ``path`` is a gmsh file of format 2 or 4 (a .msh starting with $MeshFormat)."""
-    if path.suffix.lower() != ".msh":
-        return False
-    with open(path, "rb") as fh:
-        for line in fh:
-            if line.strip():
-                return line.strip() == b"$MeshFormat"
-    return False
 
 
 #: gmsh's element type numbers, by the names meshio gives them (the names read_mesh's errors use).
@@ -265,14 +260,13 @@ def _read_by_gmsh(path: Path) -> _Cells:
         points = coords.reshape(-1, 3)
     finally:
         gmsh.finalize()
-    cat = lambda a, k: np.concatenate(a) if a else np.zeros((0, k) if k else 0, np.int64)  # noqa: E731
     (tets, tet_tags), (tris, tri_tags) = blocks[3], blocks[2]
     return _Cells(
         points,
-        cat(tets, 4),
-        cat(tet_tags, 0) if tagged else None,
-        cat(tris, 3),
-        cat(tri_tags, 0) if tagged else None,
+        _cat(tets, 4),
+        _cat(tet_tags, 0) if tagged else None,
+        _cat(tris, 3),
+        _cat(tri_tags, 0) if tagged else None,
         {k: v for k, v in names.items() if v},
         others,
         no_group=0,
@@ -282,7 +276,8 @@ def _read_by_gmsh(path: Path) -> _Cells:
 def _read_cells(path: Path) -> _Cells:
     """The file's raw cells by the reader its format needs: ours for gmsh format 1, meshio for the rest,
     and gmsh itself for the gmsh files meshio fails on. InvalidMeshError if none can read it."""
-    if _is_gmsh1(path):
+    header = _msh_header(path)
+    if header == b"$NOD":
         return _read_gmsh1(path)
     try:
         return _read_meshio(path)
@@ -290,7 +285,7 @@ def _read_cells(path: Path) -> _Cells:
         raise
     except (Exception, SystemExit) as exc:  # meshio raises many types, SystemExit among them
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    if _is_gmsh(path):
+    if header == b"$MeshFormat":
         try:
             return _read_by_gmsh(path)
         except Exception as exc:
