@@ -18,6 +18,12 @@ class LoadingError(InputError):
     """A Loading or a model option with a wrong shape, dtype, index range or value."""
 
 
+def is_real(value) -> bool:
+    """Whether ``value`` is a real number: a Python or numpy int or float, not a bool (a flag passed
+    where a number belongs) and not a string."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
 def index_array(what: str, value, n: int, width: int | None = None, error: type[InputError] = InputError) -> np.ndarray:
     """``value`` as an int64 array of indices into n things ((K,), or (K, width) if ``width``), or
     ``error`` naming ``what`` and the first bad entry: indices must be whole numbers (numpy would
@@ -25,8 +31,10 @@ def index_array(what: str, value, n: int, width: int | None = None, error: type[
     a = np.asarray(value)
     if a.size == 0:
         return np.zeros((0,) if width is None else (0, width), np.int64)
-    if a.dtype.kind not in "iu" and not (a.dtype.kind == "f" and np.all(np.isfinite(a)) and np.all(a == np.round(a))):
-        raise error(f"{what}: must be whole-number indices, got {a.dtype} values such as {a.ravel()[0]!r}")
+    if a.dtype.kind not in "iu":
+        whole = (np.isfinite(a) & (a == np.round(a))) if a.dtype.kind == "f" else np.zeros(a.shape, bool)
+        if not whole.all():
+            raise error(f"{what}: must be whole-number indices, got {a.ravel()[np.argmin(whole.ravel())]!r}")
     a = a.astype(np.int64)
     if width is not None:
         if a.ndim == 1 and a.size == width:

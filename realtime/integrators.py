@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, is_real
 from .linsolve import FACTOR_LIMIT, NO_FACTOR, factorise
 from .model import TOOL_ROTATION, Model, State, Tools
 from .spectra import max_eigenvalue
@@ -159,7 +159,7 @@ class Integrator:
     def __post_init__(self) -> None:
         for key in ("alpha", "beta"):
             value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not 0.0 <= value < math.inf:
+            if not (is_real(value) and 0.0 <= value < math.inf):
                 raise InputError(
                     f"{self.name}: {key} = {value!r}: a Rayleigh damping coefficient must be a number >= 0 "
                     f"({'1/s' if key == 'alpha' else 's'}; a negative one feeds energy in)"
@@ -430,9 +430,9 @@ class ImplicitEuler(Integrator):
     ):
         super().__init__(alpha=alpha, beta=beta)
         self.budget, self.unconverged = budget, 0
-        if isinstance(tol, bool) or not isinstance(tol, (int, float, np.number)) or not 0.0 < tol < 1.0:
+        if not (is_real(tol) and 0.0 < tol < 1.0):
             raise InputError(f"implicit-euler: tol = {tol!r}: CG's relative tolerance must be a number in (0, 1)")
-        if isinstance(maxit, bool) or not isinstance(maxit, (int, np.integer)) or maxit < 1:
+        if not (is_real(maxit) and isinstance(maxit, (int, np.integer)) and maxit >= 1):
             raise InputError(f"implicit-euler: maxit = {maxit!r}: must be a whole number of CG iterations >= 1")
         if preconditioner not in PRECONDITIONERS:
             raise InputError(f"preconditioner = {preconditioner!r}: must be one of {', '.join(PRECONDITIONERS)}")

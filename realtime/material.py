@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, is_real
 
 LAWS = ("linear", "stvk")
 
@@ -96,7 +96,7 @@ def fiber_lambda(young: float, young_fiber: float, fiber_shear: float = 0.0) -> 
 def check_elastic_constants(young: float, poisson: float, density: float) -> None:
     """Raise MaterialError unless E > 0, -1 < nu < 0.5 and rho > 0, each a number."""
     for name, value in (("young", young), ("poisson", poisson), ("density", density)):
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+        if not is_real(value):
             raise MaterialError(f"{name} = {value!r}: must be a number, got {type(value).__name__}")
     if not (math.isfinite(young) and young > 0.0):
         raise MaterialError(f"young = {young!r}: Young's modulus must be a positive number of Pa")

@@ -16,7 +16,7 @@ import scipy.sparse as sp
 from .adaptive import build_adaptive_tm
 from .blocks import BlockData, block_data, block_scratch
 from .corotational import corotational_energy, corotational_force, corotational_scratch
-from .errors import InputError, index_array
+from .errors import InputError, index_array, is_real
 from .geometry import shape_gradients, signed_volumes, unique_edges
 from .hybrid import HybridData, hybrid_energy, hybrid_force, hybrid_scratch
 from .material import Material, Materials
@@ -229,7 +229,7 @@ def build_hybrid_tm(
     if threshold is None:
         e = unique_edges(tets)
         threshold = 0.1 * float(np.linalg.norm(points[e[:, 0]] - points[e[:, 1]], axis=1).mean())
-    if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.number)) or not threshold >= 0.0:
+    if not (is_real(threshold) and threshold >= 0.0):
         raise InputError(f"hybrid-tm: threshold = {threshold!r} must be a number >= 0 m")
     btets, geo, prm = block_data(points, tets, material)
     data = HybridData(tm.kernel_data(), btets, geo, prm, np.array([float(threshold)]))
