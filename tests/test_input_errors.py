@@ -171,6 +171,7 @@ def test_options_are_checked_on_one_line(capsys):
         (["run", "cantilever", "--model", "linear-tm", "--dt", "nan"], "finite number > 0"),
         (["run", "cantilever", "--model", "linear-tm", "--dt=-1e-4"], "finite number > 0"),
         (["reference", "cantilever", "--refine", "9"], "0 to 4"),
+        (["bench", "--meshes", "livr"], "argument --meshes: invalid choice: 'livr'"),  # was a KeyError traceback
     ):
         code, _, err = run(args, capsys)
         assert code == 2

@@ -15,6 +15,7 @@ import logging
 import sys
 from pathlib import Path
 
+from meshes.store import STORED
 from realtime import INTEGRATORS, MODELS, DivergenceError, InputError, NotConvergedError
 from reference.errors import ReferenceSolveError
 
@@ -635,7 +636,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_gate)
 
     s = sub.add_parser("bench", help="performance benchmark: microseconds per step of every model")
-    s.add_argument("--meshes", nargs="+", default=["liver", "liver-x10"], help="stored meshes to run on")
+    s.add_argument(
+        "--meshes", nargs="+", default=["liver", "liver-x10"], choices=sorted(STORED), help="stored meshes to run on"
+    )
     s.add_argument("--repeats", type=_count, default=15)
     s.add_argument(
         "--reference",
