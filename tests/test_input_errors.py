@@ -8,6 +8,7 @@ import json
 import math
 import shutil
 import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -163,6 +164,22 @@ def test_gates_file_with_a_bad_value(tmp_path, capsys, change, needle):
     code, _, err = run(["gate", "--config", str(path)], capsys)
     assert code == 2
     assert_one_line(err, needle)
+
+
+def test_text_files_as_editors_save_them(tmp_path, capsys):
+    """A scene saved with a UTF-8 byte-order mark (Windows' Notepad) was "not valid TOML (Invalid
+    statement (at line 1, column 1))"; it reads as the same scene. A gates file that is not text was
+    a UnicodeDecodeError traceback; it is a one-line error."""
+    from verification.scene import load_scene
+
+    text = (Path(load_scene("cantilever").path)).read_text()
+    (tmp_path / "bom.toml").write_bytes(b"\xef\xbb\xbf" + text.encode())
+    (tmp_path / "plain.toml").write_text(text)
+    assert load_scene(tmp_path / "bom.toml").raw == load_scene(tmp_path / "plain.toml").raw
+    (tmp_path / "gates.toml").write_bytes(bytes(range(128, 256)))
+    code, _, err = run(["gate", "--config", str(tmp_path / "gates.toml")], capsys)
+    assert code == 2
+    assert_one_line(err, "gates.toml: cannot read the gates ('utf-8' codec can't decode")
 
 
 def test_options_are_checked_on_one_line(capsys):

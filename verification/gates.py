@@ -34,8 +34,8 @@ DEFAULT_DRIFT = 0.1
 
 def load_gates(path: Path) -> list[dict]:
     try:
-        data = tomllib.loads(Path(path).read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
+        data = tomllib.loads(Path(path).read_text(encoding="utf-8-sig"))  # -sig: an editor's byte-order mark
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SceneError(f"{path}: cannot read the gates ({exc})") from None
     gates = data.get("gate")
     if not isinstance(gates, list) or not gates:

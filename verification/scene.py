@@ -562,7 +562,7 @@ def load_scene(name_or_path: str | Path, refine: int = 0) -> Scene:
         raise SceneError(f"refine = {refine!r}: must be a whole number from 0 to {MAX_REFINE}")
     path = resolve(str(name_or_path))
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8-sig"))  # -sig: an editor's byte-order mark
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SceneError(f"{path}: not valid TOML ({exc})") from None
     except OSError as exc:
