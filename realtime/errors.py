@@ -24,18 +24,24 @@ def is_real(value) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
+def whole_numbers(what: str, value, error: type[InputError] = InputError) -> np.ndarray:
+    """``value`` as an int64 array, or ``error`` naming ``what`` and the first entry that is not a whole
+    number (numpy's astype would truncate 0.5 to 0, and a string is its ValueError)."""
+    a = np.asarray(value)
+    if a.dtype.kind not in "iu" and a.size:
+        whole = (np.isfinite(a) & (a == np.round(a))) if a.dtype.kind == "f" else np.zeros(a.shape, bool)
+        if not whole.all():
+            raise error(f"{what}: must be whole-number indices, got {a.ravel()[np.argmin(whole.ravel())]!r}")
+    return a.astype(np.int64)
+
+
 def index_array(what: str, value, n: int, width: int | None = None, error: type[InputError] = InputError) -> np.ndarray:
     """``value`` as an int64 array of indices into n things ((K,), or (K, width) if ``width``), or
     ``error`` naming ``what`` and the first bad entry: indices must be whole numbers (numpy would
     truncate 0.5 to 0) in 0 .. n - 1 (numpy would take -1 as the last one)."""
-    a = np.asarray(value)
+    a = whole_numbers(what, value, error)
     if a.size == 0:
         return np.zeros((0,) if width is None else (0, width), np.int64)
-    if a.dtype.kind not in "iu":
-        whole = (np.isfinite(a) & (a == np.round(a))) if a.dtype.kind == "f" else np.zeros(a.shape, bool)
-        if not whole.all():
-            raise error(f"{what}: must be whole-number indices, got {a.ravel()[np.argmin(whole.ravel())]!r}")
-    a = a.astype(np.int64)
     if width is not None:
         if a.ndim == 1 and a.size == width:
             a = a.reshape(1, width)

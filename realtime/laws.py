@@ -71,16 +71,27 @@ def stvk_pk1(F, lam, mu, a, dlam, dmu):
 
 
 @nb.njit(**_JIT)
+def det3(F):
+    """det F of a (3, 3) matrix by the rule of Sarrus: NaN for a matrix holding a NaN, where numba's
+    np.linalg.det raises LinAlgError (the energy at a NaN displacement was an exception, its force NaN)."""
+    return (
+        F[0, 0] * (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1])
+        - F[0, 1] * (F[1, 0] * F[2, 2] - F[1, 2] * F[2, 0])
+        + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0])
+    )
+
+
+@nb.njit(**_JIT)
 def volume_penalty_energy(F, kappa):
     """Incompressibility penalty W = kappa/2 (J - 1)^2, J = det F (Picinbono et al. 2003, sec. 4)."""
-    J = np.linalg.det(F)
+    J = det3(F)
     return 0.5 * kappa * (J - 1.0) ** 2
 
 
 @nb.njit(**_JIT)
 def volume_penalty_pk1(F, kappa):
     """P = kappa (J - 1) cof(F), with cof(F) = dJ/dF = J F^-T."""
-    J = np.linalg.det(F)
+    J = det3(F)
     cof = np.empty((3, 3))
     cof[0, 0] = F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1]
     cof[0, 1] = F[1, 2] * F[2, 0] - F[1, 0] * F[2, 2]

@@ -19,8 +19,8 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from .errors import InputError, LoadingError, index_array
-from .geometry import check_tets, lumped_volumes, signed_volumes
+from .errors import InputError, LoadingError, index_array, whole_numbers
+from .geometry import InvalidMeshError, check_tets, lumped_volumes, signed_volumes
 from .material import Material, Materials
 
 _JIT = dict(nogil=True, cache=True)
@@ -397,8 +397,13 @@ def lumped_masses(points: np.ndarray, tets: np.ndarray, density) -> np.ndarray:
 
 def prepare_mesh(points, tets) -> tuple[np.ndarray, np.ndarray]:
     """Contiguous float64 points and int64 tets, validated (raises InvalidMeshError)."""
-    points = np.ascontiguousarray(points, dtype=np.float64)
-    tets = np.ascontiguousarray(tets, dtype=np.int64)
+    try:
+        points = np.ascontiguousarray(points, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidMeshError(
+            f"mesh: points must be an (N, 3) array of numbers, got {type(points).__name__}"
+        ) from None
+    tets = np.ascontiguousarray(whole_numbers("mesh: tets", tets, InvalidMeshError))
     check_tets(points, tets)
     return points, tets
 

@@ -259,6 +259,32 @@ def test_build_model_rejects_a_bad_loading(field, value, needle, model):
 
 # ---- fuzz ----
 
+
+def test_the_engines_api_under_fuzzed_arguments_raises_only_input_errors():
+    """tests/api_fuzz.py in a child process: 400 calls of the engine's API (the model's methods, the
+    three integrators' step, set_forces and set_tool, cut, slit, suture, build_model), each with one
+    argument spoilt. Every call returns or raises InputError (a NaN state or a 3 s step may diverge
+    instead); the child must not crash. It found: internal_force writing past a (3, 3) u (the process
+    aborted), stvk-tm's energy at a NaN displacement raising numba's LinAlgError from np.linalg.det
+    (its force was NaN), and build_model's ValueError for points that are not numbers."""
+    import ast
+    import subprocess
+    import sys
+
+    run = subprocess.run(
+        [sys.executable, "-m", "tests.api_fuzz", "20261124", "400"],
+        capture_output=True,
+        text=True,
+        cwd=Path(__file__).parent.parent,
+        timeout=600,
+    )
+    last = [line for line in run.stdout.splitlines() if line][-1:] or ["(no call made)"]
+    assert run.returncode == 0, f"the child stopped at {last[0]} with status {run.returncode}: {run.stderr[-1500:]}"
+    done = ast.literal_eval(last[0].removeprefix("done: "))  # the child's own dict of outcomes
+    assert done["returned"] > 50 and done["InputError"] > 150  # both kinds: the spoils are neither all
+    # harmless nor all refused
+
+
 MUTATIONS = (
     "delete",
     "nan",
