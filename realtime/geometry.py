@@ -69,10 +69,15 @@ def check_tets(points: np.ndarray, tets: np.ndarray, where: str = "mesh") -> np.
     if np.any(degenerate):
         bad = int(np.argmax(degenerate))
         more = int(degenerate.sum()) - 1
-        raise InvalidMeshError(
-            f"{where}: tetrahedron {bad} {tets[bad].tolist()} is degenerate "
+        why = (
             f"(volume {vol[bad]:.3e} m^3 for edges of {mean_edge[bad]:.3e} m: {abs(vol[bad]) / scale[bad]:.1e} "
-            f"of a regular tetrahedron's, below {DEGENERATE_RATIO:g})" + (f"; {more} more like it" if more else "")
+            f"of a regular tetrahedron's, below {DEGENERATE_RATIO:g})"
+            if scale[bad] > 0.0
+            else f"(its four vertices are one point, {x[bad, 0].tolist()})"
+        )
+        raise InvalidMeshError(
+            f"{where}: tetrahedron {bad} {tets[bad].tolist()} is degenerate {why}"
+            + (f"; {more} more like it" if more else "")
         )
     if np.any(vol < 0.0):
         bad = int(np.argmax(vol < 0.0))

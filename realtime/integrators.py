@@ -186,6 +186,8 @@ class Integrator:
     def critical_dt(self, model: Model, omega2: float | None = None) -> float:
         """dt_crit = (2 / omega_max)(sqrt(1 + xi^2) - xi), s. Pass omega2 if already known."""
         w2 = max_eigenvalue(model) if omega2 is None else omega2
+        if not w2 > 0.0:  # no stiffness (ffd's lattice, a model with every component held): no limit
+            return math.inf
         w = math.sqrt(w2)
         xi = 0.5 * self.beta * w  # mass damping (implicit or trapezoidal in the updates) costs no stability
         return 2.0 / w * (math.sqrt(1.0 + xi * xi) - xi)

@@ -113,7 +113,7 @@ class Loading:
     def check(self, n_vertices: int) -> None:
         """Raise LoadingError unless every array has its documented shape and dtype, finite values and
         indices in range for a mesh of ``n_vertices`` (the kernels do no bounds checks: a bad index
-        would write outside an array)."""
+        would write outside an array), free 0 or 1, and 0 on every component a tool prescribes."""
         n_points = len(np.asarray(self.tool_vertex).reshape(-1))
         n_tools = len(np.asarray(self.tool_kind).reshape(-1))
         shapes = {
@@ -151,6 +151,14 @@ class Loading:
         if not np.all((self.free == 0.0) | (self.free == 1.0)):
             bad = tuple(int(i) for i in np.argwhere((self.free != 0.0) & (self.free != 1.0))[0])
             raise LoadingError(f"Loading.free{list(bad)} = {self.free[bad]}: must be 1 (free) or 0 (held)")
+        prescribed = self.free[self.tool_vertex] * (self.tool_mask != 0.0)
+        if np.any(prescribed != 0.0):
+            p, c = (int(i) for i in np.argwhere(prescribed != 0.0)[0])
+            raise LoadingError(
+                f"Loading.free[{int(self.tool_vertex[p])}, {c}] = 1.0: tool {int(self.tool_id[p])} prescribes that "
+                "component, so it is not free (set it to 0): the static and condensed solvers and the spectra "
+                "read free alone"
+            )
         if len(self.tool_ramp) and self.tool_ramp.min() < 0.0:
             bad = int(np.argmin(self.tool_ramp))
             raise LoadingError(f"Loading.tool_ramp[{bad}] = {self.tool_ramp[bad]}: must be >= 0 s")
@@ -161,15 +169,18 @@ class Loading:
     ) -> Loading:
         """One translating tool on ``vertices`` (P,) int, moving them by ``vector`` (3,) m over ``ramp`` s
         (linearly; 0: at once) on the components ``mask`` (P, 3) or (3,) float64 holds (default all three),
-        with the given ``free`` and ``external_force`` (the tool's components need not be cleared in
-        ``free``: the tools overwrite them)."""
+        with the given ``free`` (a copy, with the tool's components cleared: a prescribed component is
+        not free) and ``external_force``."""
         vertices = index_array("Loading.translating_tool: vertices", vertices, len(free), error=LoadingError)
         mask = np.ones(3) if mask is None else np.asarray(mask, dtype=np.float64)
+        tool_mask = np.ascontiguousarray(np.broadcast_to(mask, (len(vertices), 3)))
+        free = np.array(free, dtype=np.float64)
+        free[vertices] *= tool_mask == 0.0
         return Loading(
             free=free,
             external_force=external_force,
             tool_vertex=vertices,
-            tool_mask=np.ascontiguousarray(np.broadcast_to(mask, (len(vertices), 3))),
+            tool_mask=tool_mask,
             tool_id=np.zeros(len(vertices), dtype=np.int64),
             tool_kind=np.zeros(1, dtype=np.int64),
             tool_vector=np.array([vector], dtype=np.float64),

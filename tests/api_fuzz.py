@@ -1,6 +1,7 @@
 """The engine's API under random wrong arguments, run as ``python -m tests.api_fuzz SEED COUNT`` in a
 child process (tests/test_input_errors.py): a crash kills only the child, whose exit status and last
-printed call then say which call it was. Each call is made with one argument spoiled (a wrong shape,
+printed call then say which call it was. Every model by default; ``python -m tests.api_fuzz SEED COUNT
+MODEL,MODEL,...`` fuzzes those named. Each call is made with one argument spoiled (a wrong shape,
 float type, layout, a NaN, an index out of range, a fraction, a string, None); it must return or raise
 an InputError (or, for a NaN put in a state, the DivergenceError a NaN state is), nothing else. Prints
 one line per call before making it, and a summary at the end."""
@@ -55,9 +56,9 @@ def spoil(value, rng, n_vertices: int):
     return b, kind
 
 
-def main(seed: int, count: int) -> int:
+def main(seed: int, count: int, names: tuple[str, ...] = ()) -> int:
     from meshes import stored_mesh
-    from realtime import DivergenceError, InputError, Loading, Material, State, build_model, max_eigenvalue
+    from realtime import MODELS, DivergenceError, InputError, Loading, Material, State, build_model, max_eigenvalue
     from realtime.integrators import CentralDifference, ImplicitEuler, SymplecticEuler
     from realtime.models import cut
     from realtime.topology import slit, suture
@@ -70,7 +71,8 @@ def main(seed: int, count: int) -> int:
     tip = np.flatnonzero(mesh.points[:, 0] > mesh.points[:, 0].max() - 1e-9)
     loading = Loading.translating_tool(free, np.zeros((n, 3)), tip, (0.0, 0.0, -1e-3), ramp=1e-3)
     mat = Material(5e5, 0.3, 1000.0)
-    models = {name: build_model(name, mesh.points, mesh.tets, mat, loading) for name in ("linear-tm", "stvk-tm")}
+    names = names or tuple(MODELS)
+    models = {name: build_model(name, mesh.points, mesh.tets, mat, loading) for name in names}
     integrators = (SymplecticEuler, CentralDifference, ImplicitEuler)
     zeros = np.zeros((n, 3))
 
@@ -98,7 +100,7 @@ def main(seed: int, count: int) -> int:
 
     outcomes = {"returned": 0, "InputError": 0, "DivergenceError": 0}
     for k in range(count):
-        name = ("linear-tm", "stvk-tm")[int(rng.integers(2))]
+        name = names[int(rng.integers(len(names)))]
         model = models[name]
         what, call, args = calls(model)[int(rng.integers(15))]
         spoilt, how = spoil(args[0], rng, n)
@@ -106,17 +108,17 @@ def main(seed: int, count: int) -> int:
         try:
             call(spoilt)
             outcomes["returned"] += 1
+            if what in ("cut", "slit", "suture"):  # the mesh changed: the next calls need a current model
+                models[name] = build_model(name, mesh.points, mesh.tets, mat, loading)
         except InputError:
             outcomes["InputError"] += 1
         except DivergenceError:
             if ".step" not in what or how not in ("nan", "scalar"):  # a NaN state, or dt = 3 s: both blow up
                 raise
             outcomes["DivergenceError"] += 1
-        if what in ("cut", "slit", "suture"):  # these change the mesh: the next calls need a current model
-            models[name] = build_model(name, mesh.points, mesh.tets, mat, loading)
     print(f"done: {outcomes}", flush=True)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main(int(sys.argv[1]), int(sys.argv[2])))
+    sys.exit(main(int(sys.argv[1]), int(sys.argv[2]), *([tuple(sys.argv[3].split(","))] if len(sys.argv) > 3 else [])))

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from realtime import Loading, LoadingError, Material, build_model
+from realtime.geometry import InvalidMeshError
 from verification import cli
 from verification.cli import main
 from verification.scene import SCENES_DIR, SceneError, builtin_scenes
@@ -214,8 +215,10 @@ def _engine_inputs():
 
     mesh = structured_box([0.03, 0.01, 0.01], [3, 1, 1])
     n = mesh.n_vertices
+    free = np.ones((n, 3))
+    free[[0, 1]] = 0.0  # the tool's vertices: a prescribed component is not free
     loading = Loading(
-        free=np.ones((n, 3)),
+        free=free,
         external_force=np.zeros((n, 3)),
         tool_vertex=np.array([0, 1], dtype=np.int64),
         tool_mask=np.ones((2, 3)),
@@ -242,6 +245,8 @@ def _engine_inputs():
         ("tool_ramp", np.array([-1.0]), "Loading.tool_ramp[0] = -1.0: must be >= 0 s"),
         # a free mask of 2 doubled the component's inverse mass in every update, silently
         ("free", np.full((16, 3), 2.0), "Loading.free[0, 0] = 2.0: must be 1 (free) or 0 (held)"),
+        # a condensed model built on it died in an IndexError; statics read a residual that could not vanish
+        ("free", np.ones((16, 3)), "Loading.free[0, 0] = 1.0: tool 0 prescribes that component, so it is not free"),
     ],
 )
 @pytest.mark.parametrize("model", ["linear-tm", "stvk-tm", "precomputed"])
@@ -257,16 +262,30 @@ def test_build_model_rejects_a_bad_loading(field, value, needle, model):
     assert needle in str(info.value)
 
 
+def test_a_tetrahedron_whose_vertices_coincide_is_named_without_a_warning(recwarn):
+    from realtime.geometry import check_tets
+
+    with pytest.raises(
+        InvalidMeshError, match=r"tetrahedron 0 \[0, 1, 2, 3\] is degenerate \(its four vertices are one"
+    ):
+        check_tets(np.zeros((4, 3)), np.array([[0, 1, 2, 3]]))
+    assert not recwarn.list  # 0 / 0 printed a RuntimeWarning and "nan of a regular tetrahedron's"
+
+
 # ---- fuzz ----
 
 
+@pytest.mark.slow
 def test_the_engines_api_under_fuzzed_arguments_raises_only_input_errors():
-    """tests/api_fuzz.py in a child process: 400 calls of the engine's API (the model's methods, the
-    three integrators' step, set_forces and set_tool, cut, slit, suture, build_model), each with one
-    argument spoilt. Every call returns or raises InputError (a NaN state or a 3 s step may diverge
-    instead); the child must not crash. It found: internal_force writing past a (3, 3) u (the process
-    aborted), stvk-tm's energy at a NaN displacement raising numba's LinAlgError from np.linalg.det
-    (its force was NaN), and build_model's ValueError for points that are not numbers."""
+    """tests/api_fuzz.py in a child process: 400 calls of the engine's API on every model (the model's
+    methods, the three integrators' step, set_forces and set_tool, cut, slit, suture, build_model),
+    each with one argument spoilt. Every call returns or raises InputError (a NaN state or a 3 s step
+    may diverge instead); the child must not crash. It found: internal_force writing past a (3, 3) u
+    (the process aborted); stvk-tm's energy at a NaN displacement raising numba's LinAlgError from
+    np.linalg.det (its force was NaN); build_model's ValueError for points that are not numbers; the
+    condensed model's IndexError on a tool whose components were left free (as translating_tool's
+    docstring allowed); a ZeroDivisionError from the critical step of ffd's stiffness-free lattice;
+    and a degenerate-element message of "nan of a regular tetrahedron's" with a RuntimeWarning."""
     import ast
     import subprocess
     import sys

@@ -490,6 +490,15 @@ def test_integrator_settings_are_checked_when_made(integrator):
     assert integrator(alpha=2.0, beta=1e-4).alpha == 2.0  # numbers >= 0 are taken
 
 
+def test_a_model_without_stiffness_has_no_critical_step():
+    """ffd's lattice exerts no force: omega_max is 0 and the explicit step has no limit (it was 2 / 0, a
+    ZeroDivisionError, reached when a step of it diverged and the message asked for dt_crit)."""
+    mesh = stored_mesh("beam")
+    model = build_model("ffd", mesh.points, mesh.tets, MAT)
+    assert SymplecticEuler().critical_dt(model, omega2=0.0) == math.inf
+    assert CentralDifference(beta=1e-3).critical_dt(model) == math.inf
+
+
 def test_implicit_euler_cg_settings_are_checked():
     from realtime import InputError
 
