@@ -24,6 +24,16 @@ def is_real(value) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
+def float_array(what: str, value, dtype=np.float64, kind: str = "an array", error: type[InputError] = InputError):
+    """``value`` as a C-contiguous array of ``dtype`` (a copy only where needed), or ``error`` saying
+    "{what}: must be {kind} of numbers" and the type it got (a string, None, a ragged list)."""
+    try:
+        a = np.asarray(value, dtype=dtype)  # not ascontiguousarray, which makes a scalar 1-D
+    except (TypeError, ValueError):
+        raise error(f"{what}: must be {kind} of numbers, got {type(value).__name__}") from None
+    return a if a.flags.c_contiguous else np.ascontiguousarray(a)
+
+
 def whole_numbers(what: str, value, error: type[InputError] = InputError) -> np.ndarray:
     """``value`` as an int64 array, or ``error`` naming ``what`` and the first entry that is not a whole
     number (numpy's astype would truncate 0.5 to 0, and a string is its ValueError)."""

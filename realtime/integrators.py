@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError, is_real
+from .errors import InputError, float_array, is_real
 from .linsolve import FACTOR_LIMIT, NO_FACTOR, factorise
 from .model import TOOL_ROTATION, Model, State, Tools
 from .spectra import max_eigenvalue
@@ -328,10 +328,7 @@ def _call(p: _Prepared, loop, args: tuple):
 
 def _frame_array(name: str, value, shape: tuple) -> np.ndarray:
     """``value`` as a finite float64 array of ``shape``, or InputError naming ``name`` and what it got."""
-    try:
-        a = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"{name}: must be a {shape} array of numbers, got {type(value).__name__}") from None
+    a = float_array(name, value, np.float64, f"a {shape} array")
     if a.shape != shape:
         raise InputError(f"{name}: must have shape {shape}, got {a.shape}")
     if not np.all(np.isfinite(a)):

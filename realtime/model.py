@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from .errors import InputError, LoadingError, index_array, whole_numbers
+from .errors import InputError, LoadingError, float_array, index_array, whole_numbers
 from .geometry import InvalidMeshError, check_tets, lumped_volumes, signed_volumes
 from .material import Material, Materials
 
@@ -308,12 +308,7 @@ class Model:
         or InputError naming ``what`` and what it got: the kernels index (N, 3) arrays without bounds
         checks, so a shorter one would be read or written past its end (a (3, 3) u given to
         internal_force corrupted the heap and aborted the process)."""
-        try:
-            a = np.ascontiguousarray(value, dtype=self.dtype)
-        except (TypeError, ValueError):
-            raise InputError(
-                f"{what}: must be an ({self.n_vertices}, 3) array of numbers, got {type(value).__name__}"
-            ) from None
+        a = float_array(what, value, self.dtype, f"an ({self.n_vertices}, 3) array")
         if a.shape != (self.n_vertices, 3):
             raise InputError(f"{what}: must have shape ({self.n_vertices}, 3) (the model's vertices), got {a.shape}")
         return a
@@ -408,12 +403,7 @@ def lumped_masses(points: np.ndarray, tets: np.ndarray, density) -> np.ndarray:
 
 def prepare_mesh(points, tets) -> tuple[np.ndarray, np.ndarray]:
     """Contiguous float64 points and int64 tets, validated (raises InvalidMeshError)."""
-    try:
-        points = np.ascontiguousarray(points, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InvalidMeshError(
-            f"mesh: points must be an (N, 3) array of numbers, got {type(points).__name__}"
-        ) from None
+    points = float_array("mesh: points", points, np.float64, "an (N, 3) array", InvalidMeshError)
     tets = np.ascontiguousarray(whole_numbers("mesh: tets", tets, InvalidMeshError))
     check_tets(points, tets)
     return points, tets
