@@ -250,7 +250,9 @@ def lane_out(W, q, v, P, g):
 
 @nb.njit(inline="always", **JIT)
 def block_grad_u(tets, geo, e, u):
-    """F = I + grad u (3, 3) on tetrahedron e of block_data's layout, its volume and fibre (3,)."""
+    """F = I + grad u (3, 3) float64 on tetrahedron e of block_data's layout, its volume and fibre (3,)
+    float64, whatever the float type of geo and u (the laws compute in float64: a float32 fibre made
+    laws.stvk_energy's E @ a a typing error, so a float32 stvk-tm model had no energy)."""
     b, q = e // BLOCK, e % BLOCK
     F = np.eye(3)
     for a in range(1, 4):
@@ -258,5 +260,7 @@ def block_grad_u(tets, geo, e, u):
             d = u[tets[e, a], r] - u[tets[e, 0], r]
             for c in range(3):
                 F[r, c] += d * geo[(GEO_ROWS * b + 3 * (a - 1) + c) * BLOCK + q]
-    fibre = np.array([geo[(GEO_ROWS * b + 10 + c) * BLOCK + q] for c in range(3)])
+    fibre = np.empty(3)
+    for c in range(3):
+        fibre[c] = geo[(GEO_ROWS * b + 10 + c) * BLOCK + q]
     return F, geo[(GEO_ROWS * b + 9) * BLOCK + q], fibre
