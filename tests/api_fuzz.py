@@ -1,7 +1,7 @@
 """The engine's API under random wrong arguments, run as ``python -m tests.api_fuzz SEED COUNT`` in a
 child process (tests/test_input_errors.py): a crash kills only the child, whose exit status and last
-printed call then say which call it was. Every model by default; ``python -m tests.api_fuzz SEED COUNT
-MODEL,MODEL,...`` fuzzes those named. Each call is made with one argument spoiled (a wrong shape,
+printed call then say which call it was. Every model and VARIANTS by default; ``python -m
+tests.api_fuzz SEED COUNT MODEL,MODEL:OPTION=VALUE,...`` fuzzes those named. Each call is made with one argument spoiled (a wrong shape,
 float type, layout, a NaN, an index out of range, a fraction, a string, None); it must return or raise
 an InputError (or, for a NaN put in a state, the DivergenceError a NaN state is), nothing else. Prints
 one line per call before making it, and a summary at the end."""
@@ -11,6 +11,15 @@ from __future__ import annotations
 import sys
 
 import numpy as np
+
+#: Besides every model of the registry: the threaded and float32 kernels (their own data layouts and
+#: scratch; the float32 stvk-tm energy was a typing error on every call until the fuzz ran on them).
+VARIANTS = (
+    "linear-tm:threads=2",
+    "corotational-tm:threads=2",
+    "stvk-tm:precision=float32",
+    "mass-spring:precision=float32",
+)
 
 
 def spoil(value, rng, n_vertices: int):
@@ -71,8 +80,16 @@ def main(seed: int, count: int, names: tuple[str, ...] = ()) -> int:
     tip = np.flatnonzero(mesh.points[:, 0] > mesh.points[:, 0].max() - 1e-9)
     loading = Loading.translating_tool(free, np.zeros((n, 3)), tip, (0.0, 0.0, -1e-3), ramp=1e-3)
     mat = Material(5e5, 0.3, 1000.0)
-    names = names or tuple(MODELS)
-    models = {name: build_model(name, mesh.points, mesh.tets, mat, loading) for name in names}
+    names = names or (*MODELS, *VARIANTS)
+
+    def build(name):
+        """The model ``name``, or a variant "model:option=value" of it."""
+        model_name, _, option = name.partition(":")
+        key, _, value = option.partition("=")
+        options = {key: int(value) if value.isdigit() else value} if key else {}
+        return build_model(model_name, mesh.points, mesh.tets, mat, loading, **options)
+
+    models = {name: build(name) for name in names}
     integrators = (SymplecticEuler, CentralDifference, ImplicitEuler)
     zeros = np.zeros((n, 3))
 
@@ -109,7 +126,7 @@ def main(seed: int, count: int, names: tuple[str, ...] = ()) -> int:
             call(spoilt)
             outcomes["returned"] += 1
             if what in ("cut", "slit", "suture"):  # the mesh changed: the next calls need a current model
-                models[name] = build_model(name, mesh.points, mesh.tets, mat, loading)
+                models[name] = build(name)
         except InputError:
             outcomes["InputError"] += 1
         except DivergenceError:
