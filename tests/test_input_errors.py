@@ -277,7 +277,8 @@ def test_a_tetrahedron_whose_vertices_coincide_is_named_without_a_warning(recwar
 
 @pytest.mark.slow
 def test_the_engines_api_under_fuzzed_arguments_raises_only_input_errors():
-    """tests/api_fuzz.py in a child process: 400 calls of the engine's API on every model (the model's
+    """tests/api_fuzz.py in a child process: 400 calls of the engine's API on every model and on the
+    threaded and float32 kernels (the model's
     methods, the three integrators' step, set_forces and set_tool, cut, slit, suture, build_model),
     each with one argument spoilt. Every call returns or raises InputError (a NaN state or a 3 s step
     may diverge instead); the child must not crash. It found: internal_force writing past a (3, 3) u
@@ -285,7 +286,8 @@ def test_the_engines_api_under_fuzzed_arguments_raises_only_input_errors():
     np.linalg.det (its force was NaN); build_model's ValueError for points that are not numbers; the
     condensed model's IndexError on a tool whose components were left free (as translating_tool's
     docstring allowed); a ZeroDivisionError from the critical step of ffd's stiffness-free lattice;
-    and a degenerate-element message of "nan of a regular tetrahedron's" with a RuntimeWarning."""
+    a degenerate-element message of "nan of a regular tetrahedron's" with a RuntimeWarning; and a
+    float32 stvk-tm's energy, a numba TypingError on every call."""
     import ast
     import subprocess
     import sys
