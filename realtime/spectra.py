@@ -22,7 +22,7 @@ def _scaled_stiffness(model: Model, u: np.ndarray | None = None) -> spla.LinearO
     (default: rest), applied through the force kernel: exactly for a linear model, by a central
     difference of the force for a non-linear one."""
     n = model.n_vertices
-    u0 = np.zeros((n, 3)) if u is None else model.nodal("max_eigenvalue: u", u).astype(float)
+    u0 = np.zeros((n, 3)) if u is None else model.nodal("max_eigenvalue: u", u).astype(float, copy=False)
     free = model.loading.free.ravel() != 0.0
     s = 1.0 / np.sqrt(np.repeat(model.mass, 3))[free]
     scale = 1e-6 * max(float(np.ptp(model.points, axis=0).max()), 1e-12)

@@ -58,15 +58,17 @@ def test_a_float32_models_energy_is_its_float64_energy_to_round_off(name, rng):
     """Model.elastic_energy of a float32 model: the energy kernel reads the float32 data and sums in
     float64. stvk-tm's failed to compile at all (a float32 fibre met a float64 strain in laws.stvk_energy's
     E @ a, a numba TypingError), found by the API fuzz on float32 models. At a displacement float32
-    holds exactly, the only differences are the data's rounding to float32, one unit round-off of each
-    coefficient and geometric factor: bound 16 u relative, as for the force."""
+    holds exactly, the only differences are the data's rounding to float32, and every term of the sum
+    is non-negative, so the total's relative error is at most the largest term's: its coefficient and
+    volume (1 u each) and the two rounded geometric factors of its quadratic form (2 u). Bound 4 u;
+    measured at most 0.11 u on three draws (the terms' roundings do not align)."""
     mesh = stored_mesh("cylinder")
     fibred = Material(3.0e3, 0.45, 1000.0, law="stvk", fiber=(0.0, 0.0, 1.0), young_fiber=9e3, volume_penalty=1e3)
     u = (1e-3 * float(np.ptp(mesh.points)) * rng.standard_normal(mesh.points.shape)).astype(np.float32)
     for material in (MATERIAL, fibred):
         e64 = build_model(name, mesh.points, mesh.tets, material).elastic_energy(u)
         e32 = build_model(name, mesh.points, mesh.tets, material, precision="float32").elastic_energy(u)
-        assert e64 > 0.0 and abs(e32 - e64) <= 16 * U32 * e64
+        assert e64 > 0.0 and abs(e32 - e64) <= 4 * U32 * e64
 
 
 @pytest.mark.parametrize("name", FLOAT32_MODELS)
