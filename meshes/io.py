@@ -154,6 +154,22 @@ class _MeshioError(Exception):
     """meshio could not read a file: the reason, from its exception or from what it printed."""
 
 
+@contextlib.contextmanager
+def _unfolded():
+    """meshio prints through rich, which folds lines at the terminal's width (COLUMNS; 80 without a
+    terminal) and cuts a word longer than that, a file's path, in two: "notes.ms h". COLUMNS is set
+    wider than any path while meshio reads, then restored (rich reads it when meshio makes its Console)."""
+    before = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = "1000000"
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("COLUMNS", None)
+        else:
+            os.environ["COLUMNS"] = before
+
+
 def _quiet_meshio_read(path: Path):
     """meshio.read, with what it prints (and warns) kept from the terminal: for a .msh it tries the
     ANSYS reader first and prints that reader's (empty) error on stdout, a blank line in the middle of
@@ -164,11 +180,16 @@ def _quiet_meshio_read(path: Path):
 
     chatter = io.StringIO()
     try:
-        with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter), warnings.catch_warnings():
+        with (
+            contextlib.redirect_stdout(chatter),
+            contextlib.redirect_stderr(chatter),
+            warnings.catch_warnings(),
+            _unfolded(),
+        ):
             warnings.simplefilter("ignore")  # numpy's, from meshio's parsing of a broken file
             return meshio.read(path)
     except (Exception, SystemExit) as exc:
-        said = " ".join(chatter.getvalue().split())  # rich wraps its lines at 80 columns
+        said = " ".join(chatter.getvalue().split())
         text = str(exc).strip() if not isinstance(exc, SystemExit) or "Error:" not in said else ""
         reason = text.splitlines()[0] if text else said.rsplit("Error:", 1)[-1].strip()
         raise _MeshioError(reason or type(exc).__name__) from None

@@ -1,6 +1,7 @@
 """meshes: generators, stored meshes and their hashes, I/O, validation, quality, regions."""
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -111,17 +112,21 @@ def test_files_gmsh_itself_writes_are_read_silently(tmp_path, capfd, version, gr
         assert m.cell_tags == {} and m.vertex_tags == {}
 
 
-def test_a_file_no_reader_takes_is_one_quiet_line(tmp_path, capfd):
+@pytest.mark.parametrize("folder", ["", "a-folder-name-long-enough-that-the-path-fills-more-than-one-80-column-line"])
+def test_a_file_no_reader_takes_is_one_quiet_line(tmp_path, capfd, monkeypatch, folder):
     """meshio prints its readers' errors and calls sys.exit(1) for a .msh it cannot place: read_mesh
     says why in its one line and lets nothing else through; a gmsh file that both meshio and gmsh
-    fail on names both reasons."""
-    (tmp_path / "notes.msh").write_text("hello\n")
+    fail on names both reasons. meshio's printer (rich) folds its lines at the terminal's width, 80
+    columns when there is none (CI): a path longer than that came back cut in two ("notes.ms h")."""
+    monkeypatch.setenv("COLUMNS", "80")
+    (tmp_path / folder).mkdir(exist_ok=True)
+    path = tmp_path / folder / "notes.msh"
+    path.write_text("hello\n")
     with pytest.raises(InvalidMeshError) as err:
-        read_mesh(tmp_path / "notes.msh")
+        read_mesh(path)
     assert capfd.readouterr() == ("", "")
-    assert str(err.value) == f"{tmp_path / 'notes.msh'}: cannot read it as a mesh (Couldn't read file " + (
-        f"{tmp_path / 'notes.msh'} as either of ansys, gmsh)"
-    )
+    assert str(err.value) == f"{path}: cannot read it as a mesh (Couldn't read file {path} as either of ansys, gmsh)"
+    assert os.environ["COLUMNS"] == "80"  # the reader's own width does not leak
     (tmp_path / "cut.msh").write_text("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\nbroken\n")
     with pytest.raises(InvalidMeshError, match=r"cut\.msh: cannot read it as a mesh \(meshio: .*; gmsh: Could not"):
         read_mesh(tmp_path / "cut.msh")
