@@ -15,6 +15,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from realtime.errors import InputError
 from realtime.geometry import signed_volumes
 
 from .tetmesh import InvalidMeshError, TetMesh
@@ -435,12 +436,29 @@ def _clean(path: Path, c: _Cells, scale: float) -> TetMesh:
     return mesh
 
 
+class OutputPathError(InputError):
+    """A file the suite was asked to write cannot be written there (a directory of that name, a parent
+    that is a file, no permission, a full disk); ``str()`` names the path and why."""
+
+
 def atomic_write(path: str | os.PathLike, write) -> Path:
     """Call ``write(tmp)`` with a temporary path beside ``path`` (same suffix), then rename it to
-    ``path``: a reader never sees a half-written file, and a failure leaves none behind."""
+    ``path``: a reader never sees a half-written file, and a failure leaves none behind. ``write`` must
+    write exactly ``tmp`` (numpy's savez adds ".npz" to a name without it: use ``atomic_savez``).
+    Raises OutputPathError if the file cannot be written there."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=path.suffix, dir=path.parent, prefix=".tmp-")
+    if path.is_dir():
+        raise OutputPathError(f"{path}: is a directory: give the name of a file to write")
+    for parent in path.parents:  # nearest first: the first that exists must be a directory
+        if parent.exists():
+            if not parent.is_dir():
+                raise OutputPathError(f"{path}: cannot write it: {parent} is a file, not a directory")
+            break
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(suffix=path.suffix, dir=path.parent, prefix=".tmp-")
+    except OSError as exc:
+        raise OutputPathError(f"{path}: cannot write it: {exc.strerror or exc}") from None
     os.close(fd)
     try:
         write(tmp)
@@ -450,10 +468,25 @@ def atomic_write(path: str | os.PathLike, write) -> Path:
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
+    except OSError as exc:  # a full disk, a quota, a target turned into a directory meanwhile
+        raise OutputPathError(f"{path}: cannot write it: {exc.strerror or exc}") from None
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
     return path
+
+
+def atomic_savez(path: str | os.PathLike, compressed: bool = False, **arrays) -> Path:
+    """numpy's savez (or savez_compressed) of ``arrays`` to exactly ``path``, through atomic_write (given
+    a name, numpy writes NAME.npz when NAME lacks the suffix: the data went to the temporary file's
+    twin, left behind, and ``path`` got the empty temporary file)."""
+    save = np.savez_compressed if compressed else np.savez
+
+    def write(tmp):
+        with open(tmp, "wb") as fh:
+            save(fh, **arrays)
+
+    return atomic_write(path, write)
 
 
 def write_mesh(mesh: TetMesh, path: str | os.PathLike, point_data: dict | None = None) -> Path:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .generators import generate
-from .io import atomic_write
+from .io import atomic_savez
 from .tetmesh import InvalidMeshError, TetMesh
 
 DATA = Path(__file__).parent / "data"
@@ -46,7 +46,7 @@ def save_npz(mesh: TetMesh, path: Path) -> None:
     arrays = {"points": mesh.points, "tets": mesh.tets}
     arrays.update({f"vtag:{k}": v for k, v in mesh.vertex_tags.items()})
     arrays.update({f"ctag:{k}": v for k, v in mesh.cell_tags.items()})
-    atomic_write(path, lambda tmp: np.savez_compressed(tmp, **arrays))
+    atomic_savez(path, compressed=True, **arrays)
 
 
 def load_npz(path: Path, source: str = "") -> TetMesh:

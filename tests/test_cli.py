@@ -65,6 +65,24 @@ def test_run_and_reference_write_result_files(tmp_path, capsys):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp")]
 
 
+def test_a_result_file_is_written_under_the_name_given_or_refused_in_one_line(tmp_path, capsys):
+    """run --out NAME writes NAME itself whatever its suffix (numpy's savez wrote NAME.npz's temporary
+    twin and renamed the empty temporary file to NAME, leaving the data behind in a hidden file), and a
+    name that cannot be a file (a directory, a path through a file) is one line with exit 2, leaving
+    nothing behind."""
+    run = ["run", "cantilever-pull", "--model", "linear-tm", "--out"]
+    assert main([*run, str(tmp_path / "result.txt")]) == 0
+    capsys.readouterr()
+    assert Result.load(tmp_path / "result.txt").meta["model"] == "linear-tm"
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "a-file").write_text("x")
+    for target, why in (("adir", "is a directory"), ("a-file/run.npz", f"{tmp_path / 'a-file'} is a file")):
+        assert main([*run, str(tmp_path / target)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"tissuebench: {tmp_path / target}: ") and why in err and err.count("\n") == 1, err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["a-file", "adir", "result.txt"]
+
+
 def test_scenes_lists_builtins(capsys):
     assert main(["scenes", "--json"]) == 0
     names = {s["name"] for s in json.loads(capsys.readouterr().out)["scenes"]}

@@ -347,3 +347,25 @@ def test_written_files_have_the_usual_permissions(tmp_path):
     finally:
         os.umask(umask)
     assert path.stat().st_mode & 0o777 == 0o644
+
+
+def test_atomic_savez_writes_the_name_given_and_atomic_write_says_why_it_cannot(tmp_path):
+    """numpy's savez adds ".npz" to a name without it: atomic_savez writes exactly the path; a failing
+    writer, a directory in the way or a full disk leave no temporary file behind."""
+    from meshes.io import OutputPathError, atomic_savez, atomic_write
+
+    for name in ("r.npz", "r.txt", "r"):
+        atomic_savez(tmp_path / name, compressed=name == "r", a=np.arange(3))
+        with np.load(tmp_path / name) as z:
+            assert np.array_equal(z["a"], np.arange(3))
+    (tmp_path / "d").mkdir()
+    with pytest.raises(OutputPathError, match=r"/d: is a directory"):
+        atomic_write(tmp_path / "d", lambda tmp: Path(tmp).write_text("x"))
+
+    def full(tmp):
+        Path(tmp).write_text("half")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OutputPathError, match=r"/e\.txt: cannot write it: No space left on device"):
+        atomic_write(tmp_path / "e.txt", full)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d", "r", "r.npz", "r.txt"]

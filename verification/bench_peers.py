@@ -47,6 +47,7 @@ from meshes.generators import structured_cube  # noqa: E402
 from realtime import Loading, Material, State, SymplecticEuler, build_model  # noqa: E402
 
 from .bench import _step_case, _time_round_robin, machine  # noqa: E402
+from .results import atomic_write_text  # noqa: E402
 from .runner import log  # noqa: E402
 
 MATERIAL = Material(2.8e4, 0.4, 1000.0, law="stvk")
@@ -217,9 +218,7 @@ def main(argv=None) -> int:
     out = run(repeats=args.repeats)
     print(format_table(out))
     if args.out:
-        tmp = args.out.with_suffix(args.out.suffix + ".tmp")
-        tmp.write_text(json.dumps(out, indent=1))
-        tmp.replace(args.out)
+        atomic_write_text(args.out, json.dumps(out, indent=1))
     return 0
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from meshes.io import atomic_write
+from meshes.io import atomic_savez, atomic_write
 
 
 @dataclass
@@ -34,17 +34,15 @@ class Result:
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write to ``path`` through a temporary file in the same directory and a rename."""
-        return atomic_write(
+        return atomic_savez(
             path,
-            lambda tmp: np.savez_compressed(
-                tmp,
-                points=self.points,
-                tets=self.tets,
-                times=self.times,
-                displacement=self.displacement,
-                reaction=self.reaction,
-                meta=np.array(json.dumps(self.meta, default=_jsonable)),
-            ),
+            compressed=True,
+            points=self.points,
+            tets=self.tets,
+            times=self.times,
+            displacement=self.displacement,
+            reaction=self.reaction,
+            meta=np.array(json.dumps(self.meta, default=_jsonable)),
         )
 
     @staticmethod

@@ -33,7 +33,7 @@ from realtime.statics import solve_static_implicit
 
 from .loading import build_loading
 from .metrics import compute, rel_l2
-from .results import Result, atomic_write
+from .results import Result, atomic_savez
 from .scene import Scene
 
 #: Bumped whenever the reference's numbers can change for the same inputs, so old cache entries die.
@@ -177,7 +177,7 @@ def _save_solved(path: Path, problems: list, meta: dict) -> None:
     from reference.driver import solved_fields
 
     arrays = solved_fields(problems)
-    atomic_write(path, lambda tmp: np.savez(tmp, meta=np.array(json.dumps(meta)), **arrays))
+    atomic_savez(path, meta=np.array(json.dumps(meta)), **arrays)
 
 
 def _restore_solved(memo: tuple, path: Path, solved: Scene, material, degree: int, refine: int) -> None:
@@ -412,13 +412,7 @@ def settled(
             static = solve_static(model, dt=dt, rtol=rtol, max_steps=max_steps)
     out = Settled(static.state, static.steps, static.residual, dt, dt_crit, omega2, time.perf_counter() - t1, cg)
     numbers = {k: getattr(out, k) for k in _SETTLED_NUMBERS}
-
-    def write(tmp):
-        with open(tmp, "wb") as fh:
-            np.savez(fh, u=out.state.u, v=out.state.v, t=out.state.t, state_steps=out.state.steps, **numbers)
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, write)
+    atomic_savez(path, u=out.state.u, v=out.state.v, t=out.state.t, state_steps=out.state.steps, **numbers)
     return out
 
 

@@ -39,7 +39,7 @@ from realtime.models import QUASI_STATIC, nonlinear_fraction
 from .advise import FRAME_SHARE, _available_memory, _memory_bytes, frame_budget
 from .metrics import rel_l2
 from .plots import png, projected_shapes
-from .results import atomic_write_text
+from .results import atomic_savez, atomic_write_text
 from .runner import P1_OWN_MESH, REFERENCE_DEFAULTS, cache_dir, log, reference_result, run_model
 from .runs import largest_stable_fraction, run_key
 from .scene import SCENES_DIR, Scene, parse, resolve
@@ -159,10 +159,7 @@ def _settled(
             u, meta = res.displacement[0], json.loads(json.dumps(res.meta, default=str))
         except NotConvergedError as exc:
             u, meta = np.zeros((0, 3)), {"unsettled": " ".join(str(exc).split()), **_step_time(scene, model, options)}
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, u=u, meta=json.dumps(meta))
-        tmp.replace(path)
+        atomic_savez(path, u=u, meta=json.dumps(meta))
     with np.load(path) as z:
         u, meta = z["u"], json.loads(str(z["meta"]))
     if "unsettled" in meta:
