@@ -184,3 +184,32 @@ def test_petsc_options_are_merged_and_a_malformed_one_is_one_line(capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "'pc_type' is not KEY=VALUE" in err[0]
+
+
+def test_a_damaged_cache_entry_is_computed_again(tmp_path, capsys, monkeypatch):
+    """A cache file cut short (a full disk, an interrupted copy) or not what it should be was a
+    BadZipFile or JSON traceback: each kind of entry (the reference, a settled state, a compared run)
+    is computed again, with a line on stderr, and the answer is the one computed the first time."""
+    from verification.runner import cache_dir, reference_result
+    from verification.runs import cached_compare
+    from verification.scene import load_scene
+
+    monkeypatch.setenv("TISSUEBENCH_CACHE", str(tmp_path))
+    scene = load_scene("cantilever-pull")
+    opts = {"degree": 1, "estimate": False}
+    first = cached_compare(scene, "linear-tm", ref_opts=opts)
+    assert first["cached"] is False
+    entries = sorted(p for p in cache_dir().rglob("*") if p.is_file())
+    kinds = {p.parent.name for p in entries}
+    assert {"reference", "settled", "runs"} <= kinds, entries
+    for path in entries:
+        data = path.read_bytes()
+        path.write_bytes(data[: len(data) // 3] if path.suffix == ".npz" else b"[1, 2")
+    ref = reference_result(scene, **opts)
+    again = cached_compare(scene, "linear-tm", ref_opts=opts)
+    err = capsys.readouterr().err
+    for kind in ("reference", "settled", "runs"):
+        assert f"/{kind}/" in err and "damaged" in err, err
+    assert again["cached"] is False and again["rel_l2"] == first["rel_l2"]
+    assert ref.meta["degree"] == 1
+    assert cached_compare(scene, "linear-tm", ref_opts=opts)["cached"] is True

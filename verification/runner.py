@@ -33,7 +33,7 @@ from realtime.statics import solve_static_implicit
 
 from .loading import build_loading
 from .metrics import compute, rel_l2
-from .results import Result, atomic_savez
+from .results import Result, atomic_savez, read_cached
 from .scene import Scene
 
 #: Bumped whenever the reference's numbers can change for the same inputs, so old cache entries die.
@@ -184,12 +184,14 @@ def _restore_solved(memo: tuple, path: Path, solved: Scene, material, degree: in
     """Into _SOLVED, the solve kept at ``path`` (_save_solved) rebuilt; nothing if it cannot be."""
     from reference.driver import restore_static
 
-    try:
+    def read(path):
         with np.load(path) as data:
-            arrays = {k: data[k] for k in data.files if k != "meta"}
-            meta = json.loads(str(data["meta"]))
-    except (OSError, ValueError, KeyError):  # a damaged file: solve again
+            return {k: data[k] for k in data.files if k != "meta"}, json.loads(str(data["meta"]))
+
+    kept = read_cached(path, read)
+    if kept is None:  # a damaged file: solve again
         return
+    arrays, meta = kept
     problems = restore_static(solved.mesh, material, solved.problem, degree, refine, arrays)
     if problems is not None:
         _SOLVED[memo] = problems, meta
@@ -224,8 +226,9 @@ def reference_result(
     from reference.driver import solve_static as reference_static
 
     path = reference_path(scene, degree, refine, estimate, newton_steps, min_increment, own_mesh, petsc_options)
-    if use_cache and path.exists():
-        return Result.load(path)
+    cached = read_cached(path, Result.load) if use_cache else None
+    if cached is not None:
+        return cached
     mesh = scene.mesh
     solved = scene if own_mesh or not scene.level else scene.base
     where = f" on the base mesh at the {mesh.n_vertices} vertices of level {scene.level}" if solved is not scene else ""
@@ -380,11 +383,9 @@ def settled(
       1/sqrt(5) a step; or ``dt_fraction`` of the explicit critical step), at most IMPLICIT_MAX_STEPS.
     """
     path = settled_path(scene, model.name, integrator, dt, dt_fraction, rtol, max_steps, options)
-    if path.exists():
-        z = np.load(path)
-        state = State(u=z["u"], v=z["v"], t=float(z["t"]), steps=int(z["state_steps"]))
-        numbers = [z[k].item() for k in _SETTLED_NUMBERS]
-        return Settled(state, *numbers)
+    kept = read_cached(path, _read_settled)
+    if kept is not None:
+        return kept
     integ = make_integrator(integrator, scene.time.damping_mass, scene.time.damping_stiffness)
     omega2 = _omega2_rest(scene, model, options)
     t1 = time.perf_counter()
@@ -414,6 +415,13 @@ def settled(
     numbers = {k: getattr(out, k) for k in _SETTLED_NUMBERS}
     atomic_savez(path, u=out.state.u, v=out.state.v, t=out.state.t, state_steps=out.state.steps, **numbers)
     return out
+
+
+def _read_settled(path: Path) -> Settled:
+    """A Settled as ``settled`` keeps it (an .npz of the state and _SETTLED_NUMBERS)."""
+    with np.load(path) as z:
+        state = State(u=z["u"], v=z["v"], t=float(z["t"]), steps=int(z["state_steps"]))
+        return Settled(state, *(z[k].item() for k in _SETTLED_NUMBERS))
 
 
 def model_for(scene: Scene, model: str, **options):

@@ -13,7 +13,7 @@ import json
 
 import numpy as np
 
-from .results import atomic_write_text
+from .results import atomic_write_text, read_cached
 from .runner import REFERENCE_DEFAULTS, RUN_CODE, cache_dir, code_digest, compare, digest, machine_id, reference_result
 from .scene import Scene
 
@@ -67,8 +67,8 @@ def cached_compare(
     ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
     key = run_key(scene, model, integrator, dt, fraction, ref_opts, budget, {"float32": True} if float32 else None)
     path = cache_dir() / "runs" / f"{scene.name}-{key}.json"
-    if use_cache and path.exists():
-        row = json.loads(path.read_text())
+    row = read_cached(path, _read_json) if use_cache else None
+    if row is not None:
         row["cached"] = True
         return row
     ref = reference if reference is not None else reference_result(scene, **ref_opts)
@@ -123,8 +123,9 @@ def largest_stable_fraction(
         }
     )
     path = cache_dir() / "runs" / f"{scene.name}-stable-{key}.json"
-    if use_cache and path.exists():
-        return json.loads(path.read_text())
+    kept = read_cached(path, _read_json) if use_cache else None
+    if kept is not None:
+        return kept
     model = model_for(scene, model_name)
     integ = make_integrator(integrator, scene.time.damping_mass, scene.time.damping_stiffness)
     dt_crit = integ.critical_dt(model, _omega2_rest(scene, model))
@@ -153,3 +154,11 @@ def largest_stable_fraction(
     if use_cache:
         atomic_write_text(path, json.dumps(out))
     return out
+
+
+def _read_json(path) -> dict:
+    """A cached row: a JSON object (anything else is a damaged entry, read_cached's ValueError)."""
+    row = json.loads(path.read_text())
+    if not isinstance(row, dict):
+        raise ValueError(f"not a JSON object but {type(row).__name__}")
+    return row

@@ -39,7 +39,7 @@ from realtime.models import QUASI_STATIC, nonlinear_fraction
 from .advise import FRAME_SHARE, _available_memory, _memory_bytes, frame_budget
 from .metrics import rel_l2
 from .plots import png, projected_shapes
-from .results import atomic_savez, atomic_write_text
+from .results import atomic_savez, atomic_write_text, read_cached
 from .runner import P1_OWN_MESH, REFERENCE_DEFAULTS, cache_dir, log, reference_result, run_model
 from .runs import largest_stable_fraction, run_key
 from .scene import SCENES_DIR, Scene, parse, resolve
@@ -153,20 +153,27 @@ def _settled(
     opts = {"settled": True, "max_steps": SETTLE_STEPS, **(options or {})}
     key = run_key(scene, model, "symplectic-euler", None, None, ref_opts, False, opts)
     path = cache_dir() / "runs" / f"{scene.name}-{model}-settled-{key}.npz"
-    if not path.exists():
+    kept = read_cached(path, _read_settled)
+    if kept is None:
         try:
             res = run_model(scene, model, options=options, max_steps=SETTLE_STEPS)
             u, meta = res.displacement[0], json.loads(json.dumps(res.meta, default=str))
         except NotConvergedError as exc:
             u, meta = np.zeros((0, 3)), {"unsettled": " ".join(str(exc).split()), **_step_time(scene, model, options)}
         atomic_savez(path, u=u, meta=json.dumps(meta))
-    with np.load(path) as z:
-        u, meta = z["u"], json.loads(str(z["meta"]))
+    else:
+        u, meta = kept
     if "unsettled" in meta:
         if not allow_unsettled:
             raise NotConvergedError(f"{scene.name}: {meta['unsettled']}")
         return None, meta
     return u, meta
+
+
+def _read_settled(path: Path) -> tuple[np.ndarray, dict]:
+    """(u, meta) of a settled run as _settled keeps it."""
+    with np.load(path) as z:
+        return z["u"], json.loads(str(z["meta"]))
 
 
 def _step_time(scene: Scene, model: str, options: dict | None) -> dict:
