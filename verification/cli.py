@@ -672,6 +672,10 @@ def main(argv=None) -> int:
         return _fail(f"tissuebench: {where}{_one_line(exc)}", 2)
     except DivergenceError as exc:
         return _fail(f"tissuebench: {where}{_one_line(exc)}", 1)
+    except KeyboardInterrupt:  # Ctrl-C: what had finished is in the cache, written whole (atomic_write)
+        return _fail(
+            "tissuebench: interrupted; what had finished is cached, and the same command resumes from there", 130
+        )
 
 
 def quiet_compilers() -> None:

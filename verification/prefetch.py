@@ -46,10 +46,15 @@ def _spawned(fn, jobs: list[tuple], workers: int):
     """Run ``fn(*job)`` for each of ``jobs``, in that order of submission, on ``workers`` spawned
     processes (a fresh interpreter: no MPI or PETSc state forked); yields (index, result) as each ends."""
     context = multiprocessing.get_context("spawn")
-    with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+    pool = concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context)
+    try:
         futures = {pool.submit(fn, *job): i for i, job in enumerate(jobs)}
         for future in concurrent.futures.as_completed(futures):
             yield futures[future], future.result()
+    finally:
+        # after Ctrl-C (which the workers get too) or a failed job, start no job still queued: the
+        # executor's own exit would have run every one of them before the interruption took effect
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _static(job: dict):
