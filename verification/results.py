@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,8 +73,10 @@ def read_cached(path: Path, read):
     try:
         return read(path)
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-        print(f"cache: {path}: damaged ({' '.join(str(exc).split()) or type(exc).__name__}); computing it again",
-              file=sys.stderr, flush=True)  # fmt: skip
+        from .runner import log  # (runner imports this module)
+
+        why = " ".join(str(exc).split()) or type(exc).__name__
+        log(f"cache: {path}: damaged ({why}); computing it again")
         return None
 
 
