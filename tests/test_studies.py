@@ -468,8 +468,17 @@ def test_ctrl_c_is_one_line_and_leaves_nothing_half_written(tmp_path):
     """Ctrl-C in the middle of a reference solve was a thirty-line traceback: it is one line, exit 130
     (the shell's code for SIGINT), and no temporary file is left in the cache."""
     env = dict(os.environ, TISSUEBENCH_CACHE=str(tmp_path / "cache"))
+    # Python leaves SIGINT ignored if it starts ignored, as it does under a job a shell put in the
+    # background (a CI runner): the child takes Python's own handler first, as a terminal's process has
+    ctrl_c = "import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
     proc = subprocess.Popen(
-        [sys.executable, "-m", "verification.cli", "reference", "cantilever-pull"],
+        [
+            sys.executable,
+            "-c",
+            ctrl_c + "runpy.run_module('verification.cli', run_name='__main__')",
+            "reference",
+            "cantilever-pull",
+        ],  # fmt: skip
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
