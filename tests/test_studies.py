@@ -478,7 +478,7 @@ def test_ctrl_c_is_one_line_and_leaves_nothing_half_written(tmp_path):
             ctrl_c + "runpy.run_module('verification.cli', run_name='__main__')",
             "reference",
             "cantilever-pull",
-        ],  # fmt: skip
+        ],
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
