@@ -6,6 +6,8 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import re
+import socket
 import tempfile
 import warnings
 from pathlib import Path
@@ -441,10 +443,43 @@ class OutputPathError(InputError):
     that is a file, no permission, a full disk); ``str()`` names the path and why."""
 
 
+def _tmp_prefix(pid: int | None = None) -> str:
+    """A temporary file's name says which host and process write it: ``.tmp-HOST-PID-RANDOM.SUFFIX``."""
+    return f".tmp-{socket.gethostname()}-{os.getpid() if pid is None else pid}-"
+
+
+def _process_is_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
+def remove_orphaned_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files in ``folder`` that a process of this host left when it was killed
+    (SIGKILL, an out-of-memory kill, a power cut: no ``finally`` runs), and return them. A file whose
+    writer still runs, or was written on another host sharing the folder, is left alone."""
+    removed = []
+    ours = f".tmp-{socket.gethostname()}-"
+    for tmp in Path(folder).glob(ours + "*"):
+        # PID-RANDOM.SUFFIX, where mkstemp's RANDOM is 8 of [a-z0-9_] (a host "ci-2" is not host "ci")
+        pid, _, rest = tmp.name[len(ours) :].partition("-")
+        if not (pid.isdigit() and re.fullmatch(r"[a-z0-9_]{8}(\..*)?", rest)) or _process_is_alive(int(pid)):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+            removed.append(tmp)
+    return removed
+
+
 def atomic_write(path: str | os.PathLike, write) -> Path:
     """Call ``write(tmp)`` with a temporary path beside ``path`` (same suffix), then rename it to
     ``path``: a reader never sees a half-written file, and a failure leaves none behind. ``write`` must
     write exactly ``tmp`` (numpy's savez adds ".npz" to a name without it: use ``atomic_savez``).
+    What a killed writer left in the folder is removed first (``remove_orphaned_temporaries``).
     Raises OutputPathError if the file cannot be written there."""
     path = Path(path)
     if path.is_dir():
@@ -456,7 +491,8 @@ def atomic_write(path: str | os.PathLike, write) -> Path:
             break
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(suffix=path.suffix, dir=path.parent, prefix=".tmp-")
+        remove_orphaned_temporaries(path.parent)
+        fd, tmp = tempfile.mkstemp(suffix=path.suffix, dir=path.parent, prefix=_tmp_prefix())
     except OSError as exc:
         raise OutputPathError(f"{path}: cannot write it: {exc.strerror or exc}") from None
     os.close(fd)

@@ -369,3 +369,23 @@ def test_atomic_savez_writes_the_name_given_and_atomic_write_says_why_it_cannot(
     with pytest.raises(OutputPathError, match=r"/e\.txt: cannot write it: No space left on device"):
         atomic_write(tmp_path / "e.txt", full)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d", "r", "r.npz", "r.txt"]
+
+
+def test_a_temporary_file_a_killed_writer_left_is_removed_by_the_next_write(tmp_path):
+    """SIGKILL runs no ``finally``: the temporary file of a killed writer stays until the next write into
+    that folder removes it. A live writer's file (this process's) and another host's are left alone."""
+    import socket
+    import subprocess
+    import sys
+
+    from meshes.io import _tmp_prefix, atomic_write
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid = int(dead.stdout)  # exited and reaped: no process has this pid until the kernel reuses it
+    killed = tmp_path / f"{_tmp_prefix(dead_pid)}abcd_123.json"
+    live = tmp_path / f"{_tmp_prefix()}efgh_456.json"
+    elsewhere = tmp_path / f".tmp-{socket.gethostname()}x-{dead_pid}-ijkl_789.json"
+    for f in (killed, live, elsewhere):
+        f.write_text('{"half')
+    atomic_write(tmp_path / "r.json", lambda tmp: Path(tmp).write_text("{}"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["r.json", live.name, elsewhere.name])
