@@ -85,6 +85,46 @@ SLOW = 10.0
 #: an iteration's assembly, lifting and back-substitution at 39 000 P2 dofs): a step need only halve
 #: the residual.
 SLOW_DYNAMIC = 2.0
+#: MUMPS's INFOG(1) when a workspace it sized from its analysis's estimate proved too small during the
+#: factorisation (-8, -14, -15 integer, -9 real, -17, -20 message buffers; MUMPS 5 users' guide, section
+#: "Error diagnostics"). In parallel the estimate depends on the partition, which varies from run to run:
+#: block-press's P2 solve on 2 ranks failed with -9 in about one run in ten, then at every load increment
+#: (the same partition, the same estimate).
+MUMPS_WORKSPACE_ERRORS = (-8, -9, -14, -15, -17, -20)
+#: ICNTL(14), the percentage MUMPS adds to its estimated workspace, is doubled from its default of 20 up to
+#: this before a workspace failure counts as the linear solver's.
+MUMPS_MAX_RELAXATION = 320
+
+
+def grow_mumps_workspace(factor, log) -> bool:
+    """After a factorisation that failed: if ``factor`` (a MUMPS factor matrix) ran out of a workspace
+    (INFOG(1) in MUMPS_WORKSPACE_ERRORS; INFOG is the same on every rank, so every rank decides alike),
+    double its ICNTL(14) for the next factorisation, say so through ``log`` and return True; False for
+    any other failure, a solver that is not MUMPS, or ICNTL(14) already at MUMPS_MAX_RELAXATION."""
+    try:
+        code, short = factor.getMumpsInfog(1), factor.getMumpsInfog(2)
+        relax = factor.getMumpsIcntl(14)
+    except (AttributeError, PETSc.Error):
+        return False
+    if code not in MUMPS_WORKSPACE_ERRORS or relax >= MUMPS_MAX_RELAXATION:
+        return False
+    factor.setMumpsIcntl(14, min(2 * max(relax, 10), MUMPS_MAX_RELAXATION))
+    log(
+        f"reference: MUMPS's workspace was too small (INFOG(1) = {code}, INFOG(2) = {short}); factorising "
+        f"again with ICNTL(14) = {factor.getMumpsIcntl(14)}% instead of {relax}%"
+    )
+    return True
+
+
+def grow_ksp_workspace(ksp, log) -> bool:
+    """grow_mumps_workspace on the factor of ``ksp``'s preconditioner; False if it has none (GAMG)."""
+    try:
+        factor = ksp.getPC().getFactorMatrix()
+    except PETSc.Error:
+        return False
+    return grow_mumps_workspace(factor, log)
+
+
 #: A step with a fresh tangent that raises the free residual this many times above the lowest it reached
 #: since the call's first step has left Newton's basin: the call gives up (the load step is then cut).
 DIVERGED = 1e3
@@ -188,6 +228,25 @@ class Newton:
         if form is None and self.linear_part is not None:
             self.linear_part(self.raw)
         return self._norms(self.raw)
+
+    def _linear_solve(self) -> None:
+        """du = J^-1 b with the current operator (factorised or preconditioned on first use)."""
+        try:
+            self.ksp.solve(self.b, self.du)
+        except PETSc.Error as exc:  # a preconditioner that cannot be built (GAMG on a tiny mesh)
+            raise ReferenceSolveError(
+                f"reference: the linear solver failed (PETSc error {exc.ierr} in its setup, options "
+                f"{self.options}); try --petsc-option pc_type=lu"
+            ) from None
+
+    def _more_workspace(self) -> bool:
+        """grow_ksp_workspace on this solver's KSP (rank 0 says so on stderr)."""
+
+        def log(msg):
+            if self.comm.rank == 0:
+                print(msg, file=sys.stderr, flush=True)
+
+        return grow_ksp_workspace(self.ksp, log)
 
     def _factorise(self) -> None:
         """Assemble the tangent at the current u and have the next solve factorise it."""
@@ -300,15 +359,13 @@ class Newton:
                 self._factorise()
             fresh_step = self.at == "current"
             before, previous, previous_held = u.x.array.copy(), free, held
-            try:
-                self.ksp.solve(self.b, self.du)
-            except PETSc.Error as exc:  # a preconditioner that cannot be built (GAMG on a tiny mesh)
-                raise ReferenceSolveError(
-                    f"reference: the linear solver failed (PETSc error {exc.ierr} in its setup, options "
-                    f"{self.options}); try --petsc-option pc_type=lu"
-                ) from None
-            if self.ksp.getConvergedReason() < 0:  # an iterative inner solve that failed: Newton failed
+            self._linear_solve()
+            while self.ksp.getConvergedReason() < 0 and self._more_workspace():
+                self._factorise()  # the tangent at the same u, factorised with the larger workspace
+                self._linear_solve()
+            if self.ksp.getConvergedReason() < 0:  # an inner solve or a factorisation that failed
                 out["ksp_reason"] = int(self.ksp.getConvergedReason())
+                out["factorisations"] = self.factorisations - start
                 break
             self.linear_iterations += self.ksp.getIterationNumber()
             if self.iterative and self.pc_first_its is None:
@@ -320,6 +377,15 @@ class Newton:
             u.x.scatter_forward()
             self.at = "older"  # the factorised tangent is now the one at an earlier u
         return {**out, "converged": False, "residual": free}
+
+
+def _mumps_info(solver: Newton) -> str:
+    """ ", MUMPS INFOG(1) = .., INFOG(2) = .." for a solver whose factorisation is MUMPS's, else ""."""
+    try:
+        factor = solver.ksp.getPC().getFactorMatrix()
+        return f", MUMPS INFOG(1) = {factor.getMumpsInfog(1)}, INFOG(2) = {factor.getMumpsInfog(2)}"
+    except (AttributeError, PETSc.Error):
+        return ""
 
 
 def dolfinx_mesh(mesh: TetMesh, comm=MPI.COMM_WORLD, refine: int = 0):
@@ -572,6 +638,9 @@ class ElasticityProblem:
             problem.A.setNearNullSpace(self.rigid_body_modes())
         problem.solve()
         reason = problem.solver.getConvergedReason()
+        while reason < 0 and grow_ksp_workspace(problem.solver, self._log):
+            problem.solve()  # assembles the matrix again, so the preconditioner factorises it again
+            reason = problem.solver.getConvergedReason()
         if reason < 0:
             raise ReferenceSolveError(f"linear solve failed: PETSc converged reason {reason}")
         self.timings["solve_s"] = time.perf_counter() - t0
@@ -668,6 +737,8 @@ class ElasticityProblem:
                 what = (
                     f"Newton diverged after {res['factorisations']} factorisations (residual {DIVERGED:.0e} x its best)"
                 )
+            elif "ksp_reason" in res:
+                what = f"the linear solver failed (PETSc KSP reason {res['ksp_reason']}{_mumps_info(solver)})"
             else:
                 what = f"Newton failed ({res['factorisations']} factorisations)"
             self._log(f"reference: load {target:.4g}: {what}, load increment halved to {inc:.3g}")

@@ -384,3 +384,71 @@ box = [[-1e-9, -1.0, -1.0], [1e-9, 1.0, 1.0]]
     assert np.linalg.norm(products.array - integrals.array) <= 1e3 * np.finfo(float).eps * np.linalg.norm(
         integrals.array
     )
+
+
+class _Factor:
+    """A MUMPS factor matrix as grow_mumps_workspace sees it: INFOG(1..2) and ICNTL(14)."""
+
+    def __init__(self, code: int, relax: int = 20):
+        self.code, self.relax = code, relax
+
+    def getMumpsInfog(self, i):
+        return {1: self.code, 2: 746897}[i]
+
+    def getMumpsIcntl(self, i):
+        assert i == 14
+        return self.relax
+
+    def setMumpsIcntl(self, i, value):
+        assert i == 14
+        self.relax = value
+
+
+def test_a_mumps_workspace_too_small_is_doubled_up_to_its_limit_and_nothing_else_is_retried():
+    """MUMPS sizes its workspace from its analysis; in parallel the estimate follows the partition, and
+    block-press's P2 solve on 2 ranks failed with INFOG(1) = -9 at every load increment about one run in
+    ten. Such a failure doubles ICNTL(14) (20, 40, ... 320 %) and is said on stderr; a singular matrix
+    (-10) or an exhausted relaxation is the linear solver's failure, as before."""
+    from reference.fem import MUMPS_MAX_RELAXATION, grow_mumps_workspace
+
+    said = []
+    factor = _Factor(-9)
+    grown = []
+    while grow_mumps_workspace(factor, said.append):
+        grown.append(factor.relax)
+    assert grown == [40, 80, 160, 320] and factor.relax == MUMPS_MAX_RELAXATION
+    assert said[0] == (
+        "reference: MUMPS's workspace was too small (INFOG(1) = -9, INFOG(2) = 746897); factorising again with "
+        "ICNTL(14) = 40% instead of 20%"
+    )
+    assert not grow_mumps_workspace(_Factor(-10), said.append)  # numerically singular: not a workspace
+    assert not grow_mumps_workspace(object(), said.append)  # not MUMPS (GAMG has no factor)
+    assert len(said) == 4
+
+
+def test_a_factor_keeps_the_workspace_set_on_it_when_newton_factorises_again():
+    """The retry sets ICNTL(14) on the factor matrix and factorises again: that works only if PETSc keeps
+    the factor (and its MUMPS parameters) across a numeric refactorisation instead of making a new one
+    from the options. On block-press's P1 problem: the same factor, the new ICNTL(14), a solve that
+    converges."""
+    import ufl
+    from mpi4py import MPI
+
+    from reference.fem import ElasticityProblem, Newton, solver_options
+
+    scene = load_scene("block-press")
+    ep = ElasticityProblem(scene.mesh, scene.material, scene.problem, degree=1)
+    jacobian = ufl.derivative(ep.residual, ep.u, ufl.TrialFunction(ep.V))
+    newton = Newton(MPI.COMM_WORLD, ep.residual, ep.u, ep.bcs, jacobian, solver_options(ep.n_dofs))
+    ep.load_factor.value = 0.5
+    ep.set_tool_fraction(0.5)
+    assert newton.solve()["converged"]
+    factor = newton.ksp.getPC().getFactorMatrix()
+    assert factor.getMumpsIcntl(14) == 20  # MUMPS's default: the one that failed
+    factor.setMumpsIcntl(14, 40)
+    newton._factorise()
+    newton._linear_solve()
+    assert newton.ksp.getConvergedReason() > 0
+    again = newton.ksp.getPC().getFactorMatrix()
+    assert again.handle == factor.handle and again.getMumpsIcntl(14) == 40
+    assert again.getMumpsInfog(1) == 0
