@@ -88,7 +88,7 @@ SLOW_DYNAMIC = 2.0
 #: MUMPS's INFOG(1) when a workspace it sized from its analysis's estimate proved too small during the
 #: factorisation (-8, -14, -15 integer, -9 real, -17, -20 message buffers; MUMPS 5 users' guide, section
 #: "Error diagnostics"). In parallel the estimate depends on the partition, which varies from run to run:
-#: block-press's P2 solve on 2 ranks failed with -9 in about one run in ten, then at every load increment
+#: block-press's P2 solve on 2 ranks failed with -9 in 6 of 126 runs, then at every load increment
 #: (the same partition, the same estimate).
 MUMPS_WORKSPACE_ERRORS = (-8, -9, -14, -15, -17, -20)
 #: ICNTL(14), the percentage MUMPS adds to its estimated workspace, is doubled from its default of 20 up to

@@ -406,8 +406,8 @@ class _Factor:
 
 def test_a_mumps_workspace_too_small_is_doubled_up_to_its_limit_and_nothing_else_is_retried():
     """MUMPS sizes its workspace from its analysis; in parallel the estimate follows the partition, and
-    block-press's P2 solve on 2 ranks failed with INFOG(1) = -9 at every load increment about one run in
-    ten. Such a failure doubles ICNTL(14) (20, 40, ... 320 %) and is said on stderr; a singular matrix
+    block-press's P2 solve on 2 ranks failed with INFOG(1) = -9 at every load increment in 6 of 126
+    runs. Such a failure doubles ICNTL(14) (20, 40, ... 320 %) and is said on stderr; a singular matrix
     (-10) or an exhausted relaxation is the linear solver's failure, as before."""
     from reference.fem import MUMPS_MAX_RELAXATION, grow_mumps_workspace
 
