@@ -379,10 +379,11 @@ class Newton:
         return {**out, "converged": False, "residual": free}
 
 
-def _mumps_info(solver: Newton) -> str:
-    """ ", MUMPS INFOG(1) = .., INFOG(2) = .." for a solver whose factorisation is MUMPS's, else ""."""
+def _mumps_info(ksp) -> str:
+    """ ", MUMPS INFOG(1) = .., INFOG(2) = .." for a KSP whose preconditioner is MUMPS's factorisation,
+    else ""."""
     try:
-        factor = solver.ksp.getPC().getFactorMatrix()
+        factor = ksp.getPC().getFactorMatrix()
         return f", MUMPS INFOG(1) = {factor.getMumpsInfog(1)}, INFOG(2) = {factor.getMumpsInfog(2)}"
     except (AttributeError, PETSc.Error):
         return ""
@@ -738,7 +739,7 @@ class ElasticityProblem:
                     f"Newton diverged after {res['factorisations']} factorisations (residual {DIVERGED:.0e} x its best)"
                 )
             elif "ksp_reason" in res:
-                what = f"the linear solver failed (PETSc KSP reason {res['ksp_reason']}{_mumps_info(solver)})"
+                what = f"the linear solver failed (PETSc KSP reason {res['ksp_reason']}{_mumps_info(solver.ksp)})"
             else:
                 what = f"Newton failed ({res['factorisations']} factorisations)"
             self._log(f"reference: load {target:.4g}: {what}, load increment halved to {inc:.3g}")
@@ -895,10 +896,16 @@ class ElasticityProblem:
                 b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
                 fem.petsc.set_bc(b, self.bcs)
                 ksp.solve(b, u.vector)
+                while ksp.getConvergedReason() < 0 and grow_ksp_workspace(ksp, self._log):
+                    A.zeroEntries()  # the same operator in a new state: the preconditioner factorises it again
+                    fem.petsc.assemble_matrix(A, a_form, bcs=self.bcs)
+                    A.assemble()
+                    ksp.solve(b, u.vector)
                 if ksp.getConvergedReason() < 0:
                     raise ReferenceSolveError(
                         f"reference: Newmark's linear solve failed at t = {t:.4g} s (PETSc reason "
-                        f"{ksp.getConvergedReason()}, options {opts}); try --petsc-option pc_type=lu"
+                        f"{ksp.getConvergedReason()}{_mumps_info(ksp)}, options {opts}); try --petsc-option "
+                        "pc_type=lu"
                     )
                 u.x.scatter_forward()
                 iterations += 1
