@@ -65,13 +65,22 @@ def clear_if_stale(cache_dir: Path, sources: list[Path]) -> bool:
         stale = [p for p in cache_dir.iterdir() if p.suffix in (".nbi", ".nbc")]
         for p in stale:
             p.unlink(missing_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=cache_dir, prefix=".tmp-stamp-")
-        with os.fdopen(fd, "w") as fh:
-            fh.write(digest)
-        os.replace(tmp, stamp)
     except OSError:
         return False
-    return bool(stale)
+    return write_stamp(stamp, digest) and bool(stale)
+
+
+def write_stamp(path: Path, digest: str) -> bool:
+    """Write ``digest`` to ``path`` through a temporary file and a rename. Returns False, leaving the
+    folder alone, where it cannot be written (numba does not cache there either)."""
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-stamp-")
+        with os.fdopen(fd, "w") as fh:
+            fh.write(digest)
+        os.replace(tmp, path)
+    except OSError:
+        return False
+    return True
 
 
 def guard() -> None:

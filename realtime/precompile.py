@@ -21,12 +21,13 @@ from __future__ import annotations
 import inspect
 import os
 import sys
-import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
+
+from .jitcache import sources_digest, write_stamp
 
 #: The file in numba's cache folder that says which version of the engine it holds, compiled.
 STAMP = "tissuebench-precompiled.sha256"
@@ -134,7 +135,6 @@ def _cache_dir() -> Path | None:
 
 
 def _digest() -> str:
-    from .jitcache import sources_digest
 
     return sources_digest(list(Path(__file__).parent.glob("*.py")))
 
@@ -146,18 +146,6 @@ def is_current() -> bool:
         return folder is not None and (folder / STAMP).read_text() == _digest()
     except OSError:
         return False
-
-
-def _write_stamp(path: Path, digest: str) -> None:
-    """Write ``digest`` to ``path`` through a temporary file and a rename; a folder that cannot be
-    written is left alone (numba does not cache there either, and the next run compiles again)."""
-    try:
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-stamp-")
-        with os.fdopen(fd, "w") as fh:
-            fh.write(digest)
-        os.replace(tmp, path)
-    except OSError:
-        pass
 
 
 def precompile(processes: int | None = None, todo: list | None = None, log=None) -> bool:
@@ -191,7 +179,7 @@ def precompile(processes: int | None = None, todo: list | None = None, log=None)
         compile_job(job)
     folder = _cache_dir()
     if full and folder is not None:
-        _write_stamp(folder / STAMP, _digest())
+        write_stamp(folder / STAMP, _digest())
     say(f"done in {time.perf_counter() - t0:.0f} s")
     return True
 

@@ -116,13 +116,18 @@ def grow_mumps_workspace(factor, log) -> bool:
     return True
 
 
+def _factor_of(ksp):
+    """The factor matrix of ``ksp``'s preconditioner, or None if it factorises nothing (GAMG)."""
+    try:
+        return ksp.getPC().getFactorMatrix()
+    except PETSc.Error:
+        return None
+
+
 def grow_ksp_workspace(ksp, log) -> bool:
     """grow_mumps_workspace on the factor of ``ksp``'s preconditioner; False if it has none (GAMG)."""
-    try:
-        factor = ksp.getPC().getFactorMatrix()
-    except PETSc.Error:
-        return False
-    return grow_mumps_workspace(factor, log)
+    factor = _factor_of(ksp)
+    return factor is not None and grow_mumps_workspace(factor, log)
 
 
 #: A step with a fresh tangent that raises the free residual this many times above the lowest it reached
@@ -382,10 +387,10 @@ class Newton:
 def _mumps_info(ksp) -> str:
     """ ", MUMPS INFOG(1) = .., INFOG(2) = .." for a KSP whose preconditioner is MUMPS's factorisation,
     else ""."""
+    factor = _factor_of(ksp)
     try:
-        factor = ksp.getPC().getFactorMatrix()
         return f", MUMPS INFOG(1) = {factor.getMumpsInfog(1)}, INFOG(2) = {factor.getMumpsInfog(2)}"
-    except (AttributeError, PETSc.Error):
+    except (AttributeError, PETSc.Error):  # no factor, or not MUMPS's
         return ""
 
 
