@@ -233,19 +233,21 @@ def lane_in(W, geo, gb, q):
 
 
 @nb.njit(inline="always", **HOT)
-def lane_out(W, q, v, P, g):
-    """W[(3 a + r) BLOCK + q] = V (P g_{a+1})_r: the element's forces, P and g row-major 9-tuples."""
+def lane_out(W, q, P, g):
+    """W[(3 a + r) BLOCK + q] = (P g_{a+1})_r: the element's forces, P (the stress times the volume V,
+    which the laws fold into their few constants rather than into the 9 outputs) and g row-major
+    9-tuples."""
     p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
     g10, g11, g12, g20, g21, g22, g30, g31, g32 = g
-    W[ROW[0] + q] = v * (p00 * g10 + p01 * g11 + p02 * g12)
-    W[ROW[1] + q] = v * (p10 * g10 + p11 * g11 + p12 * g12)
-    W[ROW[2] + q] = v * (p20 * g10 + p21 * g11 + p22 * g12)
-    W[ROW[3] + q] = v * (p00 * g20 + p01 * g21 + p02 * g22)
-    W[ROW[4] + q] = v * (p10 * g20 + p11 * g21 + p12 * g22)
-    W[ROW[5] + q] = v * (p20 * g20 + p21 * g21 + p22 * g22)
-    W[ROW[6] + q] = v * (p00 * g30 + p01 * g31 + p02 * g32)
-    W[ROW[7] + q] = v * (p10 * g30 + p11 * g31 + p12 * g32)
-    W[ROW[8] + q] = v * (p20 * g30 + p21 * g31 + p22 * g32)
+    W[ROW[0] + q] = p00 * g10 + p01 * g11 + p02 * g12
+    W[ROW[1] + q] = p10 * g10 + p11 * g11 + p12 * g12
+    W[ROW[2] + q] = p20 * g10 + p21 * g11 + p22 * g12
+    W[ROW[3] + q] = p00 * g20 + p01 * g21 + p02 * g22
+    W[ROW[4] + q] = p10 * g20 + p11 * g21 + p12 * g22
+    W[ROW[5] + q] = p20 * g20 + p21 * g21 + p22 * g22
+    W[ROW[6] + q] = p00 * g30 + p01 * g31 + p02 * g32
+    W[ROW[7] + q] = p10 * g30 + p11 * g31 + p12 * g32
+    W[ROW[8] + q] = p20 * g30 + p21 * g31 + p22 * g32
 
 
 @nb.njit(inline="always", **JIT)

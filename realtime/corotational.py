@@ -115,7 +115,8 @@ def _det(F):
 def _corotated_pk1(F, r, lam, mu):
     """P = 2 mu (F - R) + lam tr(R^T F - I) R, R (row-major 9-tuple) the polar rotation of F: the
     stress of the corotated energy lam/2 tr(S - I)^2 + mu |S - I|^2, S = R^T F. It is R sigma(S - I),
-    sigma the linear law, written with R S = F (36 flops against 81 for the rotated stress)."""
+    sigma the linear law, written with R S = F (36 flops against 81 for the rotated stress). lam and mu
+    in Pa, or times the volume V for V P (lane_out's)."""
     f00, f01, f02, f10, f11, f12, f20, f21, f22 = F
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
     c = lam * (
@@ -186,7 +187,7 @@ def _corotational_block(W, R, Fb, geo, gb, lam, mu):
     for q in range(UBLOCK):
         g = lane_rows(geo, gb, q)
         v = geo[gb + ROW[9] + q]
-        lane_out(W, q, v, _corotated_pk1(lane_rows(Fb, ROW[0], q), lane_rows(R, ROW[0], q), lam, mu), g)
+        lane_out(W, q, _corotated_pk1(lane_rows(Fb, ROW[0], q), lane_rows(R, ROW[0], q), lam * v, mu * v), g)
 
 
 def corotational_scratch() -> tuple:
