@@ -13,6 +13,10 @@ import os as _os
 _os.environ.setdefault("GOMP_SPINCOUNT", "1000000")
 
 from . import jitcache as _jitcache
+
+# Imported before any module that makes a numba function: it sets numba's target to every vector lane
+# the core has (realtime.target), which numba fixes when it makes its first function.
+from . import target as _target  # noqa: F401
 from .errors import InputError, LoadingError
 from .integrators import (
     INTEGRATORS,

@@ -37,6 +37,7 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     out = run(meshes=("beam",), repeats=1, steps=2)
     roof = out["machine"]["roofline"]
     assert roof["fma_gflops"] > 0 and all(v > 0 for v in roof["triad_gbs"].values())
+    assert roof["vector_bits"] in (128, 256, 512)
     rows = {r["name"]: r for r in out["results"]}
     haptic = {f"{m}, one step a call (haptic loop)" for m in ("linear-tm", "stvk-tm")}
     placed = {"linear-tm", "stvk-tm", "mass-spring", "scipy-bsr-matvec"} | haptic
@@ -52,7 +53,7 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
         assert r["precision"] == "float32" and "roofline_us" not in r
         assert r["speedup"] == pytest.approx(rows[m]["step_us"] / r["step_us"])
     table = format_table(out)
-    assert "FMA peak" in table and "triad GB/s by data size" in table
+    assert "FMA peak" in table and f"({roof['vector_bits']}-bit vectors" in table and "triad GB/s by data size" in table
     assert len(re.findall(r"roofline [\d.]+ us \((compute|memory)\): \d+% of it", table)) == len(placed)
     assert len(re.findall(r"\d\.\d\dx its float64 row", table)) == len(FLOAT32_MODELS)
 

@@ -321,7 +321,9 @@ def format_table(out: dict) -> str:
     lines = [f"machine: {m['cpu']}, {m['cores']} cores, numba {m['numba']}"]
     if "roofline" in m:
         bw = ", ".join(f"{int(k) / 1e6:.3g} MB {v:.0f}" for k, v in m["roofline"]["triad_gbs"].items())
-        lines.append(f"one core: FMA peak {m['roofline']['fma_gflops']:.0f} GFLOP/s; triad GB/s by data size: {bw}")
+        roof = m["roofline"]
+        width = f" ({roof['vector_bits']}-bit vectors, as the kernels)" if "vector_bits" in roof else ""
+        lines.append(f"one core: FMA peak {roof['fma_gflops']:.0f} GFLOP/s{width}; triad GB/s by data size: {bw}")
     for mesh in dict.fromkeys(r["mesh"] for r in out["results"]):
         rows = [r for r in out["results"] if r["mesh"] == mesh]
         lines.append(f"\n{mesh}: {rows[0]['n_vertices']} vertices, {rows[0]['n_tets']} tetrahedra")

@@ -97,6 +97,18 @@ def bandwidth(footprint_bytes: float, seconds: float = 0.2) -> float:
     return 24.0 * n / best / 1e9
 
 
+def vector_bits() -> int:
+    """The widest vector registers numba emits in this process, bits (512, 256 or 128): the triad loop
+    compiled afresh (numba shows no assembly for cached code) and its machine code read. The peak loop
+    and the engine's kernels are compiled for the same target (realtime.target), so this is the width
+    both the ceiling and the kernels were measured at."""
+    loop = nb.njit(**{**_FAST, "cache": False})(_triad.py_func)
+    a = np.zeros(64)
+    loop(a, a, a, 0.5, 1)
+    asm = loop.inspect_asm(loop.signatures[0])
+    return next((bits for bits, reg in ((512, "%zmm"), (256, "%ymm")) if reg in asm), 128)
+
+
 #: Per-element work of each force kernel, counted from its source: (flops, streamed bytes) per
 #: tetrahedron ("tet"), vertex ("vertex") or edge ("edge"). stvk-tm (isotropic, no penalty):
 #: gather 9, H 45, Green-Lagrange strain 45, the second Piola-Kirchhoff stress times the volume 14,
@@ -140,6 +152,7 @@ class Roofline:
 
     def __init__(self):
         self.peak = fma_peak()
+        self.vector_bits = vector_bits()
         self._bandwidths: dict[int, float] = {}
 
     def bandwidth(self, footprint: float) -> float:
@@ -156,4 +169,8 @@ class Roofline:
         return (compute, "compute") if compute >= memory else (memory, "memory")
 
     def summary(self) -> dict:
-        return {"fma_gflops": self.peak, "triad_gbs": {str(k): v for k, v in sorted(self._bandwidths.items())}}
+        return {
+            "fma_gflops": self.peak,
+            "vector_bits": self.vector_bits,
+            "triad_gbs": {str(k): v for k, v in sorted(self._bandwidths.items())},
+        }
