@@ -179,18 +179,16 @@ def _corotational_block(W, R, Fb, geo, gb, lam, mu):
     The polar iteration runs on all the block's tetrahedra at once, with the rotations in the scratch
     R (10 BLOCK,) float64 (rows 0..8 the rotation, row 9 its last change), until no more than
     _POLAR_STRAGGLERS lanes are still changing; those finish one at a time (_finish_lanes). Lanes that
-    converged earlier take the block's further steps at round-off. The first step is taken in the loop
-    that forms F, unscaled; if an element of the block is squashed (det F < _POLAR_SQUASHED) the block
-    starts again with a scaled one. Later steps are scaled while the block's largest change is above
-    _POLAR_SCALED (a block-wide choice, so that unscaled steps take no roots). Inverted ones start
+    converged earlier take the block's further steps at round-off. The first step is unscaled unless
+    an element of the block is squashed (det F < _POLAR_SQUASHED); later steps are scaled while the
+    block's largest change is above _POLAR_SCALED (a block-wide choice, so that unscaled steps take no
+    roots). Inverted ones start
     from R = I (which stays put) and take the SVD afterwards, one at a time. Fb (9 BLOCK,) keeps each
     lane's F for the stress, which reads it back instead of forming it again (45 flops a tetrahedron).
     """
     identity = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
     inverted = 0
     squashed = 0
-    active = 0
-    far = 0
     for q in range(UBLOCK):
         F = _plus_identity(lane_in(W, geo, gb, q)[0])
         lane_store(Fb, q, F)
@@ -199,11 +197,8 @@ def _corotational_block(W, R, Fb, geo, gb, lam, mu):
         lane_store(R, q, F if ok else identity)
         inverted += not ok
         squashed += d < _POLAR_SQUASHED
-    if squashed:
-        active, far = _polar_pass(R, True)
-    else:
-        active, far = _polar_pass(R, False)
-    for _ in range(29):
+    active, far = BLOCK, squashed  # every lane takes the first step, scaled if one is squashed
+    for _ in range(30):
         if active <= _POLAR_STRAGGLERS:
             break
         # one decision for the whole block, taken outside the lane loop: a branch inside it would be
