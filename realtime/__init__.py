@@ -5,6 +5,10 @@ Imports only numpy, scipy and numba, so that it can be embedded in a simulator o
 
 import os as _os
 
+# First of all: numba's target, every vector lane the core has (realtime.target), set in the environment
+# before numba is loaded, which it reads then; numba fixes its target when it makes its first function.
+from . import target as _target  # noqa: F401
+
 # The threaded kernels' threads (realtime.threaded) run in GNU OpenMP, which reads this once, when the
 # library loads: a thread that finished its share spins this many times before it sleeps, so that it is
 # awake for the next step's force (about a millisecond here; woken from sleep, a thread on this
@@ -13,10 +17,6 @@ import os as _os
 _os.environ.setdefault("GOMP_SPINCOUNT", "1000000")
 
 from . import jitcache as _jitcache
-
-# Imported before any module that makes a numba function: it sets numba's target to every vector lane
-# the core has (realtime.target), which numba fixes when it makes its first function.
-from . import target as _target  # noqa: F401
 from .errors import InputError, LoadingError
 from .integrators import (
     INTEGRATORS,

@@ -15,8 +15,9 @@ decoration), so this module calls it when imported, and ``realtime`` imports it 
 modules that make one; in a process that made a numba function before importing realtime, the
 kernels keep 256-bit vectors (correct, slower). A user's own
 NUMBA_CPU_FEATURES or NUMBA_CPU_NAME is left as it is; a core without AVX-512 has nothing to change.
-The setting goes into the environment, so that the processes the engine starts (realtime.precompile's
-pool, the studies' workers) compile alike and find the same cache entries.
+The setting goes into the environment when numba is not loaded yet, so that numba reads it with the
+rest and the processes the engine starts (realtime.precompile's pool, the studies' workers) inherit it;
+with numba loaded, into numba's config alone (see use_wide_vectors).
 """
 
 from __future__ import annotations
@@ -52,9 +53,12 @@ def use_wide_vectors() -> str | None:
     features = wide_vector_features()
     if features is None:
         return None
-    os.environ[FEATURES_VAR] = features
     config = sys.modules.get("numba.core.config")
-    if config is not None:  # numba loaded already: its config read the environment before this
+    if config is None:
+        os.environ[FEATURES_VAR] = features
+    else:
+        # numba is loaded and has read the environment: a NUMBA_ variable changed now would make its
+        # next compile read them all again, undoing settings made in code since (the threading layer)
         config.CPU_FEATURES = features
     return features
 
