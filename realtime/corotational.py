@@ -182,9 +182,9 @@ def _corotational_block(W, R, Fb, geo, gb, lam, mu):
     converged earlier take the block's further steps at round-off. The first step is unscaled unless
     an element of the block is squashed (det F < _POLAR_SQUASHED); later steps are scaled while the
     block's largest change is above _POLAR_SCALED (a block-wide choice, so that unscaled steps take no
-    roots). Inverted ones start
-    from R = I (which stays put) and take the SVD afterwards, one at a time. Fb (9 BLOCK,) keeps each
-    lane's F for the stress, which reads it back instead of forming it again (45 flops a tetrahedron).
+    roots). Inverted ones start from R = I (which stays put) and take the SVD afterwards, one at a
+    time. Fb (9 BLOCK,) keeps each lane's F for the stress, which reads it back instead of forming it
+    again (45 flops a tetrahedron).
     """
     identity = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
     inverted = 0

@@ -57,9 +57,9 @@ def _stvk_lanes(W, geo, gb, prm, minus_linear, general):
     """stvk_block's loop over the block's lanes. ``general`` (a literal at each call): with the fibre
     terms and the volume penalty; without, the loop holds neither. A flag of the block's material
     tested inside the loop would be if-converted by the vectoriser, and every isotropic tetrahedron
-    would pay for both (on the liver, the isotropic element phase took 64 us with them, 37 without).
-    The stress is formed already multiplied by the volume V (its constants scaled once a lane: 4 or 5
-    products instead of V times the 9 outputs)."""
+    would pay for both (on the liver, at 256 bits, the isotropic element phase took 64 us with them,
+    37 without). The stress is formed already multiplied by the volume V (its constants scaled once a
+    lane: 2 products, 5 in the general loop, instead of V times the 9 outputs)."""
     lam, mu2, dlam, dmu, kappa = prm[0], prm[1] + prm[1], prm[2], prm[3], prm[4]
     half, one, zero = in_type_of(lam, 0.5), in_type_of(lam, 1.0), in_type_of(lam, 0.0)
     fibre = dlam != 0.0 or dmu != 0.0

@@ -1,7 +1,7 @@
 """The vector width the engine's kernels are compiled for: all the core has.
 
 LLVM, numba's compiler, tunes code for Intel cores with AVX-512 (Skylake-SP to Sapphire Rapids; LLVM 14
-takes this session's Xeon for "icelake-client") to prefer 256-bit vectors: their early generations
+takes the Xeon measured below for "icelake-client") to prefer 256-bit vectors: their early generations
 lowered the clock for 512-bit code. The element kernels' lane loops and the roofline's peak loop then
 ran at half the core's width. On the 2-core Xeon with AVX-512 where this was measured (median of
 four fresh processes each, liver, force alone), 512-bit code made stvk-tm's force 93 -> 77 us and
@@ -13,8 +13,8 @@ the roofline had put every compute-bound kernel twice as close to the machine's 
 features plus "-prefer-256-bit"). numba fixes its target when it makes its first function (at
 decoration), so this module calls it when imported, and ``realtime`` imports it before any of its
 modules that make one; in a process that made a numba function before importing realtime, the
-kernels keep 256-bit vectors (correct, slower). A user's own
-NUMBA_CPU_FEATURES or NUMBA_CPU_NAME is left as it is; a core without AVX-512 has nothing to change.
+kernels keep 256-bit vectors (correct, slower). A user's own NUMBA_CPU_FEATURES or NUMBA_CPU_NAME is
+left as it is; a core without AVX-512 has nothing to change.
 The setting goes into the environment when numba is not loaded yet, so that numba reads it with the
 rest and the processes the engine starts (realtime.precompile's pool, the studies' workers) inherit it;
 with numba loaded, into numba's config alone (see use_wide_vectors).
