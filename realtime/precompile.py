@@ -18,6 +18,7 @@ one of them: a last pass in this process calls everything again, which compiles 
 
 from __future__ import annotations
 
+import hashlib
 import inspect
 import os
 import sys
@@ -134,9 +135,19 @@ def _cache_dir() -> Path | None:
     return Path(path) if path else None
 
 
-def _digest() -> str:
+def _target() -> tuple:
+    """numba's target in this process, as it keys its cache entries: (triple, CPU name, features)."""
+    from numba.core.registry import cpu_target
 
-    return sources_digest(list(Path(__file__).parent.glob("*.py")))
+    return cpu_target.target_context.codegen().magic_tuple()
+
+
+def _digest() -> str:
+    """The stamp of this version of the engine compiled for this process's target: the sources' digest
+    and numba's target (realtime.target chooses its features). numba keeps entries for other targets
+    apart, so a cache stamped for another one is not current: the first run would compile."""
+    sources = sources_digest(list(Path(__file__).parent.glob("*.py")))
+    return hashlib.sha256(f"{sources} {_target()!r}".encode()).hexdigest()
 
 
 def is_current() -> bool:

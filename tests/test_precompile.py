@@ -68,3 +68,15 @@ def test_a_run_after_precompile_compiles_nothing_of_the_engine(tmp_path):
     )
     assert child.returncode == 0, child.stderr
     assert json.loads(child.stdout.splitlines()[-1]) == []
+
+
+def test_the_precompile_stamp_is_for_numbas_target(monkeypatch):
+    """numba keys its cache entries by its target (CPU name and features), which realtime.target chooses
+    and a user may set: a cache compiled ahead for another target must not be taken as current, or the
+    first step would compile after all (8 to 45 s a model)."""
+    from realtime import precompile
+
+    here = precompile._digest()
+    triple, name, features = precompile._target()
+    monkeypatch.setattr(precompile, "_target", lambda: (triple, name, features + ",-avx512f"))
+    assert precompile._digest() != here
