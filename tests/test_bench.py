@@ -6,20 +6,19 @@ import re
 import numpy as np
 import pytest
 
+from .conftest import needs_fma
 
+
+@needs_fma
 def test_the_fma_peak_loop_is_packed_fused_multiply_adds():
     """The roofline's compute ceiling is only a ceiling if its loop runs at the SIMD peak: a scalar loop
     would measure a quarter of it or less and make every kernel look near its bound (the first version
     stored eight outputs a lane, LLVM declined to vectorise it, and the "peak" was 13 GFLOP/s against
     107)."""
     import numba
-    from llvmlite import binding as llvm
 
     from verification import roofline
 
-    features = llvm.get_host_cpu_features()
-    if not (features.get("avx2") and features.get("fma")):
-        pytest.skip("this CPU has no AVX2/FMA: nothing to vectorise to")
     kernel = numba.njit(**{**roofline._FAST, "cache": False})(roofline._polynomials.py_func)
     kernel(np.full((roofline._CHAINS, 64), 0.5), 1)
     asm = kernel.inspect_asm(kernel.signatures[0])

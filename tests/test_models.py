@@ -12,7 +12,7 @@ from realtime.models import GEOMETRIC, QUASI_STATIC, cut
 from reference.fem import ElasticityProblem
 from reference.problem import Problem
 
-from .conftest import match_nodes
+from .conftest import match_nodes, needs_fma
 
 ISO = Material(2.8e4, 0.4, 1000.0, law="stvk")
 FIBRE = Material(2.8e4, 0.4, 1000.0, law="stvk", fiber=(1.0, 0.5, 0.2), young_fiber=6e4, fiber_shear=3e3)
@@ -349,6 +349,7 @@ def test_precomputed_tool_force_equals_the_full_update():
     np.testing.assert_allclose(pc.tool_force(k, d), F, rtol=1e-10)
 
 
+@needs_fma
 def test_stvk_element_loop_compiles_to_simd():
     """stvk-tm's speed rests on LLVM vectorising the element loop across tetrahedra (the benchmark's target
     stvk-tm < 3 x linear-tm needs it: scalar code ran at 3.5 x). A signed index, or one more array in
@@ -356,14 +357,10 @@ def test_stvk_element_loop_compiles_to_simd():
     machine code. Compiled afresh: numba shows no assembly for cached code."""
     import re
 
-    import llvmlite.binding as llvm
     import numba
 
     from realtime import blocks, stvk
 
-    features = llvm.get_host_cpu_features()
-    if not (features.get("avx2") and features.get("fma")):
-        pytest.skip("this CPU has no AVX2/FMA: nothing to vectorise to")
     mesh = cylinder()
     model = build_model("stvk-tm", mesh.points, mesh.tets, FIBRE)
     kernel = numba.njit(**{**blocks.HOT, "cache": False})(stvk.stvk_force.py_func)
@@ -374,6 +371,7 @@ def test_stvk_element_loop_compiles_to_simd():
     assert packed >= 50, f"{packed} packed FMAs: the StVK element loop is no longer vectorised"
 
 
+@needs_fma
 def test_an_isotropic_stvk_block_takes_a_loop_without_fibre_or_penalty():
     """A block of an isotropic material without the volume penalty runs stvk._stvk_lanes(general=False),
     which holds neither term: a material flag tested inside the vectorised loop is if-converted, and the
@@ -383,14 +381,9 @@ def test_an_isotropic_stvk_block_takes_a_loop_without_fibre_or_penalty():
     between that ratio (0.53) and what one loop for both would give (1)."""
     import re
 
-    import llvmlite.binding as llvm
     import numba
 
     from realtime import blocks, stvk
-
-    features = llvm.get_host_cpu_features()
-    if not (features.get("avx2") and features.get("fma")):
-        pytest.skip("this CPU has no AVX2/FMA: nothing to vectorise to")
 
     def packed(general):
         @numba.njit(**{**blocks.HOT, "cache": False})

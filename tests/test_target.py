@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 #: Prints the features numba was given, the roofline's vector width and, with the argument "stvk",
 #: stvk-tm's force compiled afresh (numba shows no assembly for cached code): its packed FMAs by width.
 CHILD = r"""
-import json, os, re, sys
+import json, re, sys
 import numpy as np
 import realtime
 import numba
