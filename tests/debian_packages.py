@@ -171,15 +171,22 @@ def distribution_of(module: str) -> set[str]:
     return {re.sub(r"[-_.]+", "-", d).lower() for d in metadata.packages_distributions().get(module, [])}
 
 
-def missing_packages(makefile: Path = MAKEFILE, modules: dict | None = None) -> dict[str, list[str]]:
-    """Debian packages (or ``<no package>: FILE``) that loaded modules (and, for this process's own
-    modules, shared libraries) came from and that the Makefile neither installs nor pulls in: package ->
-    the modules or libraries."""
+def loaded_files() -> dict[str, list[str]]:
+    """What this process loaded from outside the venv and the project: its modules' files
+    (outside_venv_files) and its shared libraries (loaded_libraries), file -> the names they stand for."""
+    return {**outside_venv_files(), **loaded_libraries()}
+
+
+def missing_packages(
+    makefile: Path = MAKEFILE, modules: dict | None = None, files: dict[str, list[str]] | None = None
+) -> dict[str, list[str]]:
+    """Debian packages (or ``<no package>: FILE``) that loaded files came from and that the Makefile
+    neither installs nor pulls in: package -> the modules or libraries. The files are ``files`` if given
+    (loaded_files of other processes, say), else those of ``modules``, else this process's loaded_files."""
     closure = dependency_closure(makefile_packages(makefile))
     from_pip = pip_supplied()
-    files = outside_venv_files(modules)
-    if modules is None:
-        files.update(loaded_libraries())
+    if files is None:
+        files = loaded_files() if modules is None else outside_venv_files(modules)
     missing: dict[str, list[str]] = defaultdict(list)
     for path, pkg in owners(sorted(files)).items():
         if pkg in closure or pkg in OPTIONAL:

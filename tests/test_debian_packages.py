@@ -75,3 +75,37 @@ def test_the_check_sees_the_shared_libraries_no_module_names():
     assert owners(gomp)[gomp[0]] == "libgomp1"
     assert "libgomp1" in makefile_packages()
     assert "libgomp1" in dependency_closure(makefile_packages())
+
+
+@pytest.mark.slow
+def test_under_xdist_the_controller_checks_what_every_worker_loaded(tmp_path):
+    """``make test`` runs on xdist's workers, where the run_last check leaves the workers and the
+    controller checks the union of what they loaded (conftest). Against a Makefile without python3-h5py,
+    a worker that imported h5py must fail the run, with one line naming the package."""
+    import os
+    import subprocess
+
+    text = MAKEFILE.read_text().replace(" python3-h5py", "")
+    makefile = tmp_path / "Makefile"
+    makefile.write_text(text)
+    args = [
+        sys.executable,
+        "-m",
+        "pytest",
+        "-q",
+        "-n",
+        "2",
+        "-p",
+        "no:cacheprovider",
+        "--basetemp",
+        str(tmp_path / "t"),
+    ]
+    args += [f"{__file__}::test_every_loaded_module_is_installed_by_the_makefile"]
+    args += [f"{__file__}::test_the_check_names_a_package_dropped_from_the_makefile"]
+    env = dict(os.environ, TISSUEBENCH_CHECKED_MAKEFILE=str(makefile))
+    env.pop("PYTEST_XDIST_WORKER", None)
+    run = subprocess.run(args, capture_output=True, text=True, env=env, cwd=MAKEFILE.parent)
+    lines = [line for line in run.stdout.splitlines() if "Debian package check" in line]
+    assert run.returncode == 1, run.stdout[-3000:] + run.stderr[-2000:]
+    assert len(lines) == 1 and "python3-h5py" in lines[0] and "h5py" in lines[0], run.stdout[-3000:]
+    assert "1 passed" in run.stdout, run.stdout[-3000:]  # the h5py test; the run_last one left the workers
