@@ -177,16 +177,14 @@ def loaded_files() -> dict[str, list[str]]:
     return {**outside_venv_files(), **loaded_libraries()}
 
 
-def missing_packages(
-    makefile: Path = MAKEFILE, modules: dict | None = None, files: dict[str, list[str]] | None = None
-) -> dict[str, list[str]]:
+def missing_packages(makefile: Path = MAKEFILE, files: dict[str, list[str]] | None = None) -> dict[str, list[str]]:
     """Debian packages (or ``<no package>: FILE``) that loaded files came from and that the Makefile
     neither installs nor pulls in: package -> the modules or libraries. The files are ``files`` if given
-    (loaded_files of other processes, say), else those of ``modules``, else this process's loaded_files."""
+    (what other processes loaded, say), else this process's loaded_files()."""
     closure = dependency_closure(makefile_packages(makefile))
     from_pip = pip_supplied()
     if files is None:
-        files = loaded_files() if modules is None else outside_venv_files(modules)
+        files = loaded_files()
     missing: dict[str, list[str]] = defaultdict(list)
     for path, pkg in owners(sorted(files)).items():
         if pkg in closure or pkg in OPTIONAL:

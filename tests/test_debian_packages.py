@@ -88,18 +88,8 @@ def test_under_xdist_the_controller_checks_what_every_worker_loaded(tmp_path):
     text = MAKEFILE.read_text().replace(" python3-h5py", "")
     makefile = tmp_path / "Makefile"
     makefile.write_text(text)
-    args = [
-        sys.executable,
-        "-m",
-        "pytest",
-        "-q",
-        "-n",
-        "2",
-        "-p",
-        "no:cacheprovider",
-        "--basetemp",
-        str(tmp_path / "t"),
-    ]
+    args = [sys.executable, "-m", "pytest", "-q", "-n", "2", "-p", "no:cacheprovider"]
+    args += ["--basetemp", str(tmp_path / "t")]
     args += [f"{__file__}::test_every_loaded_module_is_installed_by_the_makefile"]
     args += [f"{__file__}::test_the_check_names_a_package_dropped_from_the_makefile"]
     env = dict(os.environ, TISSUEBENCH_CHECKED_MAKEFILE=str(makefile))
