@@ -31,7 +31,7 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     mass-spring, scipy's product) carry their flops, bytes, bound and achieved fraction, and the table
     prints them beside the measured ceilings; the others carry none."""
     from realtime.models import FLOAT32_MODELS
-    from verification.bench import format_table, run
+    from verification.bench import CALL_ROW, CALLS, format_table, run
 
     out = run(meshes=("beam",), repeats=1, steps=2)
     roof = out["machine"]["roofline"]
@@ -47,6 +47,9 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
         )
         assert r["roofline_fraction"] == pytest.approx(r["roofline_us"] / r["step_us"])
     assert "roofline_us" not in rows["corotational-tm"] and "roofline_us" not in rows["stvk-tm (transverse + penalty)"]
+    call = rows[CALL_ROW]  # the haptic call's own cost, per call: no step's work, so no roofline
+    assert call["n"] == CALLS and call["step_us"] > 0
+    assert "roofline_us" not in call
     for m in FLOAT32_MODELS:  # beside their float64 rows, with no roofline (the peak measured is float64's)
         r = rows[f"{m}, float32"]
         assert r["precision"] == "float32" and "roofline_us" not in r

@@ -7,7 +7,7 @@ after a warm-up; the median and the spread are reported. The scene: the liver he
 its back under gravity, at rest plus a small random displacement so that the non-linear models do real
 work (the hybrid row: a tenth of the vertices moved past its threshold). The "haptic loop" rows call
 step with n = 1, once per step, as a 1000 Hz device loop does: the cost of a whole call, Python and
-numba's dispatch included. The rows "M, 2 threads" run the threaded kernels (realtime.threaded) on
+numba's dispatch included; the row CALL_ROW is a call that takes no step (n = 0), the call's own cost. The rows "M, 2 threads" run the threaded kernels (realtime.threaded) on
 every core, up to THREADS, in the same rounds as their one-thread rows, and report the speed-up over
 them. Speed is never asserted in the tests: this command reports it.
 
@@ -93,6 +93,11 @@ def _time_round_robin(cases: list[dict], repeats: int, warm: bool = False) -> No
         c.update(step_us=float(np.median(t)), step_us_min=float(t[0]), step_us_max=float(t[-1]))
 
 
+#: The row of a step call that takes no step (n = 0), timed over CALLS calls: microseconds per call.
+CALL_ROW = "linear-tm, a call of no step (the call's own cost)"
+CALLS = 1000
+
+
 def _step_case(integ, model, state, dt, n, calls=1):
     """``calls`` step calls of n steps each, from the same start every time (the copy costs about a
     microsecond), so that every round times the same configuration: left to run on, the liver sags
@@ -176,6 +181,17 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                         "name": f"{label}, one step a call (haptic loop)",
                         "n": n,
                         "fn": _step_case(SymplecticEuler(), model, State(u=u.copy(), v=np.zeros_like(u)), dt, 1, n),
+                    }
+                )
+            if label == "linear-tm":
+                # what a haptic loop's call costs before it steps (the checks, the entry into the compiled
+                # loop, the returned force), apart from the noise of a difference of two step times
+                haptic.append(
+                    {
+                        **cases[-1],
+                        "name": CALL_ROW,
+                        "n": CALLS,
+                        "fn": _step_case(SymplecticEuler(), model, State(u=u.copy(), v=np.zeros_like(u)), dt, 0, CALLS),
                     }
                 )
             if model_name == "hybrid-tm":
