@@ -125,10 +125,10 @@ def _check_workers_packages(session) -> None:
 
 
 @pytest.fixture(scope="session")
-def run_dir(tmp_path_factory) -> Path:
+def run_dir(request, tmp_path_factory) -> Path:
     """A folder of this test run's: the session's own, or, on xdist's workers, the one they all share."""
     base = tmp_path_factory.getbasetemp()
-    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    return base.parent if _xdist_worker(request.config) else base
 
 
 @pytest.fixture(scope="session", autouse=True)
