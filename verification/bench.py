@@ -7,9 +7,9 @@ after a warm-up; the median and the spread are reported. The scene: the liver he
 its back under gravity, at rest plus a small random displacement so that the non-linear models do real
 work (the hybrid row: a tenth of the vertices moved past its threshold). The "haptic loop" rows call
 step with n = 1, once per step, as a 1000 Hz device loop does: the cost of a whole call, Python and
-numba's dispatch included; the row CALL_ROW is a call that takes no step (n = 0), the call's own cost. The rows "M, 2 threads" run the threaded kernels (realtime.threaded) on
-every core, up to THREADS, in the same rounds as their one-thread rows, and report the speed-up over
-them. Speed is never asserted in the tests: this command reports it.
+numba's dispatch included; the row CALL_ROW is a call that takes no step (n = 0), the call's own cost.
+The rows "M, 2 threads" run the threaded kernels (realtime.threaded) on every core, up to THREADS, in
+the same rounds as their one-thread rows, and report the speed-up over them. Speed is never asserted in the tests: this command reports it.
 
 Each row with a fixed amount of work (linear-tm, stvk-tm, mass-spring, scipy's product) also gets its
 roofline (verification.roofline): the least time its flops and bytes allow at this core's measured FMA
