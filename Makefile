@@ -50,9 +50,11 @@ lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-# One worker process per core (pytest-xdist), each taking the next test as it ends one.
+# One worker process per core this process may use (pytest-xdist; xdist's own "auto" counts physical
+# cores where psutil is installed), each taking the next test as it ends one. TEST_WORKERS=1 for one.
+TEST_WORKERS ?= $(shell nproc)
 test: setup lint
-	$(PY) -m pytest -q -n auto --dist worksteal
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist worksteal
 
 bench: setup
 	$(VENV)/bin/tissuebench bench
