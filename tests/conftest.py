@@ -109,12 +109,12 @@ def _check_workers_packages(session) -> None:
     package missing from the Makefile fails the session with one line naming it."""
     from .debian_packages import MAKEFILE, missing_packages
 
-    union: dict[str, list[str]] = {}
+    union: dict[str, set[str]] = {}
     for files in _WORKER_FILES.values():
         for path, names in files.items():
-            union.setdefault(path, []).extend(n for n in names if n not in union.get(path, []))
+            union.setdefault(path, set()).update(names)
     makefile = Path(os.environ.get("TISSUEBENCH_CHECKED_MAKEFILE", MAKEFILE))  # the check's own test
-    missing = missing_packages(makefile, files=union)
+    missing = missing_packages(makefile, files={path: sorted(names) for path, names in union.items()})
     if missing:
         line = "loaded from Debian packages that the Makefile does not install: " + "; ".join(
             f"{pkg} ({', '.join(mods[:4])})" for pkg, mods in missing.items()

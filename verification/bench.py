@@ -9,7 +9,8 @@ work (the hybrid row: a tenth of the vertices moved past its threshold). The "ha
 step with n = 1, once per step, as a 1000 Hz device loop does: the cost of a whole call, Python and
 numba's dispatch included; the row CALL_ROW is a call that takes no step (n = 0), the call's own cost.
 The rows "M, 2 threads" run the threaded kernels (realtime.threaded) on every core, up to THREADS, in
-the same rounds as their one-thread rows, and report the speed-up over them. Speed is never asserted in the tests: this command reports it.
+the same rounds as their one-thread rows, and report the speed-up over them. Speed is never asserted
+in the tests: this command reports it.
 
 Each row with a fixed amount of work (linear-tm, stvk-tm, mass-spring, scipy's product) also gets its
 roofline (verification.roofline): the least time its flops and bytes allow at this core's measured FMA
@@ -336,8 +337,8 @@ def format_table(out: dict) -> str:
     m = out["machine"]
     lines = [f"machine: {m['cpu']}, {m['cores']} cores, numba {m['numba']}"]
     if "roofline" in m:
-        bw = ", ".join(f"{int(k) / 1e6:.3g} MB {v:.0f}" for k, v in m["roofline"]["triad_gbs"].items())
         roof = m["roofline"]
+        bw = ", ".join(f"{int(k) / 1e6:.3g} MB {v:.0f}" for k, v in roof["triad_gbs"].items())
         width = f" ({roof['vector_bits']}-bit vectors, as the kernels)" if "vector_bits" in roof else ""
         lines.append(f"one core: FMA peak {roof['fma_gflops']:.0f} GFLOP/s{width}; triad GB/s by data size: {bw}")
     for mesh in dict.fromkeys(r["mesh"] for r in out["results"]):
