@@ -42,10 +42,11 @@ from .steppers import (
     _run_central_difference,
     _run_implicit_euler,
     _run_symplectic_euler,
+    se_sum_update_threads,
     se_update,
-    se_update_threads,
     step_work,
 )
+from .threaded import UNSUMMED
 
 _JIT = dict(nogil=True, cache=True)
 
@@ -87,7 +88,7 @@ class _Prepared:
 
     model: Model
     inv_mass: np.ndarray  # (N,) 1/kg
-    per_dof: np.ndarray  # (3N, 3): free mask, free mask / m (1/kg), free f_ext / m (m/s^2)
+    per_dof: np.ndarray  # (3N, 2): free mask / m (1/kg), free f_ext / m (m/s^2)
     fext: np.ndarray  # (N, 3) N, the external forces applied: the Loading's until set_forces
     tools: Tools  # the Loading's, with the targets (vector, angle, ramp) copied for set_tool
     bound: float  # m, the blow-up bound
@@ -112,7 +113,7 @@ class _Prepared:
         free = lo.free.reshape(-1)
         im = np.repeat(inv_mass, 3) * free
         fext = lo.external_force.copy()
-        per_dof = np.ascontiguousarray(np.stack([free, im, fext.reshape(-1) * im], axis=1))
+        per_dof = np.ascontiguousarray(np.stack([im, fext.reshape(-1) * im], axis=1))
         own = lo.tools_tuple()
         tools = own._replace(vector=own.vector.copy(), angle=own.angle.copy(), ramp=own.ramp.copy())
         vert, kind = tools.vertex, tools.kind
@@ -209,7 +210,7 @@ class Integrator:
         f = _frame_array("forces", forces, (model.n_vertices, 3))
         p = self._prepare(model)
         p.fext[:] = f
-        p.per_dof[:, 2] = p.fext.reshape(-1) * p.per_dof[:, 1]
+        p.per_dof[:, 1] = p.fext.reshape(-1) * p.per_dof[:, 0]
         p.version += 1
 
     def set_tool(self, model: Model, tool: int, translation=None, angle: float | None = None) -> None:
@@ -346,12 +347,12 @@ class SymplecticEuler(Integrator):
         """``step``; the tools' force is the last step's (``_tool_reaction``)."""
         p = self._prepare(model)
         dt, n = _check_state(p.shape, p.dtype, state, dt, n)
-        update = se_update_threads if p.threads > 1 else se_update
+        force, update = model.force_kernel, se_update
+        if p.threads > 1:
+            force, update = UNSUMMED[force.__name__], se_sum_update_threads
         work, alpha, beta = p.step_work(), float(self.alpha), float(self.beta)
         bad = _call(
-            p,
-            _run_symplectic_euler,
-            (n, dt, float(state.t), model.force_kernel, update, work, alpha, beta, state.u, state.v),
+            p, _run_symplectic_euler, (n, dt, float(state.t), force, update, work, alpha, beta, state.u, state.v)
         )
         if bad >= 0:
             self._diverged(model, state, bad, dt, dt_crit)

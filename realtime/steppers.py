@@ -16,9 +16,10 @@ import numpy as np
 from numba.core import types
 from numba.experimental import structref
 
-from .blocks import U1, U2, U3
+from .blocks import U1, U2
 from .linsolve import factor_solve
 from .model import _tool_value
+from .threaded import sum_range
 
 _JIT = dict(nogil=True, cache=True)
 
@@ -115,7 +116,7 @@ class StepWork(structref.StructRefProxy):
     25 arrays passed one by one took 1.3 us of a haptic loop's call (numba's entry point unboxes each).
     The arrays are the workspace's own, so what ``set_forces`` and ``set_tool`` write in place is read
     by the next call. Fields: data and scratch (the force kernel's), points (N, 3) m, mass (N,) kg,
-    inv_mass (N,) 1/kg, free (N, 3) (the Loading's mask), per_dof (3N, 3) (_run_symplectic_euler),
+    inv_mass (N,) 1/kg, free (N, 3) (the Loading's mask), per_dof (3N, 2) (_se_component),
     fext (N, 3) N, tools (model.Tools), bound m, f and w (N, 3), vt (P, 3) m/s, reaction (L, 3) N, parts
     (int) the threads of a threaded model's force (1 otherwise), on which the update runs too."""
 
@@ -134,51 +135,85 @@ def step_work(data, scratch, points, mass, inv_mass, free, per_dof, fext, tools,
 
 
 @nb.njit(inline="always", **_JIT)
-def _se_update(p1, u1, v1, f1, dt, damp, bound, lo, hi):
-    """Symplectic Euler's update of the components lo .. hi - 1: v = (v + dt a) damp, u += dt v, with
-    u1, v1, f1 (3N,) the flat state (m, m/s) and force (N), p1 (9N,) the flat per_dof (3N, 3): per
-    component, the free mask, the free mask / m (1/kg) and the external acceleration f_ext / m on free
-    components (m/s^2). Constrained components keep v = 0 and do not move (tools overwrite theirs
-    afterwards). Returns how many of them left |u| < bound (NaN counts).
+def _se_component(p1, k, fk, u1, v1, dt, damp, bound):
+    """Symplectic Euler's update of component k under the force fk (N): v = (v + dt a) damp, u += dt v,
+    with u1, v1 (3N,) the flat state (m, m/s) and p1 (6N,) the flat per_dof (3N, 2): per component, the
+    free mask / m (1/kg) and the external acceleration f_ext / m on free components (m/s^2). A
+    constrained component (1/m masked to 0) keeps v = 0 and does not move (tools overwrite theirs
+    afterwards). Returns 1 if it left |u| < bound (NaN counts), else 0."""
+    b = U2 * k
+    im = p1[b]
+    vk = (v1[k] + dt * (im * fk + p1[b + U1])) * damp
+    vk = vk if im != 0.0 else 0.0
+    uk = u1[k] + dt * vk
+    v1[k] = vk
+    u1[k] = uk
+    return not abs(uk) < bound
 
-    One branch-free loop that reads two arrays and writes two, which LLVM vectorises (more arrays, and
-    it would need more run-time overlap checks than it is willing to emit). Its indices are unsigned
-    and per_dof is read flat (blocks.U1 ...: 50 against 30 us for the 33 861 components of liver-x10,
-    same bits)."""
+
+@nb.njit(inline="always", **_JIT)
+def _se_update(p1, u1, v1, f1, dt, damp, bound, lo, hi):
+    """_se_component of the components lo .. hi - 1 under the force f1 (3N,) N. Returns how many of
+    them left |u| < bound.
+
+    One branch-free loop that reads three arrays and writes two, which LLVM vectorises (more arrays,
+    and it would need more run-time overlap checks than it is willing to emit). Its indices are
+    unsigned and per_dof is read flat (blocks.U1 ...: 50 against 30 us for the 33 861 components of
+    liver-x10, same bits). per_dof holds two numbers a component, not three (a free mask besides
+    1/m): the update streams it after the force has pushed it out of the caches, and a step of
+    linear-tm on liver-x10 took about 45 us less (medians over 30 rounds, three processes)."""
     out = 0
     for k in range(np.uint64(lo), np.uint64(hi)):
-        b = U3 * k
-        vk = (p1[b] * v1[k] + dt * (p1[b + U1] * f1[k] + p1[b + U2])) * damp
-        uk = u1[k] + dt * vk
-        v1[k] = vk
-        u1[k] = uk
-        out += not abs(uk) < bound  # NaN counts too
+        out += _se_component(p1, k, f1[k], u1, v1, dt, damp, bound)
     return out
 
 
 @nb.njit(**_JIT)
-def se_update(p1, u1, v1, f1, dt, damp, bound, parts):
-    """_se_update of all components, on this thread (``parts`` unused)."""
+def se_update(p1, scratch, u1, v1, f1, dt, damp, bound, parts):
+    """_se_update of all components, on this thread, after a serial force kernel (``scratch`` and
+    ``parts`` unused)."""
     return _se_update(p1, u1, v1, f1, dt, damp, bound, 0, u1.shape[0])
 
 
-@nb.njit(**_JIT)
-def _se_update_part(p1, u1, v1, f1, dt, damp, bound, lo, hi):
-    """_se_update in a compiled call of its own, for se_update_threads' parallel loop (the threaded force
-    kernels' chunks are called the same way)."""
+@nb.njit(inline="always", **_JIT)
+def _se_sum_update(p1, F, u1, v1, f1, dt, damp, bound, lo, hi):
+    """f1[k] = the sum over t of F[t, k] (in the order of t: threaded.sum_range's bits), and
+    _se_component under it, for k = lo .. hi - 1; F (T, M) the threads' flat forces (M >= 3N).
+    Two threads' forces are added in the update's own loop, which then reads no f; for more, the
+    range is summed first."""
+    out = 0
+    if F.shape[0] == 2:
+        for k in range(np.uint64(lo), np.uint64(hi)):
+            fk = F[0, k] + F[1, k]
+            f1[k] = fk
+            out += _se_component(p1, k, fk, u1, v1, dt, damp, bound)
+        return out
+    sum_range(F, f1, lo, hi)
     return _se_update(p1, u1, v1, f1, dt, damp, bound, lo, hi)
 
 
+@nb.njit(**_JIT)
+def _se_sum_update_part(p1, F, u1, v1, f1, dt, damp, bound, lo, hi):
+    """_se_sum_update in a compiled call of its own, for se_sum_update_threads' parallel loop (the
+    threaded force kernels' chunks are called the same way)."""
+    return _se_sum_update(p1, F, u1, v1, f1, dt, damp, bound, lo, hi)
+
+
 @nb.njit(nogil=True, cache=True, parallel=True)
-def se_update_threads(p1, u1, v1, f1, dt, damp, bound, parts):
-    """_se_update on ``parts`` threads, each a range of components: the same ranges as
-    threaded.sum_threads, so each thread updates the part of f it summed, still in its core's cache
-    (the serial update of a threaded model's force cost 53 us on liver-x10, against 25 after a serial
-    force, reading the half the other core wrote)."""
+def se_sum_update_threads(p1, scratch, u1, v1, f1, dt, damp, bound, parts):
+    """The update after a threaded model's unsummed force (threaded.UNSUMMED): each of ``parts``
+    threads adds the threads' forces (scratch[-1], (T, N + pad, 3)) over its range of components,
+    writes them to f1 and updates them. The ranges are threaded.sum_threads', so each thread works on
+    numbers it has just summed, in its core's cache (the serial update of a threaded model's force
+    cost 53 us on liver-x10, against 25 after a serial force, reading the half the other core wrote);
+    and the sum is not a pass of its own, which wrote f for the update to read again (on liver-x10
+    the two passes took 45 us, the update alone 30)."""
     n = u1.shape[0]
+    F = scratch[-1]
+    Fs = F.reshape(F.shape[0], F.shape[1] * 3)
     out = 0
     for p in nb.prange(parts):
-        out += _se_update_part(p1, u1, v1, f1, dt, damp, bound, p * n // parts, (p + 1) * n // parts)
+        out += _se_sum_update_part(p1, Fs, u1, v1, f1, dt, damp, bound, p * n // parts, (p + 1) * n // parts)
     return out
 
 
@@ -189,9 +224,11 @@ def _run_symplectic_euler(n, dt, t0, force, update, work, alpha, beta, u, v):
     step (_tool_reaction), with the scheme's own discrete equation m (v_new - v_old) / dt = f(u_old) +
     f_ext - alpha m v_new + R.
 
-    ``update``: se_update, or se_update_threads for a threaded model (on ``work.parts`` threads). It is
-    an argument, as the force kernel is, rather than a function this loop calls: a cached loop that
-    calls a parallel function crashed when loaded in a process that had not started numba's threads.
+    ``force`` and ``update``: the model's force kernel and se_update, or for a threaded model its
+    unsummed force (threaded.UNSUMMED) and se_sum_update_threads, which adds the threads' forces into f
+    as it updates (on ``work.parts`` threads). ``update`` is an argument, as the force kernel is,
+    rather than a function this loop calls: a cached loop that calls a parallel function crashed when
+    loaded in a process that had not started numba's threads.
     """
     data, scratch, points, per_dof = work.data, work.scratch, work.points, work.per_dof
     mass, fext, tools, bound = work.mass, work.fext, work.tools, work.bound
@@ -206,7 +243,7 @@ def _run_symplectic_euler(n, dt, t0, force, update, work, alpha, beta, u, v):
             force(data, scratch, w, f)
         else:
             force(data, scratch, u, f)
-        out = update(p1, u1, v1, f1, dt, damp, bound, parts)
+        out = update(p1, scratch, u1, v1, f1, dt, damp, bound, parts)
         _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
         if out:
             return s

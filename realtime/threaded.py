@@ -117,7 +117,7 @@ def _probe(x):
 
 
 @nb.njit(inline="always", **HOT)
-def _sum_range(F, f, lo, hi):
+def sum_range(F, f, lo, hi):
     """f[lo:hi] = F[0, lo:hi] + F[1, lo:hi] + ..., added in thread order; F (T, M) and f (M,) flat. Each
     pass is a plain loop over contiguous numbers, which vectorises (a loop over t inside the loop over
     the numbers did not: the sum of two threads' liver-x10 forces took 108 us)."""
@@ -132,16 +132,18 @@ def _sum_range(F, f, lo, hi):
             f[k] += F[t, k]
 
 
-@nb.njit(**PAR)
+@nb.njit(inline="always", **HOT)
 def sum_threads(F, f):
     """f (N, 3) = the sum over t of F[:, :N] (F (T, M, 3), M >= N), in the order of t, on all threads
-    (one range of the numbers each)."""
+    (one range of the numbers each). Inlined, so that the threaded kernel that calls it holds a
+    parallel loop of its own (a compiled function that only calls parallel ones need not start
+    numba's threads when it is loaded from the cache)."""
     n = f.size
     parts = F.shape[0]
     flat = f.reshape(n)
     Fs = F.reshape(parts, F.shape[1] * 3)
     for p in nb.prange(parts):
-        _sum_range(Fs, flat, p * n // parts, (p + 1) * n // parts)
+        sum_range(Fs, flat, p * n // parts, (p + 1) * n // parts)
 
 
 # Each thread's share (its force array zeroed, then its chunk added) runs in a compiled call of its own:
@@ -166,6 +168,33 @@ def _linear_chunk(cols, et, row_start, lo, hi, u, f):
     linear_rows(cols, et.reshape(-1), row_start, lo, hi, u.reshape(-1), f1)
 
 
+# The unsummed kernels: each thread's forces in its own F[t] (the scratch's last array), f untouched.
+# Symplectic Euler adds them in its update (steppers.se_sum_update_threads); the threaded force
+# kernels add them at once (sum_threads).
+@nb.njit(**PAR)
+def stvk_unsummed(data, scratch, u, f):
+    (tets, geo, prm, everywhere), chunks = data
+    W, F = scratch
+    for t in nb.prange(chunks.shape[0] - 1):
+        _stvk_chunk(tets, geo, prm, everywhere, W[t], chunks[t], chunks[t + 1], u, F[t])
+
+
+@nb.njit(**PAR)
+def corotational_unsummed(data, scratch, u, f):
+    (tets, geo, prm, everywhere), chunks = data
+    W, R, Fb, F = scratch
+    for t in nb.prange(chunks.shape[0] - 1):
+        _corotational_chunk(tets, geo, prm, everywhere, W[t], R[t], Fb[t], chunks[t], chunks[t + 1], u, F[t])
+
+
+@nb.njit(**PAR)
+def linear_tm_unsummed(data, scratch, u, f):
+    (_, cols, et, row_start), chunks = data
+    F = scratch[-1]
+    for t in nb.prange(chunks.shape[0] - 1):
+        _linear_chunk(cols, et, row_start, chunks[t], chunks[t + 1], u, F[t])
+
+
 @nb.njit(**PAR)
 def stvk_force_threaded(data, scratch, u, f):
     """stvk.stvk_force on the chunks' threads.
@@ -173,11 +202,8 @@ def stvk_force_threaded(data, scratch, u, f):
     data: Threaded(BlockData, chunks over blocks).   scratch: threaded_scratch(block_scratch, T, N).
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
     """
-    (tets, geo, prm, everywhere), chunks = data
-    W, F = scratch
-    for t in nb.prange(chunks.shape[0] - 1):
-        _stvk_chunk(tets, geo, prm, everywhere, W[t], chunks[t], chunks[t + 1], u, F[t])
-    sum_threads(F, f)
+    stvk_unsummed(data, scratch, u, f)
+    sum_threads(scratch[-1], f)
 
 
 @nb.njit(**PAR)
@@ -187,11 +213,8 @@ def corotational_force_threaded(data, scratch, u, f):
     data: Threaded(BlockData, chunks over blocks).   scratch: threaded_scratch(corotational_scratch, T, N).
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
     """
-    (tets, geo, prm, everywhere), chunks = data
-    W, R, Fb, F = scratch
-    for t in nb.prange(chunks.shape[0] - 1):
-        _corotational_chunk(tets, geo, prm, everywhere, W[t], R[t], Fb[t], chunks[t], chunks[t + 1], u, F[t])
-    sum_threads(F, f)
+    corotational_unsummed(data, scratch, u, f)
+    sum_threads(scratch[-1], f)
 
 
 @nb.njit(**PAR)
@@ -201,11 +224,8 @@ def linear_tm_force_threaded(data, scratch, u, f):
     data: Threaded(TensorData, chunks over vertices).   scratch: threaded_scratch(no_scratch, T, N).
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
     """
-    (_, cols, et, row_start), chunks = data
-    F = scratch[1]
-    for t in nb.prange(chunks.shape[0] - 1):
-        _linear_chunk(cols, et, row_start, chunks[t], chunks[t + 1], u, F[t])
-    sum_threads(F, f)
+    linear_tm_unsummed(data, scratch, u, f)
+    sum_threads(scratch[-1], f)
 
 
 def block_chunks(n_blocks: int, threads: int) -> np.ndarray:
@@ -263,4 +283,11 @@ THREADED = {
     "stvk_force": stvk_force_threaded,
     "corotational_force": corotational_force_threaded,
     "linear_tm_force": linear_tm_force_threaded,
+}
+#: The unsummed version of each threaded force kernel, by the threaded kernel's name: what symplectic
+#: Euler's loop calls, summing the threads' forces in its update (steppers.se_sum_update_threads).
+UNSUMMED = {
+    stvk_force_threaded.__name__: stvk_unsummed,
+    corotational_force_threaded.__name__: corotational_unsummed,
+    linear_tm_force_threaded.__name__: linear_tm_unsummed,
 }

@@ -126,26 +126,40 @@ def test_the_threads_run_in_a_layer_two_python_threads_may_enter_at_once():
     assert int(os.environ["GOMP_SPINCOUNT"]) >= 1_000_000
 
 
+@pytest.mark.parametrize("threads", [2, 3])
 @pytest.mark.parametrize("parts", [1, 2, 3])
-def test_the_threaded_update_gives_the_serial_updates_bits_and_blow_up_count(parts):
-    """A threaded model's symplectic Euler update runs on its threads too (steppers.se_update_threads),
-    each thread a range of the components. It must update every component exactly as the serial loop
-    does (the same arithmetic on each number: equal bits) and count the same components past the bound,
-    NaN included; a range left out or run twice would show as a difference. 3 parts on 2 cores checks
-    that the ranges do not depend on the thread count."""
-    from realtime.steppers import se_update, se_update_threads
+def test_the_threaded_update_sums_the_threads_forces_with_the_serial_updates_bits(threads, parts):
+    """Symplectic Euler's update of a threaded model (steppers.se_sum_update_threads) adds the threads'
+    forces F (T, N + pad, 3) as it updates, each thread a range of the components. It must write the
+    force threaded.sum_threads writes and update every component exactly as the serial update does
+    after that sum (the same arithmetic on each number: equal bits), and count the same components
+    past the bound, NaN included; a range left out or run twice would show as a difference. Two
+    threads take the fused loop, three the sum first; 3 parts on 2 cores checks that the ranges do not
+    depend on the thread count."""
+    from realtime.steppers import se_sum_update_threads, se_update
+    from realtime.threaded import sum_threads
 
     rng = np.random.default_rng(3)
-    n = 3 * 1001
-    per_dof = np.abs(rng.standard_normal((n, 3)))
+    n = 1001
+    F = rng.standard_normal((threads, n + 5, 3))
+    per_dof = np.abs(rng.standard_normal((3 * n, 2)))
     per_dof[::7, :] = 0.0  # constrained components
-    u, v, f = rng.standard_normal(n), rng.standard_normal(n), rng.standard_normal(n)
-    u[5], f[11] = np.nan, 1e12  # one NaN, one past the bound after the step
+    u, v = rng.standard_normal(3 * n), rng.standard_normal(3 * n)
+    u[5], F[0, 3, 2] = np.nan, 1e12  # one NaN, one past the bound after the step (component 11)
+    summed = np.empty((n, 3))
+    sum_threads(F, summed)
+    expected = F[0, :n] + F[1, :n] + (F[2, :n] if threads == 3 else 0.0)
+    assert np.array_equal(summed, expected)
     serial = [u.copy(), v.copy()]
     threaded = [u.copy(), v.copy()]
-    out_serial = se_update(per_dof.reshape(-1), *serial, f, 1e-3, 0.99, 1e3, 1)
-    out_threaded = se_update_threads(per_dof.reshape(-1), *threaded, f, 1e-3, 0.99, 1e3, parts)
+    f = np.full(3 * n, np.nan)
+    out_serial = se_update(per_dof.reshape(-1), (), *serial, summed.reshape(-1), 1e-3, 0.99, 1e3, 1)
+    out_threaded = se_sum_update_threads(per_dof.reshape(-1), (F,), *threaded, f, 1e-3, 0.99, 1e3, parts)
     assert out_serial == out_threaded == 2
+    assert np.array_equal(f, summed.reshape(-1))
     for a, b in zip(serial, threaded, strict=True):
         assert np.array_equal(a, b, equal_nan=True)
     assert not np.array_equal(serial[0], u, equal_nan=True)  # the update did something
+    held = slice(0, None, 7)  # the constrained components: v = 0, u where it was
+    assert np.array_equal(serial[0][held], u[held], equal_nan=True)
+    assert not serial[1][held].any()
