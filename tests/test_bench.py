@@ -26,6 +26,22 @@ def test_the_fma_peak_loop_is_packed_fused_multiply_adds():
     assert packed >= roofline._CHAINS * roofline._DEGREE, f"{packed} packed FMAs in the peak loop"
 
 
+@pytest.mark.parametrize("parts", [1, 2, 3])
+def test_the_threaded_ceiling_loops_do_all_of_the_one_thread_loops_work(parts):
+    """thread_scaling compares the ceilings' loops on one thread and on several: the threaded triad must
+    write every element (a slice left out or run twice would show: n is not a multiple of the parts)
+    and the threaded FMA loop must run every thread's chains (its sum is T times one thread's)."""
+    from verification import roofline
+
+    n = 1001
+    b, c = np.arange(n, dtype=float), np.full(n, 3.0)
+    a = np.zeros(n)
+    roofline._triad_threads(a, b, c, 0.5, 2, parts)
+    assert np.array_equal(a, b + 0.5 * c)
+    x = np.full((parts, roofline._CHAINS, 64), 0.5)
+    assert roofline._polynomials_threads(x, 2) == pytest.approx(parts * roofline._polynomials(x[0], 2), rel=1e-15)
+
+
 def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     """A short benchmark on the stored beam: the rows whose work is a fixed count (linear-tm, stvk-tm,
     mass-spring, scipy's product) carry their flops, bytes, bound and achieved fraction, and the table
@@ -54,7 +70,12 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
         r = rows[f"{m}, float32"]
         assert r["precision"] == "float32" and "roofline_us" not in r
         assert r["speedup"] == pytest.approx(rows[m]["step_us"] / r["step_us"])
+    threaded = [r for r in out["results"] if r.get("threads")]
+    for r in threaded:  # beside what the machine gains from the same threads, at the step's data size
+        assert r["machine_scaling"]["fma"] > 0 and r["machine_scaling"]["triad"] > 0
+    assert len(roof["thread_scaling"]) == (1 if threaded else 0)  # one data size on the beam
     table = format_table(out)
+    assert len(re.findall(r"the machine's own \d threads: FMA \d\.\d\dx, triad \d\.\d\dx", table)) == len(threaded)
     assert "FMA peak" in table and f"({roof['vector_bits']}-bit vectors" in table and "triad GB/s by data size" in table
     assert len(re.findall(r"roofline [\d.]+ us \((compute|memory)\): \d+% of it", table)) == len(placed)
     assert len(re.findall(r"\d\.\d\dx its float64 row", table)) == len(FLOAT32_MODELS)

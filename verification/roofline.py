@@ -12,6 +12,11 @@ numba loops:
   element: read b and c, write a), on three arrays whose total size is the data a kernel touches in a
   step, so that the ceiling is that of the cache level (L2, L3 or memory) where that data lives.
 
+The same two loops on every core at once (``thread_scaling``) give what the machine itself gains from
+a second core: the aggregate rate of T threads over one thread's, each thread its own chains, or its
+own slice of the same triad arrays. A threaded kernel's speed-up is measured against that, since a
+core that slows while the other works (shared caches, memory, a host's other tenants) caps any code.
+
 The work of each model's step (``step_work``) is counted from its kernel's source, per element, and
 the update of symplectic Euler added (the benchmark times force and update together). Flops: + - *
 and FMA halves, a square root or a division as one (they cost more: the count is a floor). Bytes:
@@ -80,6 +85,56 @@ def _triad(a, b, c, s, reps):
     for _ in range(reps):
         for i in range(a.shape[0]):
             a[i] = b[i] + s * c[i]
+
+
+@nb.njit(parallel=True, **_FAST)
+def _polynomials_threads(x, reps):
+    """_polynomials of each x[t] (T, 8, 64) on its own thread, all at once; the sum of their sums."""
+    acc = 0.0
+    for t in nb.prange(x.shape[0]):
+        acc += _polynomials(x[t], reps)
+    return acc
+
+
+@nb.njit(parallel=True, **_FAST)
+def _triad_threads(a, b, c, s, reps, parts):
+    """_triad on ``parts`` threads at once, each a contiguous slice of the arrays (the ranges of
+    threaded.sum_threads)."""
+    n = a.shape[0]
+    for p in nb.prange(parts):
+        lo, hi = p * n // parts, (p + 1) * n // parts
+        _triad(a[lo:hi], b[lo:hi], c[lo:hi], s, reps)
+
+
+def _best_of_two(one, many, seconds: float) -> tuple[float, float]:
+    """The least time of each of two calls, alternated for ``seconds`` (so that both see the same host)."""
+    one(), many()
+    best = [np.inf, np.inf]
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        for k, fn in enumerate((one, many)):
+            t0 = time.perf_counter()
+            fn()
+            best[k] = min(best[k], time.perf_counter() - t0)
+    return best[0], best[1]
+
+
+def thread_scaling(threads: int, footprint_bytes: float, seconds: float = 0.3) -> dict:
+    """What ``threads`` threads gain over one on this machine, measured by the ceilings' own loops:
+    "fma", the aggregate FMA rate of T threads (each its own L1-resident chains) over one thread's, and
+    "triad", the time of the triad on arrays of ``footprint_bytes`` in all on one thread over its time
+    split between T threads. Each is the ratio of best times, one and T threads alternated."""
+    x = np.full((threads, _CHAINS, 64), 0.5)
+    reps = 1000
+    one, many = _best_of_two(lambda: _polynomials(x[0], reps), lambda: _polynomials_threads(x, reps), seconds)
+    fma = threads * one / many
+    n = max(int(footprint_bytes / 24), 1024 * threads)
+    a, b, c = np.zeros(n), np.ones(n), np.ones(n)
+    reps = max(1, int(2e7 // n))
+    one, many = _best_of_two(
+        lambda: _triad(a, b, c, 0.5, reps), lambda: _triad_threads(a, b, c, 0.5, reps, threads), seconds
+    )
+    return {"fma": fma, "triad": one / many}
 
 
 def bandwidth(footprint_bytes: float, seconds: float = 0.2) -> float:
@@ -154,6 +209,7 @@ class Roofline:
         self.peak = fma_peak()
         self.vector_bits = vector_bits()
         self._bandwidths: dict[int, float] = {}
+        self._scalings: dict[tuple[int, int], dict] = {}
 
     def bandwidth(self, footprint: float) -> float:
         """Triad bandwidth, GB/s, for data of ``footprint`` bytes (measured once per power of two)."""
@@ -161,6 +217,13 @@ class Roofline:
         if key not in self._bandwidths:
             self._bandwidths[key] = bandwidth(key)
         return self._bandwidths[key]
+
+    def scaling(self, threads: int, footprint: float) -> dict:
+        """thread_scaling for ``threads`` and data of ``footprint`` bytes (measured once per power of two)."""
+        key = (int(threads), int(2 ** round(np.log2(max(footprint, 1024.0)))))
+        if key not in self._scalings:
+            self._scalings[key] = thread_scaling(*key)
+        return self._scalings[key]
 
     def bound_us(self, flops: float, nbytes: float) -> tuple[float, str]:
         """The least time, microseconds, of a step with this work, and which ceiling sets it."""
@@ -173,4 +236,5 @@ class Roofline:
             "fma_gflops": self.peak,
             "vector_bits": self.vector_bits,
             "triad_gbs": {str(k): v for k, v in sorted(self._bandwidths.items())},
+            "thread_scaling": [{"threads": t, "bytes": b, **v} for (t, b), v in sorted(self._scalings.items())],
         }
