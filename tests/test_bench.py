@@ -28,7 +28,7 @@ def test_the_fma_peak_loop_is_packed_fused_multiply_adds():
 
 @pytest.mark.parametrize("parts", [1, 2, 3])
 def test_the_threaded_ceiling_loops_do_all_of_the_one_thread_loops_work(parts):
-    """thread_scaling compares the ceilings' loops on one thread and on several: the threaded triad must
+    """thread_loops times the ceilings' loops on one thread and on several: the threaded triad must
     write every element (a slice left out or run twice would show: n is not a multiple of the parts)
     and the threaded FMA loop must run every thread's chains (its sum is T times one thread's)."""
     from verification import roofline
@@ -71,11 +71,13 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
         assert r["precision"] == "float32" and "roofline_us" not in r
         assert r["speedup"] == pytest.approx(rows[m]["step_us"] / r["step_us"])
     threaded = [r for r in out["results"] if r.get("threads")]
-    for r in threaded:  # beside what the machine gains from the same threads, at the step's data size
-        assert r["machine_scaling"]["fma"] > 0 and r["machine_scaling"]["triad"] > 0
-    assert len(roof["thread_scaling"]) == (1 if threaded else 0)  # one data size on the beam
+    ceilings = out["machine"]["thread_scaling"]  # what the machine gains from the same threads
+    assert set(ceilings) == ({"beam"} if threaded else set())
+    assert all(c["fma"] > 0 and c["triad"] > 0 and c["bytes"] > 0 for c in ceilings.values())
+    assert not any(r["name"].startswith(("fma", "triad")) for r in out["results"])  # ceilings, not rows
     table = format_table(out)
-    assert len(re.findall(r"the machine's own \d threads: FMA \d\.\d\dx, triad \d\.\d\dx", table)) == len(threaded)
+    gains = r"the machine's own gain from \d threads: FMA \d\.\d\dx, triad on [\d.]+ MB \d\.\d\dx"
+    assert len(re.findall(gains, table)) == len(ceilings)
     assert "FMA peak" in table and f"({roof['vector_bits']}-bit vectors" in table and "triad GB/s by data size" in table
     assert len(re.findall(r"roofline [\d.]+ us \((compute|memory)\): \d+% of it", table)) == len(placed)
     assert len(re.findall(r"\d\.\d\dx its float64 row", table)) == len(FLOAT32_MODELS)

@@ -10,9 +10,9 @@ step with n = 1, once per step, as a 1000 Hz device loop does: the cost of a who
 numba's dispatch included; the row CALL_ROW is a call that takes no step (n = 0), the call's own cost.
 The rows "M, 2 threads" run the threaded kernels (realtime.threaded) on every core, up to THREADS, in
 the same rounds as their one-thread rows, and report the speed-up over them, beside what the machine
-itself gains from the same threads (verification.roofline.thread_scaling: its FMA loop, and its triad
-on as many bytes as the model's step streams): a speed-up near those is the machine's limit, not the
-code's. Speed is never asserted
+itself gains from the same threads, timed in the same rounds (verification.roofline.thread_loops: its
+FMA loop, and its triad on as many bytes as stvk-tm's step streams, on one thread and on all): a
+speed-up near those is the machine's limit, not the code's. Speed is never asserted
 in the tests: this command reports it.
 
 Each row with a fixed amount of work (linear-tm, stvk-tm, mass-spring, scipy's product) also gets its
@@ -35,7 +35,7 @@ from realtime.geometry import unique_edges
 from realtime.models import FLOAT32_MODELS, nonlinear_fraction
 from realtime.quasistatic import QuasiStatic
 
-from .roofline import Roofline, bsr_work, step_work
+from .roofline import Roofline, bsr_work, step_work, thread_loops, thread_scaling
 from .runner import git_commit, log, versions
 
 MESHES = ("liver", "liver-x10")
@@ -136,6 +136,7 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
     iso = Material(2.8e4, 0.4, 1000.0, law="stvk")
     fibre = Material(2.8e4, 0.4, 1000.0, law="stvk", fiber=(1.0, 0.0, 0.0), young_fiber=6e4, volume_penalty=5e4)
     rng = np.random.default_rng(0)
+    thread_ceilings = {}
     for name in meshes:
         mesh = stored_mesh(name)
         base = {"mesh": name, "mesh_sha256": mesh.sha256()[:16], "n_vertices": mesh.n_vertices, "n_tets": mesh.n_tets}
@@ -233,6 +234,12 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                     "fn": _step_case(SymplecticEuler(), model, state, one["dt"], n),
                 }
             )
+        # what the machine itself gains from the threads, in the same rounds: the roofline's loops on one
+        # thread and on all, the triad on as many bytes as stvk-tm's step streams
+        n_edges = len(unique_edges(mesh.tets))
+        footprint = step_work("stvk-tm", mesh.n_vertices, mesh.n_tets, n_edges)[1]
+        ceilings = thread_loops(threads, footprint) if threads > 1 else {}
+        cases += [{"name": key, "ceiling": True, "n": units, "fn": fn} for key, (fn, units) in ceilings.items()]
         # the baseline a user would otherwise write: scipy's BSR product with the same matrix
         lin = build_model("linear-tm", mesh.points, mesh.tets, iso, loading)
         K = lin.extra["tensors"].matrix().tobsr(blocksize=(3, 3))
@@ -312,7 +319,11 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                 )
         log(f"bench: {name} timing {len(cases)} cases x {repeats} rounds")
         _time_round_robin(cases, repeats)
-        n_edges = len(unique_edges(mesh.tets))
+        if ceilings:
+            timed = {c["name"]: c["step_us"] for c in cases if c.get("ceiling")}
+            scaling = {"threads": threads, "bytes": footprint, **thread_scaling(timed, threads)}
+            thread_ceilings[name] = scaling
+            cases = [c for c in cases if not c.get("ceiling")]
         for c in cases:
             c.pop("fn")
             c.update(c.pop("probe", dict)())
@@ -329,15 +340,8 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                 # measured in the same rounds as the one-thread float64 row of its model
                 one = next(r for r in rows if r["mesh"] == name and r["name"] == c["model"])
                 c["speedup"] = one["step_us"] / c["step_us"]
-            if c["mesh"] == name and c.get("threads"):
-                # what the machine itself gains from the threads, at the data size of the model's step
-                # (corotational-tm streams the same block data as stvk-tm)
-                work = step_work(c["model"], mesh.n_vertices, mesh.n_tets, n_edges) or step_work(
-                    "stvk-tm", mesh.n_vertices, mesh.n_tets, n_edges
-                )
-                c["machine_scaling"] = roof.scaling(c["threads"], work[1])
     return {
-        "machine": {**machine(), "roofline": roof.summary()},
+        "machine": {**machine(), "roofline": roof.summary(), "thread_scaling": thread_ceilings},
         "results": rows,
         "meshes": {m: STORED[m] for m in meshes},
     }
@@ -353,7 +357,14 @@ def format_table(out: dict) -> str:
         lines.append(f"one core: FMA peak {roof['fma_gflops']:.0f} GFLOP/s{width}; triad GB/s by data size: {bw}")
     for mesh in dict.fromkeys(r["mesh"] for r in out["results"]):
         rows = [r for r in out["results"] if r["mesh"] == mesh]
-        lines.append(f"\n{mesh}: {rows[0]['n_vertices']} vertices, {rows[0]['n_tets']} tetrahedra")
+        head = f"\n{mesh}: {rows[0]['n_vertices']} vertices, {rows[0]['n_tets']} tetrahedra"
+        ms = m.get("thread_scaling", {}).get(mesh)
+        if ms:  # timed in the same rounds as the rows
+            head += (
+                f"; the machine's own gain from {ms['threads']} threads: FMA {ms['fma']:.2f}x, "
+                f"triad on {ms['bytes'] / 1e6:.3g} MB {ms['triad']:.2f}x"
+            )
+        lines.append(head)
         lin = next(r["step_us"] for r in rows if r["name"] == "linear-tm")
         bsr = next(r["step_us"] for r in rows if r["name"] == "scipy-bsr-matvec")
         rows = sorted(rows, key=lambda r: r.get("step_us") is None)
@@ -364,9 +375,6 @@ def format_table(out: dict) -> str:
             note = f"  ({r['nonlinear_fraction']:.0%} of tetrahedra non-linear)" if "nonlinear_fraction" in r else ""
             if "speedup" in r:
                 note += f"  {r['speedup']:.2f}x its {'float64' if r.get('precision') else 'one-thread'} row"
-            if "machine_scaling" in r:
-                ms = r["machine_scaling"]
-                note += f" (the machine's own {r['threads']} threads: FMA {ms['fma']:.2f}x, triad {ms['triad']:.2f}x)"
             if "roofline_us" in r:
                 note += (
                     f"  roofline {r['roofline_us']:.1f} us ({r['roofline_limit']}): {r['roofline_fraction']:.0%} of it"

@@ -12,9 +12,10 @@ numba loops:
   element: read b and c, write a), on three arrays whose total size is the data a kernel touches in a
   step, so that the ceiling is that of the cache level (L2, L3 or memory) where that data lives.
 
-The same two loops on every core at once (``thread_scaling``) give what the machine itself gains from
-a second core: the aggregate rate of T threads over one thread's, each thread its own chains, or its
-own slice of the same triad arrays. A threaded kernel's speed-up is measured against that, since a
+The same two loops on every core at once (``thread_loops``, timed by the benchmark in the same rounds
+as the threaded kernels; ``thread_scaling``) give what the machine itself gains from a second core:
+the aggregate rate of T threads over one thread's, each thread its own chains, or its own slice of
+the same triad arrays. A threaded kernel's speed-up is measured against that, since a
 core that slows while the other works (shared caches, memory, a host's other tenants) caps any code.
 
 The work of each model's step (``step_work``) is counted from its kernel's source, per element, and
@@ -106,35 +107,31 @@ def _triad_threads(a, b, c, s, reps, parts):
         _triad(a[lo:hi], b[lo:hi], c[lo:hi], s, reps)
 
 
-def _best_of_two(one, many, seconds: float) -> tuple[float, float]:
-    """The least time of each of two calls, alternated for ``seconds`` (so that both see the same host)."""
-    one(), many()
-    best = [np.inf, np.inf]
-    end = time.perf_counter() + seconds
-    while time.perf_counter() < end:
-        for k, fn in enumerate((one, many)):
-            t0 = time.perf_counter()
-            fn()
-            best[k] = min(best[k], time.perf_counter() - t0)
-    return best[0], best[1]
-
-
-def thread_scaling(threads: int, footprint_bytes: float, seconds: float = 0.3) -> dict:
-    """What ``threads`` threads gain over one on this machine, measured by the ceilings' own loops:
-    "fma", the aggregate FMA rate of T threads (each its own L1-resident chains) over one thread's, and
-    "triad", the time of the triad on arrays of ``footprint_bytes`` in all on one thread over its time
-    split between T threads. Each is the ratio of best times, one and T threads alternated."""
+def thread_loops(threads: int, footprint_bytes: float) -> dict:
+    """The ceilings' loops on one thread and on ``threads`` threads at once, to be timed in the same rounds
+    as the kernels (their ratios are what the machine itself gains from the threads): name -> (call,
+    work units a call). "fma 1" runs one thread's FMA chains, "fma T" T threads' each on its own chains
+    (T times the work, so the units are chains); "triad 1" and "triad T" the triad on arrays of
+    ``footprint_bytes`` in all, on one thread and split between T (the same work)."""
     x = np.full((threads, _CHAINS, 64), 0.5)
-    reps = 1000
-    one, many = _best_of_two(lambda: _polynomials(x[0], reps), lambda: _polynomials_threads(x, reps), seconds)
-    fma = threads * one / many
     n = max(int(footprint_bytes / 24), 1024 * threads)
     a, b, c = np.zeros(n), np.ones(n), np.ones(n)
-    reps = max(1, int(2e7 // n))
-    one, many = _best_of_two(
-        lambda: _triad(a, b, c, 0.5, reps), lambda: _triad_threads(a, b, c, 0.5, reps, threads), seconds
-    )
-    return {"fma": fma, "triad": one / many}
+    reps, treps = 1000, max(1, int(2e7 // n))
+    return {
+        "fma 1": (lambda: _polynomials(x[0], reps), 1),
+        f"fma {threads}": (lambda: _polynomials_threads(x, reps), threads),
+        "triad 1": (lambda: _triad(a, b, c, 0.5, treps), 1),
+        f"triad {threads}": (lambda: _triad_threads(a, b, c, 0.5, treps, threads), 1),
+    }
+
+
+def thread_scaling(times: dict, threads: int) -> dict:
+    """What ``threads`` threads gain over one, from the times (any unit, per work unit) of thread_loops'
+    calls: "fma", the aggregate FMA rate, and "triad", the triad's speed on the same arrays."""
+    return {
+        "fma": times["fma 1"] / times[f"fma {threads}"],
+        "triad": times["triad 1"] / times[f"triad {threads}"],
+    }
 
 
 def bandwidth(footprint_bytes: float, seconds: float = 0.2) -> float:
@@ -209,7 +206,6 @@ class Roofline:
         self.peak = fma_peak()
         self.vector_bits = vector_bits()
         self._bandwidths: dict[int, float] = {}
-        self._scalings: dict[tuple[int, int], dict] = {}
 
     def bandwidth(self, footprint: float) -> float:
         """Triad bandwidth, GB/s, for data of ``footprint`` bytes (measured once per power of two)."""
@@ -217,13 +213,6 @@ class Roofline:
         if key not in self._bandwidths:
             self._bandwidths[key] = bandwidth(key)
         return self._bandwidths[key]
-
-    def scaling(self, threads: int, footprint: float) -> dict:
-        """thread_scaling for ``threads`` and data of ``footprint`` bytes (measured once per power of two)."""
-        key = (int(threads), int(2 ** round(np.log2(max(footprint, 1024.0)))))
-        if key not in self._scalings:
-            self._scalings[key] = thread_scaling(*key)
-        return self._scalings[key]
 
     def bound_us(self, flops: float, nbytes: float) -> tuple[float, str]:
         """The least time, microseconds, of a step with this work, and which ceiling sets it."""
@@ -236,5 +225,4 @@ class Roofline:
             "fma_gflops": self.peak,
             "vector_bits": self.vector_bits,
             "triad_gbs": {str(k): v for k, v in sorted(self._bandwidths.items())},
-            "thread_scaling": [{"threads": t, "bytes": b, **v} for (t, b), v in sorted(self._scalings.items())],
         }
