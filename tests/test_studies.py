@@ -384,6 +384,33 @@ def test_gate_baselines_carry_provenance():
         assert b["value"] <= g["bound"]
 
 
+def test_a_number_from_changed_code_does_not_carry_the_bare_commit(tmp_path):
+    """Baselines, bench tables and reports name the commit their numbers came from (git_commit). A tree
+    whose tracked files differ from that commit is marked "-dirty": the bench table of this fix's own
+    session, run before its commit, said "993d03f", a commit that did not hold the code it timed.
+    Untracked files do not mark it (a new module only runs once a tracked one imports it)."""
+    from verification.runner import git_commit
+
+    def git(*args):
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+
+    git("init", "-q")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "--allow-empty", "-m", "empty")
+    (tmp_path / "law.py").write_text("E = 1.0\n")
+    git("add", "law.py")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "law")
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=tmp_path, capture_output=True, text=True)
+    assert git_commit(tmp_path) == head.stdout.strip()
+    (tmp_path / "notes.txt").write_text("untracked")
+    assert git_commit(tmp_path) == head.stdout.strip()
+    (tmp_path / "law.py").write_text("E = 2.0\n")
+    assert git_commit(tmp_path) == head.stdout.strip() + "-dirty"
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    git("init", "-q", str(plain))  # a checkout with no commit
+    assert git_commit(plain) == "unknown"
+
+
 def test_cache_keys_change_with_every_input_they_cover(monkeypatch):
     """A cached result is reused only for the same inputs: every field of the run and reference keys, the
     code that makes them (a run's row also depends on runs.py, the region rule and the reference's

@@ -56,16 +56,23 @@ def cache_dir() -> Path:
     return Path(os.environ.get("TISSUEBENCH_CACHE", Path.home() / ".cache" / "tissuebench"))
 
 
-def git_commit() -> str:
-    try:
+def git_commit(root: Path | None = None) -> str:
+    """The short hash of the commit the code in ``root`` (this project's, by default) ran at, with
+    "-dirty" when a tracked file differs from that commit: a number from changed code is not that
+    commit's, and a baseline or a report that named only the commit would say it was. "unknown"
+    outside a git checkout."""
+
+    def git(*args) -> str:
         out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            cwd=Path(__file__).parent,
-            timeout=5,
+            ["git", *args], capture_output=True, text=True, cwd=root or Path(__file__).parent, timeout=5
         )
-        return out.stdout.strip() or "unknown"
+        return out.stdout.strip() if out.returncode == 0 else ""
+
+    try:
+        head = git("rev-parse", "--short", "HEAD")
+        if not head:
+            return "unknown"
+        return head + ("-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
 
