@@ -12,8 +12,8 @@ The rows "M, 2 threads" run the threaded kernels (realtime.threaded) on every co
 the same rounds as their one-thread rows, and report the speed-up over them, beside what the machine
 itself gains from the same threads, timed in the same rounds (verification.roofline.thread_loops: its
 FMA loop, and its triad on as many bytes as stvk-tm's step streams, on one thread and on all): a
-speed-up near those is the machine's limit, not the code's. Speed is never asserted
-in the tests: this command reports it.
+speed-up near those is the machine's limit, not the code's. Speed is never asserted in the tests:
+this command reports it.
 
 Each row with a fixed amount of work (linear-tm, stvk-tm, mass-spring, scipy's product) also gets its
 roofline (verification.roofline): the least time its flops and bytes allow at this core's measured FMA

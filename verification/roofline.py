@@ -15,8 +15,8 @@ numba loops:
 The same two loops on every core at once (``thread_loops``, timed by the benchmark in the same rounds
 as the threaded kernels; ``thread_scaling``) give what the machine itself gains from a second core:
 the aggregate rate of T threads over one thread's, each thread its own chains, or its own slice of
-the same triad arrays. A threaded kernel's speed-up is measured against that, since a
-core that slows while the other works (shared caches, memory, a host's other tenants) caps any code.
+the same triad arrays. A threaded kernel's speed-up is read beside that: a core that slows while the
+other works (shared caches, memory, a host's other tenants) slows any code on it.
 
 The work of each model's step (``step_work``) is counted from its kernel's source, per element, and
 the update of symplectic Euler added (the benchmark times force and update together). Flops: + - *
