@@ -71,6 +71,14 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
         assert r["precision"] == "float32" and "roofline_us" not in r
         assert r["speedup"] == pytest.approx(rows[m]["step_us"] / r["step_us"])
     threaded = [r for r in out["results"] if r.get("threads")]
+    for r in threaded:  # the step and the force alone, each beside its one-thread row of the same rounds
+        assert r["speedup"] == pytest.approx(rows[r["versus"]]["step_us"] / r["step_us"])
+        assert r["versus"] == r["name"].replace(f", {r['threads']} threads", "")
+    assert {r["versus"] for r in threaded} == (
+        {f"{m}{alone}" for m in ("linear-tm", "stvk-tm", "corotational-tm") for alone in ("", ", force alone")}
+        if threaded
+        else set()
+    )
     ceilings = out["machine"]["thread_scaling"]  # what the machine gains from the same threads
     assert set(ceilings) == ({"beam"} if threaded else set())
     assert all(c["fma"] > 0 and c["triad"] > 0 and c["bytes"] > 0 for c in ceilings.values())
@@ -81,6 +89,22 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     assert "FMA peak" in table and f"({roof['vector_bits']}-bit vectors" in table and "triad GB/s by data size" in table
     assert len(re.findall(r"roofline [\d.]+ us \((compute|memory)\): \d+% of it", table)) == len(placed)
     assert len(re.findall(r"\d\.\d\dx its float64 row", table)) == len(FLOAT32_MODELS)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_force_alone_rows_compute_the_models_force(threads):
+    """The rows "M, force alone" time the force kernel from a compiled loop: what the loop leaves in f
+    must be the model's internal force (a loop that called nothing would time nothing)."""
+    from meshes import stored_mesh
+    from realtime import Material, build_model
+    from verification.bench import _force_loop
+
+    mesh = stored_mesh("beam")
+    model = build_model("stvk-tm", mesh.points, mesh.tets, Material(1e5, 0.3, 1000.0, law="stvk"), threads=threads)
+    u = 1e-3 * np.random.default_rng(1).standard_normal(mesh.points.shape)
+    f = np.zeros_like(u)
+    _force_loop(model.force_kernel, model.data, model.new_scratch(), u, f, 2)
+    assert np.array_equal(f, model.internal_force(u)) and np.abs(f).max() > 0
 
 
 def test_bench_peers_without_the_peers_says_how_to_get_them(capsys):

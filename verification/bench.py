@@ -9,7 +9,8 @@ work (the hybrid row: a tenth of the vertices moved past its threshold). The "ha
 step with n = 1, once per step, as a 1000 Hz device loop does: the cost of a whole call, Python and
 numba's dispatch included; the row CALL_ROW is a call that takes no step (n = 0), the call's own cost.
 The rows "M, 2 threads" run the threaded kernels (realtime.threaded) on every core, up to THREADS, in
-the same rounds as their one-thread rows, and report the speed-up over them, beside what the machine
+the same rounds as their one-thread rows, and report the speed-up over them (the step, and the rows
+"M, force alone": the force kernel without the update, on one thread and on all), beside what the machine
 itself gains from the same threads, timed in the same rounds (verification.roofline.thread_loops: its
 FMA loop, and its triad on as many bytes as stvk-tm's step streams, on one thread and on all): a
 speed-up near those is the machine's limit, not the code's. Speed is never asserted in the tests:
@@ -26,6 +27,7 @@ import os
 import platform
 import time
 
+import numba as nb
 import numpy as np
 
 from meshes import stored_mesh
@@ -100,6 +102,25 @@ def _time_round_robin(cases: list[dict], repeats: int, warm: bool = False) -> No
 #: The row of a step call that takes no step (n = 0), timed over CALLS calls: microseconds per call.
 CALL_ROW = "linear-tm, a call of no step (the call's own cost)"
 CALLS = 1000
+
+
+@nb.njit(nogil=True)
+def _force_loop(force, data, scratch, u, f, n):
+    """n calls of the model's force kernel, from compiled code (a call from Python pays numba's typing of
+    the kernel's data, tens of microseconds). Not cached: a cached loop that calls a parallel kernel
+    crashed when loaded in a process that had not started numba's threads (realtime.steppers)."""
+    for _ in range(n):
+        force(data, scratch, u, f)
+
+
+def _force_case(model, u, n):
+    """n evaluations of ``model``'s force at u (N, 3) m, the kernel alone (no update)."""
+    scratch, f = model.new_scratch(), np.zeros_like(u)
+
+    def fn():
+        _force_loop(model.force_kernel, model.data, scratch, u, f, n)
+
+    return fn
 
 
 def _step_case(integ, model, state, dt, n, calls=1):
@@ -216,24 +237,39 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                     **one,
                     "name": f"{model_name}, float32",
                     "precision": "float32",
+                    "versus": model_name,
                     "fn": _step_case(SymplecticEuler(), model, state, one["dt"], n),
                 }
             )
-        # the threaded kernels on every core (realtime.threaded), beside their one-thread rows
+        # the threaded kernels on every core (realtime.threaded), beside their one-thread rows: the step,
+        # and the force kernel alone (the update after it streams the state and does not gain as much)
         threads = min(os.cpu_count() or 1, THREADS)
         for model_name in ("linear-tm", "corotational-tm", "stvk-tm") if threads > 1 else ():
             log(f"bench: {name} {model_name}, {threads} threads")
             model = build_model(model_name, mesh.points, mesh.tets, iso, loading, threads=threads)
+            serial = build_model(model_name, mesh.points, mesh.tets, iso, loading)
             one = next(c for c in cases if c["name"] == model_name)
             state = State(u=u0.copy(), v=np.zeros_like(u0))
-            cases.append(
+            alone = f"{model_name}, force alone"
+            cases += [
                 {
                     **one,
                     "name": f"{model_name}, {threads} threads",
                     "threads": threads,
+                    "versus": model_name,
                     "fn": _step_case(SymplecticEuler(), model, state, one["dt"], n),
-                }
-            )
+                },
+                {**base, "name": alone, "model": model_name, "n": n, "fn": _force_case(serial, u0, n)},
+                {
+                    **base,
+                    "name": f"{alone}, {threads} threads",
+                    "model": model_name,
+                    "threads": threads,
+                    "versus": alone,
+                    "n": n,
+                    "fn": _force_case(model, u0, n),
+                },
+            ]
         # what the machine itself gains from the threads, in the same rounds: the roofline's loops on one
         # thread and on all, the triad on as many bytes as stvk-tm's step streams
         n_edges = len(unique_edges(mesh.tets))
@@ -336,9 +372,9 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
             _place_on_roofline(roof, c, work)
             rows.append(c)
         for c in rows:
-            if c["mesh"] == name and (c.get("threads") or c.get("precision")):
-                # measured in the same rounds as the one-thread float64 row of its model
-                one = next(r for r in rows if r["mesh"] == name and r["name"] == c["model"])
+            if c["mesh"] == name and "versus" in c:
+                # measured in the same rounds as the one-thread float64 row it is a variant of
+                one = next(r for r in rows if r["mesh"] == name and r["name"] == c["versus"])
                 c["speedup"] = one["step_us"] / c["step_us"]
     return {
         "machine": {**machine(), "roofline": roof.summary(), "thread_scaling": thread_ceilings},
