@@ -72,8 +72,21 @@ def get_mesh(generator: str, params: dict) -> TetMesh:
     return generate(generator, **params)
 
 
+#: A stored mesh's name with this suffix names that mesh numbered along the body (TetMesh.renumbered):
+#: the same vertices and tetrahedra in the order the real-time engine steps fastest.
+RENUMBERED = "-renumbered"
+
+
+def stored_names() -> list[str]:
+    """Every name stored_mesh takes: STORED's, then each with RENUMBERED."""
+    return sorted(STORED) + [name + RENUMBERED for name in sorted(STORED)]
+
+
 def stored_mesh(name: str) -> TetMesh:
-    """A stored mesh by its name in STORED."""
+    """A stored mesh by its name in STORED, or by that name with RENUMBERED: the mesh renumbered."""
+    base = name.removesuffix(RENUMBERED)
+    if base != name and base in STORED:
+        return stored_mesh(base).renumbered()[0]
     generator, params = STORED[name]
     return get_mesh(generator, params)
 

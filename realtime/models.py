@@ -17,7 +17,7 @@ from .adaptive import build_adaptive_tm
 from .blocks import BlockData, block_data, block_scratch
 from .corotational import corotational_energy, corotational_force, corotational_scratch
 from .errors import InputError, index_array, is_real
-from .geometry import shape_gradients, signed_volumes, unique_edges
+from .geometry import renumbered, shape_gradients, signed_volumes, unique_edges
 from .hybrid import HybridData, hybrid_energy, hybrid_force, hybrid_scratch
 from .material import Material, Materials
 from .model import PRECISIONS, Loading, Model, check_float64, lumped_masses, no_scratch, prepare_mesh
@@ -60,6 +60,15 @@ def build_linear_tm(
         generation=tm.generation,
         threads=threads,
     )
+
+
+def renumber(points, tets) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh (points (N, 3) m, tets (M, 4) int) numbered along the body, for speed: (points (N, 3)
+    float64, tets (M, 4) int64, vertex_order (N,) int64 the old index of each new vertex); a state in
+    the old numbering maps to the new one by ``u[vertex_order]``. The same tetrahedra, each with its
+    corners in the same order (realtime.geometry.renumbered). Raises InvalidMeshError for a mesh
+    build_model would refuse."""
+    return renumbered(*prepare_mesh(points, tets))
 
 
 def cut(model: Model, which) -> Model:

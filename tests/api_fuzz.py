@@ -67,7 +67,17 @@ def spoil(value, rng, n_vertices: int):
 
 def main(seed: int, count: int, names: tuple[str, ...] = ()) -> int:
     from meshes import stored_mesh
-    from realtime import MODELS, DivergenceError, InputError, Loading, Material, State, build_model, max_eigenvalue
+    from realtime import (
+        MODELS,
+        DivergenceError,
+        InputError,
+        Loading,
+        Material,
+        State,
+        build_model,
+        max_eigenvalue,
+        renumber,
+    )
     from realtime.integrators import CentralDifference, ImplicitEuler, SymplecticEuler
     from realtime.models import cut
     from realtime.topology import slit, suture
@@ -113,13 +123,16 @@ def main(seed: int, count: int, names: tuple[str, ...] = ()) -> int:
             ("slit", lambda faces: slit(model, faces), [mesh.tets[:1, :3]]),
             ("build_model points", lambda p: build_model(model.name, p, mesh.tets, mat, loading), [mesh.points]),
             ("build_model tets", lambda t: build_model(model.name, mesh.points, t, mat, loading), [mesh.tets]),
+            ("renumber points", lambda p: renumber(p, mesh.tets), [mesh.points]),
+            ("renumber tets", lambda t: renumber(mesh.points, t), [mesh.tets]),
         ]
 
     outcomes = {"returned": 0, "InputError": 0, "DivergenceError": 0}
     for k in range(count):
         name = names[int(rng.integers(len(names)))]
         model = models[name]
-        what, call, args = calls(model)[int(rng.integers(15))]
+        options = calls(model)
+        what, call, args = options[int(rng.integers(len(options)))]
         spoilt, how = spoil(args[0], rng, n)
         print(f"{k}: {name} {what} ({how})", flush=True)
         try:

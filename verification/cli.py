@@ -15,7 +15,7 @@ import logging
 import sys
 from pathlib import Path
 
-from meshes.store import STORED
+from meshes.store import stored_names
 from realtime import INTEGRATORS, MODELS, DivergenceError, InputError, NotConvergedError
 from reference.errors import ReferenceSolveError
 
@@ -637,7 +637,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("bench", help="performance benchmark: microseconds per step of every model")
     s.add_argument(
-        "--meshes", nargs="+", default=["liver", "liver-x10"], choices=sorted(STORED), help="stored meshes to run on"
+        "--meshes",
+        nargs="+",
+        default=["liver", "liver-x10", "liver-x10-renumbered"],
+        choices=stored_names(),
+        help="stored meshes to run on (NAME-renumbered: the mesh numbered along the body)",
     )
     s.add_argument("--repeats", type=_count, default=15)
     s.add_argument(
