@@ -10,11 +10,12 @@ step with n = 1, once per step, as a 1000 Hz device loop does: the cost of a who
 numba's dispatch included; the row CALL_ROW is a call that takes no step (n = 0), the call's own cost.
 The rows "M, 2 threads" run the threaded kernels (realtime.threaded) on every core, up to THREADS, in
 the same rounds as their one-thread rows, and report the speed-up over them (the step, and the rows
-"M, force alone": the force kernel without the update, on one thread and on all), beside what the machine
-itself gains from the same threads, timed in the same rounds (verification.roofline.thread_loops: its
-FMA loop, and its triad on as many bytes as stvk-tm's step streams, on one thread and on all): a
-speed-up near those is the machine's limit, not the code's. Speed is never asserted in the tests:
-this command reports it.
+"M, force alone": the force kernel without the update, on one thread and on all), beside what the
+machine itself gains from the same threads, timed in the same rounds (verification.roofline.thread_loops:
+its FMA loop, and its triad on as many bytes as stvk-tm's step streams, on one thread and on all): a
+speed-up near those is the machine's limit, not the code's. "liver-x10-renumbered" is liver-x10 numbered
+along the body (realtime.renumber), which a simulator can do to its own mesh once. Speed is never
+asserted in the tests: this command reports it.
 
 Each row with a fixed amount of work (linear-tm, stvk-tm, mass-spring, scipy's product) also gets its
 roofline (verification.roofline): the least time its flops and bytes allow at this core's measured FMA
