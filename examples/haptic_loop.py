@@ -39,8 +39,10 @@ def read_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def liver_with_a_tool(model_name: str, material: Material):
     """The stored liver held at the centre of its back, a translating tool on the surface vertices within
     8 mm of its highest point. No gravity: the liver rests in its stress-free shape, its weight borne by
-    the organs around it (which the model leaves out), so that the device feels the palpation alone."""
-    mesh = stored_mesh("liver")
+    the organs around it (which the model leaves out), so that the device feels the palpation alone.
+    The mesh is numbered along the body ("-renumbered", realtime.renumber), as a simulator numbers its
+    own mesh once before it builds the model: the kernels then reuse more of what they load."""
+    mesh = stored_mesh("liver-renumbered")
     p = mesh.points
     free = np.ones((mesh.n_vertices, 3))
     c = p.mean(axis=0)
