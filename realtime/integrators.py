@@ -101,6 +101,9 @@ class _Prepared:
     vt: np.ndarray  # (P, 3) m/s, the tool vertices' velocities before the last step
     reaction: np.ndarray  # (L, 3) N, the tools' force on the body in the last step
     threads: int  # the threads of the model's force (Model.extra), on which symplectic Euler's update runs
+    # symplectic Euler's (force, update): the model's kernel and se_update, or a threaded model's unsummed
+    # kernel (threaded.UNSUMMED) and se_sum_update_threads, which adds the threads' arrays as it updates
+    se_kernels: tuple
     version: int = 0  # set_forces calls: a stored acceleration from an older version is stale
     entries: dict = field(default_factory=dict)  # step loop -> its compiled entry point (_call)
     work: StepWork | None = None  # these arrays as the step loops take them (step_work), made on first use
@@ -118,6 +121,7 @@ class _Prepared:
         tools = own._replace(vector=own.vector.copy(), angle=own.angle.copy(), ramp=own.ramp.copy())
         vert, kind = tools.vertex, tools.kind
         n = model.n_vertices
+        threads = int(model.extra.get("threads", 1))
         return _Prepared(
             model,
             inv_mass,
@@ -133,7 +137,10 @@ class _Prepared:
             model.new_scratch(),
             np.zeros((len(vert), 3)),
             np.zeros((len(kind), 3)),
-            int(model.extra.get("threads", 1)),
+            threads,
+            (UNSUMMED[model.force_kernel.__name__], se_sum_update_threads)
+            if threads > 1
+            else (model.force_kernel, se_update),
         )
 
     def step_work(self) -> StepWork:
@@ -347,9 +354,7 @@ class SymplecticEuler(Integrator):
         """``step``; the tools' force is the last step's (``_tool_reaction``)."""
         p = self._prepare(model)
         dt, n = _check_state(p.shape, p.dtype, state, dt, n)
-        force, update = model.force_kernel, se_update
-        if p.threads > 1:
-            force, update = UNSUMMED[force.__name__], se_sum_update_threads
+        force, update = p.se_kernels
         work, alpha, beta = p.step_work(), float(self.alpha), float(self.beta)
         bad = _call(
             p, _run_symplectic_euler, (n, dt, float(state.t), force, update, work, alpha, beta, state.u, state.v)

@@ -167,6 +167,7 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
         n = steps if mesh.n_tets < 20000 else max(steps // 2, 5)
         cases = []
         haptic = []
+        built = {}  # label -> the one-thread model of its row
         for label, model_name, mat in (
             ("linear-tm", "linear-tm", iso),
             ("linear-tm (transverse)", "linear-tm", fibre),
@@ -178,6 +179,7 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
         ):
             log(f"bench: {name} {label}")
             model = build_model(model_name, mesh.points, mesh.tets, mat, loading)
+            built[label] = model
             integ = SymplecticEuler()
             dt = 0.5 * integ.critical_dt(model)
             u = u0.copy()
@@ -248,7 +250,6 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
         for model_name in ("linear-tm", "corotational-tm", "stvk-tm") if threads > 1 else ():
             log(f"bench: {name} {model_name}, {threads} threads")
             model = build_model(model_name, mesh.points, mesh.tets, iso, loading, threads=threads)
-            serial = build_model(model_name, mesh.points, mesh.tets, iso, loading)
             one = next(c for c in cases if c["name"] == model_name)
             state = State(u=u0.copy(), v=np.zeros_like(u0))
             alone = f"{model_name}, force alone"
@@ -260,7 +261,7 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                     "versus": model_name,
                     "fn": _step_case(SymplecticEuler(), model, state, one["dt"], n),
                 },
-                {**base, "name": alone, "model": model_name, "n": n, "fn": _force_case(serial, u0, n)},
+                {**base, "name": alone, "model": model_name, "n": n, "fn": _force_case(built[model_name], u0, n)},
                 {
                     **base,
                     "name": f"{alone}, {threads} threads",
