@@ -3,6 +3,8 @@ kernel of ``corotational-tm`` on blocks of tetrahedra (``realtime.blocks``)."""
 
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 
@@ -24,39 +26,117 @@ from .blocks import (
 
 
 @nb.njit(inline="always", **HOT)
+def _cofactors(r):
+    """cof(R) (9-tuple, row-major; R^-T = cof(R) / det R) and det R, R a row-major 9-tuple."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
+    c = (
+        r11 * r22 - r12 * r21, r12 * r20 - r10 * r22, r10 * r21 - r11 * r20,
+        r02 * r21 - r01 * r22, r00 * r22 - r02 * r20, r01 * r20 - r00 * r21,
+        r01 * r12 - r02 * r11, r02 * r10 - r00 * r12, r00 * r11 - r01 * r10,
+    )  # fmt: skip
+    return c, r00 * c[0] + r01 * c[1] + r02 * c[2]
+
+
+@nb.njit(inline="always", **HOT)
+def _mix(a, r, b, c):
+    """a r + b c, r and c row-major 9-tuples."""
+    return (
+        a * r[0] + b * c[0], a * r[1] + b * c[1], a * r[2] + b * c[2],
+        a * r[3] + b * c[3], a * r[4] + b * c[4], a * r[5] + b * c[5],
+        a * r[6] + b * c[6], a * r[7] + b * c[7], a * r[8] + b * c[8],
+    )  # fmt: skip
+
+
+@nb.njit(inline="always", **HOT)
 def _polar_step(r, scaled):
     """One scaled Newton step of the polar iteration R <- (g R + R^-T / g) / 2 (Higham 1986) on R
     (9-tuple, row-major), with g = (|R^-1|_F / |R|_F)^(1/2) if ``scaled``, else 1 (near convergence g
     -> 1, and it costs two roots). Returns the new R and |dR|_F^2."""
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
-    c00 = r11 * r22 - r12 * r21
-    c01 = r12 * r20 - r10 * r22
-    c02 = r10 * r21 - r11 * r20
-    c10 = r02 * r21 - r01 * r22
-    c11 = r00 * r22 - r02 * r20
-    c12 = r01 * r20 - r00 * r21
-    c20 = r01 * r12 - r02 * r11
-    c21 = r02 * r10 - r00 * r12
-    c22 = r00 * r11 - r01 * r10
-    det = r00 * c00 + r01 * c01 + r02 * c02
+    c, det = _cofactors(r)
     gam = 1.0
     if scaled:
-        nr = r00 * r00 + r01 * r01 + r02 * r02 + r10 * r10 + r11 * r11 + r12 * r12 + r20 * r20 + r21 * r21 + r22 * r22
-        nc = c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12 + c20 * c20 + c21 * c21 + c22 * c22
+        nr = r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3] + r[4] * r[4] + r[5] * r[5] + r[6] * r[6]
+        nr += r[7] * r[7] + r[8] * r[8]
+        nc = c[0] * c[0] + c[1] * c[1] + c[2] * c[2] + c[3] * c[3] + c[4] * c[4] + c[5] * c[5] + c[6] * c[6]
+        nc += c[7] * c[7] + c[8] * c[8]
         gam = np.sqrt(np.sqrt(nc / (det * det * nr)))
-    a = 0.5 * gam
-    b = 0.5 / (gam * det)  # R^-T = cof(R) / det(R)
-    n = (
-        a * r00 + b * c00, a * r01 + b * c01, a * r02 + b * c02,
-        a * r10 + b * c10, a * r11 + b * c11, a * r12 + b * c12,
-        a * r20 + b * c20, a * r21 + b * c21, a * r22 + b * c22,
-    )  # fmt: skip
+    n = _mix(0.5 * gam, r, 0.5 / (gam * det), c)
     change = (
-        (n[0] - r00) ** 2 + (n[1] - r01) ** 2 + (n[2] - r02) ** 2
-        + (n[3] - r10) ** 2 + (n[4] - r11) ** 2 + (n[5] - r12) ** 2
-        + (n[6] - r20) ** 2 + (n[7] - r21) ** 2 + (n[8] - r22) ** 2
+        (n[0] - r[0]) ** 2 + (n[1] - r[1]) ** 2 + (n[2] - r[2]) ** 2
+        + (n[3] - r[3]) ** 2 + (n[4] - r[4]) ** 2 + (n[5] - r[5]) ** 2
+        + (n[6] - r[6]) ** 2 + (n[7] - r[7]) ** 2 + (n[8] - r[8]) ** 2
     )  # fmt: skip
     return n, change
+
+
+def newton_gaps(tol: float, steps: int) -> tuple:
+    """For k = 1 .. ``steps``: the largest squared gap |F^T F - I|_F^2 (< 1) at which k unscaled Newton
+    steps from F (_unscaled_step) bring every singular value of the iterate within ``tol`` of 1.
+
+    The unscaled iteration acts on each singular value alone, s <- (s + 1/s) / 2 (F = U S V^T gives
+    X_k = U s_k(S) V^T): after one step every s is at least 1, and the error e = s - 1 then goes to
+    e^2 / (2 (1 + e)). A gap g bounds every eigenvalue of F^T F = V S^2 V^T within sqrt(g) of 1, so
+    every s lies in [sqrt(1 - sqrt(g)), sqrt(1 + sqrt(g))], and the ends of that interval, farthest
+    from 1 after the first step, converge last. Found by bisection in exact arithmetic's recurrence;
+    X_k - R = U (s_k(S) - I) V^T, so |X_k - R|_F <= sqrt(3) tol."""
+
+    def worst(delta: float) -> int:
+        k_max = 0
+        for s in (math.sqrt(1.0 - delta), math.sqrt(1.0 + delta)):
+            e, k = 0.5 * (s + 1.0 / s) - 1.0, 1
+            while e > tol and k <= steps:
+                e, k = e * e / (2.0 * (1.0 + e)), k + 1
+            k_max = max(k_max, k)
+        return k_max
+
+    gaps = []
+    for k in range(1, steps + 1):
+        lo, hi = 0.0, 1.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if worst(mid) <= k else (lo, mid)
+        gaps.append(lo * lo)
+    return tuple(gaps)
+
+
+#: The error in each singular value that ends the bounded iteration: |R_k - R|_F <= sqrt(3) 5e-13
+#: < 1e-12, as the adaptive iteration's stopping rule gives (below).
+_POLAR_TOL = 5e-13
+
+#: Steps the bounded iteration takes at most: a block with a gap beyond _POLAR_GAPS[-1] (0.67; a
+#: singular value may be below 0.42 or above 1.35) takes the adaptive iteration, whose scaled steps
+#: converge faster there. An element squashed below _POLAR_SQUASHED of its volume is always beyond it
+#: (the least gap with det F < 0.1 is 0.98, one singular value at 0.1), so only the adaptive
+#: iteration needs the scaled first step.
+_POLAR_MAX_STEPS = 5
+_POLAR_GAPS = newton_gaps(_POLAR_TOL, _POLAR_MAX_STEPS)
+
+
+@nb.njit(inline="always", **HOT)
+def _strain_gap(F):
+    """|F^T F - I|_F^2 of a row-major 9-tuple F (4 |E|^2, E the Green strain)."""
+    f00, f01, f02, f10, f11, f12, f20, f21, f22 = F
+    c00 = f00 * f00 + f10 * f10 + f20 * f20 - 1.0
+    c11 = f01 * f01 + f11 * f11 + f21 * f21 - 1.0
+    c22 = f02 * f02 + f12 * f12 + f22 * f22 - 1.0
+    c01 = f00 * f01 + f10 * f11 + f20 * f21
+    c02 = f00 * f02 + f10 * f12 + f20 * f22
+    c12 = f01 * f02 + f11 * f12 + f21 * f22
+    return c00 * c00 + c11 * c11 + c22 * c22 + 2.0 * (c01 * c01 + c02 * c02 + c12 * c12)
+
+
+@nb.njit(inline="always", **HOT)
+def _unscaled_step(r):
+    """R <- (R + R^-T) / 2, R a row-major 9-tuple: _polar_step unscaled, without its change."""
+    c, det = _cofactors(r)
+    return _mix(0.5, r, 0.5 / det, c)
+
+
+@nb.njit(inline="always", **HOT)
+def _unscaled_pass(R):
+    """_unscaled_step on every lane of the block's rotations R (10 BLOCK,) float64, in place."""
+    for q in range(UBLOCK):
+        lane_store(R, q, _unscaled_step(lane_rows(R, ROW[0], q)))
 
 
 #: A Newton step that changes R by less than 1e-6 (Frobenius; the constants are squared changes) ends
@@ -173,31 +253,18 @@ def _finish_lanes(R):
 
 
 @nb.njit(inline="always", **HOT)
-def _corotational_block(W, R, Fb, geo, gb, lam, mu):
-    """Element forces of one block, in place in W (as _stvk_block), for the corotated law.
-
-    The polar iteration runs on all the block's tetrahedra at once, with the rotations in the scratch
-    R (10 BLOCK,) float64 (rows 0..8 the rotation, row 9 its last change), until no more than
-    _POLAR_STRAGGLERS lanes are still changing; those finish one at a time (_finish_lanes). Lanes that
-    converged earlier take the block's further steps at round-off. The first step is unscaled unless
-    an element of the block is squashed (det F < _POLAR_SQUASHED); later steps are scaled while the
-    block's largest change is above _POLAR_SCALED (a block-wide choice, so that unscaled steps take no
-    roots). Inverted ones start from R = I (which stays put) and take the SVD afterwards, one at a
-    time. Fb (9 BLOCK,) keeps each lane's F for the stress, which reads it back instead of forming it
-    again (45 flops a tetrahedron).
-    """
-    identity = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-    inverted = 0
-    squashed = 0
+def _adaptive_polar(R, Fb):
+    """The adaptive polar iteration on a block's rotations R (10 BLOCK,) float64 (rows 0..8 the
+    rotation, started at F; row 9 its last change), Fb (9 BLOCK,) its F: passes over the whole block
+    until no more than _POLAR_STRAGGLERS lanes are still changing, which then finish one at a time
+    (_finish_lanes). Lanes that converged earlier take the block's further steps at round-off. The
+    first step is unscaled unless an element of the block is squashed (det F < _POLAR_SQUASHED); later
+    steps are scaled while the block's largest change is above _POLAR_SCALED (a block-wide choice, so
+    that unscaled steps take no roots)."""
+    far = 0
     for q in range(UBLOCK):
-        F = _plus_identity(lane_in(W, geo, gb, q)[0])
-        lane_store(Fb, q, F)
-        d = _det(F)
-        ok = d > 1e-12
-        lane_store(R, q, F if ok else identity)
-        inverted += not ok
-        squashed += d < _POLAR_SQUASHED
-    active, far = BLOCK, squashed  # every lane takes the first step, scaled if one is squashed
+        far += _det(lane_rows(Fb, ROW[0], q)) < _POLAR_SQUASHED
+    active = BLOCK  # every lane takes the first step, scaled if one is squashed
     for _ in range(30):
         if active <= _POLAR_STRAGGLERS:
             break
@@ -209,6 +276,43 @@ def _corotational_block(W, R, Fb, geo, gb, lam, mu):
             active, far = _polar_pass(R, False)
     if active:
         _finish_lanes(R)
+
+
+@nb.njit(inline="always", **HOT)
+def _corotational_block(W, R, Fb, geo, gb, lam, mu):
+    """Element forces of one block, in place in W (as _stvk_block), for the corotated law.
+
+    The polar iteration runs on all the block's tetrahedra at once, with the rotations in the scratch
+    R (10 BLOCK,) float64. Its number of steps is known before it starts: the block's largest strain
+    gap |F^T F - I|_F^2 gives the unscaled steps that bring every lane within _POLAR_TOL of its
+    rotation (_POLAR_GAPS, newton_gaps), and the block takes them with no test of convergence (on
+    make bench's liver-x10 the tests and the lanes left over had cost a quarter of the polar's time). A
+    block beyond _POLAR_MAX_STEPS takes the adaptive iteration (_adaptive_polar). Inverted elements
+    start from R = I (which stays put) and take the SVD afterwards, one at a time. Fb (9 BLOCK,) keeps
+    each lane's F for the stress, which reads it back instead of forming it again (45 flops a
+    tetrahedron).
+    """
+    identity = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    inverted = 0
+    g1, g2, g3, g4, g5 = _POLAR_GAPS
+    over1 = over2 = over3 = over4 = over5 = 0  # lanes that need more than 1 .. 5 steps (counts vectorise)
+    for q in range(UBLOCK):
+        F = _plus_identity(lane_in(W, geo, gb, q)[0])
+        lane_store(Fb, q, F)
+        ok = _det(F) > 1e-12
+        lane_store(R, q, F if ok else identity)
+        inverted += not ok
+        gap = _strain_gap(F) if ok else 0.0
+        over1 += gap > g1
+        over2 += gap > g2
+        over3 += gap > g3
+        over4 += gap > g4
+        over5 += gap > g5
+    if over5:
+        _adaptive_polar(R, Fb)
+    else:
+        for _ in range(1 + (over1 > 0) + (over2 > 0) + (over3 > 0) + (over4 > 0)):
+            _unscaled_pass(R)
     if inverted:
         for q in range(UBLOCK):
             F = lane_rows(Fb, ROW[0], q)

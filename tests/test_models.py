@@ -458,23 +458,59 @@ def _corotational_force_by_svd(mesh, u):
     return f, F
 
 
-@pytest.mark.parametrize("scale", [5e-3, 3e-4])
-def test_corotational_rotations_against_numpy_svd(scale, rng):
-    """The block kernel's polar rotations (Newton on a whole block, its last few unconverged lanes one
-    at a time; the SVD, one element at a time, for inverted ones) against numpy's SVD of every
-    element's F. At 5e-3 m (half the edge length) some elements invert; at 3e-4 m most lanes converge
-    in 4 steps and a few take 5 to 7, which their blocks finish alone. Newton stops at |dR| < 1e-6,
-    whose error is about its square: the forces agree to round-off (the bound 1e-13 is about 500 eps,
-    for sums over 2465 elements). Measured 7e-15 at 5e-3 m and 9e-14 at 3e-4 m: the stress is of the
-    size of F - R, so at smaller strains the same round-off in R, numpy's SVD's included, is a larger
-    part of it."""
+@pytest.mark.parametrize("scale, bound", [(5e-3, 1e-13), (3e-4, 1e-13), (3e-5, 1e-12)])
+def test_corotational_rotations_against_numpy_svd(scale, bound, rng):
+    """The block kernel's polar rotations against numpy's SVD of every element's F. At 5e-3 m (half
+    the edge length) some elements invert (the SVD, one element at a time); at 3e-4 m every block is
+    strained beyond the bounded iteration's five steps and takes the adaptive one (Newton on the whole
+    block, its last few unconverged lanes one at a time, stopping at |dR| < 1e-6, whose error is about
+    its square); at 3e-5 m every block takes the bounded iteration, four or five steps counted before
+    it starts (realtime.corotational.newton_gaps). The forces agree to round-off: the bound 1e-13 is
+    about 500 eps, for sums over 2465 elements; at 3e-5 m the stress, of the size of F - R, is ten
+    times smaller and the same round-off in R, numpy's SVD's included, ten times larger a part of it
+    (1e-12). Measured 1.1e-14, 8e-14 and 1.3e-13 (the adaptive iteration: 4.3e-13 at 3e-5 m). A step
+    too few would leave 1e-9 of R or more, 1e-6 of the force."""
     mesh = cylinder()
     model = build_model("corotational-tm", mesh.points, mesh.tets, ISO)
     u = scale * rng.standard_normal(mesh.points.shape)
     f, F = _corotational_force_by_svd(mesh, u)
     if scale > 1e-3:
         assert np.sum(np.linalg.det(F) <= 0) > 10  # the SVD path is exercised
-    assert np.linalg.norm(model.internal_force(u) - f) / np.linalg.norm(f) < 1e-13
+    assert np.linalg.norm(model.internal_force(u) - f) / np.linalg.norm(f) < bound
+
+
+def test_the_polar_iterations_step_count_is_what_the_iteration_takes():
+    """newton_gaps's bounds, by the experiment that defines them: an F with one singular value at the
+    end of the interval a gap allows (the worst case: the end farthest from 1 after the first step)
+    reaches its rotation within tol in k unscaled steps for a gap just inside the k-step bound, and
+    needs k + 1 just outside it. With one singular value off 1, the iterate's error |X - R|_F is that
+    value's error alone; rotations on both sides, so that it is measured against numpy's SVD rather
+    than read off a diagonal. The error after k steps goes as the gap to the power 2^(k - 1), so a
+    margin of 0.1 / 2^(k - 1) of the gap moves it by about 10% of tol (5e-14), far above the
+    rotations' round-off (1e-15)."""
+    from realtime.corotational import _POLAR_GAPS, _POLAR_TOL, _unscaled_step
+
+    rng = np.random.default_rng(3)
+    q1, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    q2, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    q1 *= np.sign(np.linalg.det(q1))
+    q2 *= np.sign(np.linalg.det(q2))
+    R = q1 @ q2.T
+
+    def steps_to_converge(s):
+        x = tuple((q1 @ np.diag(s) @ q2.T).ravel())
+        for k in range(1, 12):
+            x = _unscaled_step(x)
+            if np.linalg.norm(np.reshape(x, (3, 3)) - R) <= _POLAR_TOL:
+                return k
+        return None
+
+    for k, gap in enumerate(_POLAR_GAPS, start=1):
+        takes = []
+        for margin in (-0.1 / 2 ** (k - 1), 0.1 / 2 ** (k - 1)):
+            delta = math.sqrt(gap * (1 + margin))
+            takes.append(max(steps_to_converge((math.sqrt(1 + sign * delta), 1.0, 1.0)) for sign in (-1, 1)))
+        assert takes == [k, k + 1], (k, gap, takes)
 
 
 @pytest.mark.parametrize(
