@@ -106,7 +106,8 @@ def block_data(points: np.ndarray, tets: np.ndarray, material: Material | Materi
     (float64, or float32 for a float32 model: computed in float64, then rounded once).
     The tetrahedra are grouped by material, each group in Morton order (neighbours share blocks; the
     kernels sum over all of them, so their order is internal) and padded to whole blocks with
-    zero-volume tetrahedra on vertex 0, which contribute nothing: every block holds one material, whose
+    zero-volume tetrahedra on the first vertex of the group's last one, which contribute nothing (and
+    keep a threaded chunk's forces in the range of vertices its own tetrahedra span): every block holds one material, whose
     law_params are its row of prm, so the kernels read the coefficients once a block. Block b holds, for
     its tetrahedron q (row b BLOCK + q of the returned tets), with G = GEO_ROWS:
     geo[(G b + 3 a + c) BLOCK + q] = g_{a+1, c} (1/m, a, c = 0..2; g_0 = -(g_1 + g_2 + g_3)),
@@ -127,7 +128,7 @@ def block_data(points: np.ndarray, tets: np.ndarray, material: Material | Materi
         rows[:9, :count] = g.reshape(count, 9).T
         rows[9, :count] = vol
         rows[10:13, :count] = m.fiber_directions(points[t].mean(axis=1)).T
-        tp = np.zeros((p, 4), dtype=np.int64)
+        tp = np.full((p, 4), t[-1, 0], dtype=np.int64)
         tp[:count] = t
         groups.append((tp, rows.reshape(GEO_ROWS, p // BLOCK, BLOCK).transpose(1, 0, 2).ravel()))
         prm.append(np.repeat(law_params(m)[None, :], p // BLOCK, axis=0))

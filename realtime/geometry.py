@@ -181,20 +181,32 @@ def morton_order(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
 def spatial_numbering(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A numbering of a mesh along the body: (vertex_order (N,), tet_order (M,)) int64, the old index of
     each new vertex and tetrahedron. The tetrahedra follow the Morton curve of their centroids
-    (morton_order, the order the element kernels' blocks take), the vertices the order in which they
-    first appear in those tetrahedra (vertices of no tetrahedron last, in their old order).
+    (morton_order, the order the element kernels' blocks take). The vertices follow the order in which
+    they first appear in those tetrahedra, in three groups: those only the first half of the curve
+    touches, those both halves touch (the interface), those only the second half touches; vertices of
+    no tetrahedron last, in their old order.
 
     The force kernels gather u and scatter f by vertex number, and a threaded kernel's threads each
-    take a compact piece of the body; numbered this way, a piece's vertices are a nearly contiguous
-    range, so the gathers reuse cache lines and the two cores share few of them (on liver-x10, the
-    cache lines of f written by both threads of a two-thread stvk-tm fell from 77% to 17%, which is
-    about the share of the vertices both pieces hold). A mesh file's own numbering (gmsh's) follows
-    the mesher, not the body."""
+    take a compact piece of the body (two threads: the two halves of the curve); numbered this way, a
+    piece's vertices are a nearly contiguous range, so the gathers reuse cache lines and the two cores
+    share few of them (on liver-x10, the cache lines of f written by both threads of a two-thread
+    stvk-tm fell from 77% to 17%, about the share of the vertices both pieces hold). With the
+    interface between the two halves' own vertices, each thread writes forces in one range of the
+    vertices and the two ranges overlap on the interface alone (threaded.force_spans), which is all
+    the threads must add and all they read of the other core's forces. A mesh file's own numbering
+    (gmsh's) follows the mesher, not the body."""
     tet_order = morton_order(points, tets)
-    seq = np.asarray(tets, dtype=np.int64)[tet_order].ravel()
+    t = np.asarray(tets, dtype=np.int64)[tet_order]
+    seq = t.ravel()
     used, first = np.unique(seq, return_index=True)
+    by_first = used[np.argsort(first)]
+    half = -(-len(t) // 2)
+    in_first, in_second = np.zeros(len(points), bool), np.zeros(len(points), bool)
+    in_first[t[:half].ravel()] = True
+    in_second[t[half:].ravel()] = True
+    group = np.where(in_first & in_second, 1, np.where(in_first, 0, 2))[by_first]
     unused = np.setdiff1d(np.arange(len(points)), used)
-    return np.concatenate([seq[np.sort(first)], unused]).astype(np.int64), tet_order
+    return np.concatenate([by_first[np.argsort(group, kind="stable")], unused]).astype(np.int64), tet_order
 
 
 def renumbered(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -19,7 +19,7 @@ from numba.experimental import structref
 from .blocks import U1, U2
 from .linsolve import factor_solve
 from .model import _tool_value
-from .threaded import sum_range
+from .threaded import in_span, sum_range, thread_range, two_span_cuts
 
 _JIT = dict(nogil=True, cache=True)
 
@@ -177,44 +177,62 @@ def se_update(p1, scratch, u1, v1, f1, dt, damp, bound, parts):
 
 
 @nb.njit(inline="always", **_JIT)
-def _se_sum_update(p1, F, u1, v1, f1, dt, damp, bound, lo, hi):
-    """f1[k] = the sum over t of F[t, k] (in the order of t: threaded.sum_range's bits), and
-    _se_component under it, for k = lo .. hi - 1; F (T, M) the threads' flat forces (M >= 3N).
-    Two threads' forces are added in the update's own loop, which then reads no f; for more, the
-    range is summed first."""
+def _se_sum_update(p1, spans, F, u1, v1, f1, dt, damp, bound, lo, hi):
+    """f1[k] = the sum over t of F[t, k] inside t's span (in the order of t: threaded.sum_range's
+    bits), and _se_component under it, for k = lo .. hi - 1; F (T, M) the threads' flat forces (M >=
+    3N), spans (T, 2) int64 (threaded.force_spans). Two threads' forces are added in the update's own
+    loop, which then reads no f, one loop for each piece between the spans' ends
+    (threaded.two_span_cuts: both, either or neither); for more, the range is summed first."""
     out = 0
     if F.shape[0] == 2:
-        for k in range(np.uint64(lo), np.uint64(hi)):
-            fk = F[0, k] + F[1, k]
-            f1[k] = fk
-            out += _se_component(p1, k, fk, u1, v1, dt, damp, bound)
+        c = two_span_cuts(spans, lo, hi)
+        for i in range(5):
+            x, y = np.uint64(c[i]), np.uint64(c[i + 1])
+            first, second = in_span(spans, 0, c[i]), in_span(spans, 1, c[i])
+            if first and second:
+                for k in range(x, y):
+                    fk = F[0, k] + F[1, k]
+                    f1[k] = fk
+                    out += _se_component(p1, k, fk, u1, v1, dt, damp, bound)
+            elif first or second:
+                t = 0 if first else 1
+                for k in range(x, y):
+                    fk = F[t, k]
+                    f1[k] = fk
+                    out += _se_component(p1, k, fk, u1, v1, dt, damp, bound)
+            else:
+                for k in range(x, y):
+                    f1[k] = 0.0
+                    out += _se_component(p1, k, 0.0, u1, v1, dt, damp, bound)
         return out
-    sum_range(F, f1, lo, hi)
+    sum_range(spans, F, f1, lo, hi)
     return _se_update(p1, u1, v1, f1, dt, damp, bound, lo, hi)
 
 
 @nb.njit(**_JIT)
-def _se_sum_update_part(p1, F, u1, v1, f1, dt, damp, bound, lo, hi):
+def _se_sum_update_part(p1, spans, F, u1, v1, f1, dt, damp, bound, lo, hi):
     """_se_sum_update in a compiled call of its own, for se_sum_update_threads' parallel loop (the
     threaded force kernels' chunks are called the same way)."""
-    return _se_sum_update(p1, F, u1, v1, f1, dt, damp, bound, lo, hi)
+    return _se_sum_update(p1, spans, F, u1, v1, f1, dt, damp, bound, lo, hi)
 
 
 @nb.njit(nogil=True, cache=True, parallel=True)
 def se_sum_update_threads(p1, scratch, u1, v1, f1, dt, damp, bound, parts):
     """The update after a threaded model's unsummed force (threaded.UNSUMMED): each of ``parts``
-    threads adds the threads' forces (scratch[-1], (T, N + pad, 3)) over its range of components,
-    writes them to f1 and updates them. The ranges are threaded.sum_threads', so each thread works on
-    numbers it has just summed, in its core's cache (the serial update of a threaded model's force
-    cost 53 us on liver-x10, against 25 after a serial force, reading the half the other core wrote);
-    and the sum is not a pass of its own, which wrote f for the update to read again (on liver-x10
-    the two passes took 45 us, the update alone 30)."""
+    threads adds the threads' forces (scratch[-1], (T, N + pad, 3), each inside its span scratch[-2])
+    over its range of components (threaded.thread_range), writes them to f1 and updates them. The
+    ranges are threaded.sum_threads', so each thread works on numbers it has just summed, in its
+    core's cache (the serial update of a threaded model's force cost 53 us on liver-x10, against 25
+    after a serial force, reading the half the other core wrote); and the sum is not a pass of its
+    own, which wrote f for the update to read again (on liver-x10 the two passes took 45 us, the
+    update alone 30)."""
     n = u1.shape[0]
-    F = scratch[-1]
+    spans, F = scratch[-2], scratch[-1]
     Fs = F.reshape(F.shape[0], F.shape[1] * 3)
     out = 0
     for p in nb.prange(parts):
-        out += _se_sum_update_part(p1, Fs, u1, v1, f1, dt, damp, bound, p * n // parts, (p + 1) * n // parts)
+        lo, hi = thread_range(spans, n, p, parts)
+        out += _se_sum_update_part(p1, spans, Fs, u1, v1, f1, dt, damp, bound, lo, hi)
     return out
 
 

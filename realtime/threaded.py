@@ -4,7 +4,10 @@ Each kernel splits its work into T contiguous chunks fixed at build (``chunks``)
 ``block_data``'s Morton order, so that a chunk is a compact piece of the body, or vertex rows for
 linear tensor-mass, balanced by their edges. Thread t runs the serial kernel's loop over its chunk into
 its own force array F[t] (no two threads write one number), and the arrays are then added in the
-order t = 0, 1, ..., T - 1 by vertex ranges on all threads. The result therefore does not depend on
+order t = 0, 1, ..., T - 1 by vertex ranges on all threads. A chunk writes forces in one range of the
+vertices, its span (``force_spans``), zeroes only that range, and the sums read each F[t] only there:
+outside it F[t] is zero and stays so. On a mesh numbered along the body (``realtime.renumber``) two
+threads' spans overlap on the interface of the two pieces alone. The result therefore does not depend on
 which thread ran which chunk or when: a threaded model gives the same bits in every run, and differs
 from the serial kernel by round-off only (the order of the sums; the tests compare at a multiple of
 machine epsilon).
@@ -67,19 +70,46 @@ def balanced_chunks(cost: np.ndarray, threads: int) -> np.ndarray:
 PAD_BYTES = 1024
 
 
-def threaded_scratch(serial_scratch, threads: int, n_vertices: int, dtype=np.float64) -> tuple:
+def threaded_scratch(serial_scratch, threads: int, n_vertices: int, dtype, spans: np.ndarray) -> tuple:
     """Scratch of a threaded kernel: each array of ``serial_scratch()`` (1-D) once per thread ((T, K +
-    pad) of its dtype, the kernel using the first K), then F (T, N + pad, 3) of the model's float type
-    ``dtype``, each thread's forces in its first N rows, N; each thread's row padded by PAD_BYTES."""
+    pad) of its dtype, the kernel using the first K), then ``spans`` (T, 2) int64 (force_spans, a
+    copy), then F (T, N + pad, 3) of the model's float type ``dtype``, each thread's forces in its first
+    N rows, N, zero outside its span; each thread's row padded by PAD_BYTES."""
     one = serial_scratch()
     per = tuple(np.zeros((threads, a.size + -(-PAD_BYTES // a.itemsize)), a.dtype) for a in one)
     pad = -(-PAD_BYTES // (3 * np.dtype(dtype).itemsize))
-    return per + (np.zeros((threads, n_vertices + pad, 3), dtype),)
+    return per + (np.array(spans, dtype=np.int64), np.zeros((threads, n_vertices + pad, 3), dtype))
 
 
-def scratch_factory(serial_scratch, threads: int, n_vertices: int, dtype=np.float64):
+def scratch_factory(serial_scratch, threads: int, n_vertices: int, dtype, spans: np.ndarray):
     """Model.new_scratch of a threaded kernel (threaded_scratch with these arguments)."""
-    return partial(threaded_scratch, serial_scratch, threads, n_vertices, dtype)
+    return partial(threaded_scratch, serial_scratch, threads, n_vertices, dtype, spans)
+
+
+def force_spans(first: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """(T, 2) int64: each thread's span [lo, hi), the range of vertices its chunk writes forces to,
+    from ``first`` and ``last`` (T,) int64, the least and the greatest vertex it writes (last < first
+    for a chunk that writes none: an empty span)."""
+    first, last = np.asarray(first, dtype=np.int64), np.asarray(last, dtype=np.int64)
+    return np.stack([np.minimum(first, last + 1), last + 1], axis=1)
+
+
+def block_spans(tets: np.ndarray, chunks: np.ndarray) -> np.ndarray:
+    """force_spans of chunks (T + 1,) of blocks of BlockData's tets (P, 4): every vertex of their
+    tetrahedra, padding included (blocks.block_data pads a block with its last tetrahedron's vertex)."""
+    parts = [tets[BLOCK * a : BLOCK * b] for a, b in zip(chunks[:-1], chunks[1:], strict=True)]
+    return force_spans([p.min() if p.size else 0 for p in parts], [p.max() if p.size else -1 for p in parts])
+
+
+def row_spans(cols: np.ndarray, row_start: np.ndarray, chunks: np.ndarray) -> np.ndarray:
+    """force_spans of chunks (T + 1,) of vertex rows of TensorData: a row writes its own vertex and
+    the neighbours j > i of its edges (cols (E,), row_start (N + 1,) int64)."""
+    first, last = [], []
+    for a, b in zip(chunks[:-1], chunks[1:], strict=True):
+        j = cols[row_start[a] : row_start[b]]
+        first.append(a if b > a else 0)
+        last.append(max(b - 1, int(j.max()) if j.size else -1) if b > a else -1)
+    return force_spans(first, last)
 
 
 def check_threads(threads) -> int:
@@ -117,54 +147,107 @@ def _probe(x):
 
 
 @nb.njit(inline="always", **HOT)
-def sum_range(F, f, lo, hi):
-    """f[lo:hi] = F[0, lo:hi] + F[1, lo:hi] + ..., added in thread order; F (T, M) and f (M,) flat. Each
-    pass is a plain loop over contiguous numbers, which vectorises (a loop over t inside the loop over
-    the numbers did not: the sum of two threads' liver-x10 forces took 108 us)."""
+def span_part(spans, t, lo, hi):
+    """The part [a, b) of the components lo .. hi - 1 (flat, 3 a vertex) inside thread t's span."""
+    a = min(max(3 * spans[t, 0], lo), hi)
+    return a, max(min(3 * spans[t, 1], hi), a)
+
+
+@nb.njit(inline="always", **HOT)
+def in_span(spans, t, k):
+    """Whether component k (flat, 3 a vertex) is inside thread t's span."""
+    return 3 * spans[t, 0] <= k < 3 * spans[t, 1]
+
+
+@nb.njit(inline="always", **HOT)
+def two_span_cuts(spans, lo, hi):
+    """(6,) int64: lo, hi and where each of two threads' spans starts and ends within them, sorted; each
+    segment between two cuts lies wholly inside or wholly outside each span."""
+    a0, b0 = span_part(spans, 0, lo, hi)
+    a1, b1 = span_part(spans, 1, lo, hi)
+    return np.sort(np.array([lo, a0, b0, a1, b1, hi]))
+
+
+@nb.njit(inline="always", **HOT)
+def sum_range(spans, F, f, lo, hi):
+    """f[lo:hi] = F[0, lo:hi] + F[1, lo:hi] + ..., added in thread order, each F[t] read inside its span
+    alone (zero outside it: the same sum); F (T, M) and f (M,) flat, spans (T, 2) int64. Each pass is a
+    plain loop over contiguous numbers, which vectorises (a loop over t inside the loop over the
+    numbers did not: the sum of two threads' liver-x10 forces took 108 us). Two threads' ranges are
+    cut where a span starts or ends (two_span_cuts), each piece one pass."""
     if F.shape[0] == 2:
-        for k in range(lo, hi):
-            f[k] = F[0, k] + F[1, k]
+        c = two_span_cuts(spans, lo, hi)
+        for i in range(5):
+            x, y = c[i], c[i + 1]
+            first, second = in_span(spans, 0, x), in_span(spans, 1, x)
+            if first and second:
+                for k in range(x, y):
+                    f[k] = F[0, k] + F[1, k]
+            elif first:
+                for k in range(x, y):
+                    f[k] = F[0, k]
+            elif second:
+                for k in range(x, y):
+                    f[k] = F[1, k]
+            else:
+                for k in range(x, y):
+                    f[k] = 0.0
         return
     for k in range(lo, hi):
-        f[k] = F[0, k]
-    for t in range(1, F.shape[0]):
-        for k in range(lo, hi):
+        f[k] = 0.0
+    for t in range(F.shape[0]):
+        a, b = span_part(spans, t, lo, hi)
+        for k in range(a, b):
             f[k] += F[t, k]
 
 
 @nb.njit(inline="always", **HOT)
-def sum_threads(F, f):
-    """f (N, 3) = the sum over t of F[:, :N] (F (T, M, 3), M >= N), in the order of t, on all threads
-    (one range of the numbers each). Inlined, so that the threaded kernel that calls it holds a
-    parallel loop of its own (a compiled function that only calls parallel ones need not start
-    numba's threads when it is loaded from the cache)."""
+def thread_range(spans, n, p, parts):
+    """The components [lo, hi) of the n that thread p of ``parts`` sums and updates: for two threads
+    of two spans, split in the middle of their overlap (rounded to 8 components, a cache line), so that
+    each thread reads the other's forces on half the overlap and its own elsewhere; else the p-th of
+    ``parts`` equal ranges."""
+    if parts == 2 and spans.shape[0] == 2:
+        mid = (3 * (spans[1, 0] + spans[0, 1]) // 2) // 8 * 8
+        mid = min(max(mid, 0), n)
+        return (0, mid) if p == 0 else (mid, n)
+    return p * n // parts, (p + 1) * n // parts
+
+
+@nb.njit(inline="always", **HOT)
+def sum_threads(spans, F, f):
+    """f (N, 3) = the sum over t of F[:, :N] (F (T, M, 3), M >= N) inside each thread's span (spans (T,
+    2) int64), in the order of t, on all threads (thread_range's range of the numbers each). Inlined,
+    so that the threaded kernel that calls it holds a parallel loop of its own (a compiled function
+    that only calls parallel ones need not start numba's threads when it is loaded from the cache)."""
     n = f.size
     parts = F.shape[0]
     flat = f.reshape(n)
     Fs = F.reshape(parts, F.shape[1] * 3)
     for p in nb.prange(parts):
-        sum_range(Fs, flat, p * n // parts, (p + 1) * n // parts)
+        lo, hi = thread_range(spans, n, p, parts)
+        sum_range(spans, Fs, flat, lo, hi)
 
 
 # Each thread's share (its force array zeroed, then its chunk added) runs in a compiled call of its own:
 # inlined into a parallel loop, the block code trips numba's array analysis (an AssertionError on the
 # lanes' tuples).
 @nb.njit(**HOT)
-def _stvk_chunk(tets, geo, prm, everywhere, W, b0, b1, u, f):
-    f[:, :] = 0.0
+def _stvk_chunk(tets, geo, prm, everywhere, W, b0, b1, u, f, span):
+    f[span[0] : span[1], :] = 0.0
     stvk_blocks(tets, geo, prm, everywhere, W, b0, b1, u, f)
 
 
 @nb.njit(**HOT)
-def _corotational_chunk(tets, geo, prm, everywhere, W, R, Fb, b0, b1, u, f):
-    f[:, :] = 0.0
+def _corotational_chunk(tets, geo, prm, everywhere, W, R, Fb, b0, b1, u, f, span):
+    f[span[0] : span[1], :] = 0.0
     corotational_blocks(tets, geo, prm, everywhere, W, R, Fb, b0, b1, u, f)
 
 
 @nb.njit(**HOT)
-def _linear_chunk(cols, et, row_start, lo, hi, u, f):
+def _linear_chunk(cols, et, row_start, lo, hi, u, f, span):
+    f[span[0] : span[1], :] = 0.0
     f1 = f.reshape(-1)
-    f1[:] = 0.0
     linear_rows(cols, et.reshape(-1), row_start, lo, hi, u.reshape(-1), f1)
 
 
@@ -174,58 +257,58 @@ def _linear_chunk(cols, et, row_start, lo, hi, u, f):
 @nb.njit(**PAR)
 def stvk_unsummed(data, scratch, u, f):
     (tets, geo, prm, everywhere), chunks = data
-    W, F = scratch
+    W, spans, F = scratch
     for t in nb.prange(chunks.shape[0] - 1):
-        _stvk_chunk(tets, geo, prm, everywhere, W[t], chunks[t], chunks[t + 1], u, F[t])
+        _stvk_chunk(tets, geo, prm, everywhere, W[t], chunks[t], chunks[t + 1], u, F[t], spans[t])
 
 
 @nb.njit(**PAR)
 def corotational_unsummed(data, scratch, u, f):
     (tets, geo, prm, everywhere), chunks = data
-    W, R, Fb, F = scratch
+    W, R, Fb, spans, F = scratch
     for t in nb.prange(chunks.shape[0] - 1):
-        _corotational_chunk(tets, geo, prm, everywhere, W[t], R[t], Fb[t], chunks[t], chunks[t + 1], u, F[t])
+        _corotational_chunk(tets, geo, prm, everywhere, W[t], R[t], Fb[t], chunks[t], chunks[t + 1], u, F[t], spans[t])
 
 
 @nb.njit(**PAR)
 def linear_tm_unsummed(data, scratch, u, f):
     (_, cols, et, row_start), chunks = data
-    F = scratch[-1]
+    spans, F = scratch[-2], scratch[-1]
     for t in nb.prange(chunks.shape[0] - 1):
-        _linear_chunk(cols, et, row_start, chunks[t], chunks[t + 1], u, F[t])
+        _linear_chunk(cols, et, row_start, chunks[t], chunks[t + 1], u, F[t], spans[t])
 
 
 @nb.njit(**PAR)
 def stvk_force_threaded(data, scratch, u, f):
     """stvk.stvk_force on the chunks' threads.
 
-    data: Threaded(BlockData, chunks over blocks).   scratch: threaded_scratch(block_scratch, T, N).
+    data: Threaded(BlockData, chunks over blocks).   scratch: threaded_scratch(block_scratch, T, N, float64, spans).
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
     """
     stvk_unsummed(data, scratch, u, f)
-    sum_threads(scratch[-1], f)
+    sum_threads(scratch[-2], scratch[-1], f)
 
 
 @nb.njit(**PAR)
 def corotational_force_threaded(data, scratch, u, f):
     """corotational.corotational_force on the chunks' threads.
 
-    data: Threaded(BlockData, chunks over blocks).   scratch: threaded_scratch(corotational_scratch, T, N).
+    data: Threaded(BlockData, chunks over blocks).   scratch: threaded_scratch(corotational_scratch, T, N, float64, spans).
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
     """
     corotational_unsummed(data, scratch, u, f)
-    sum_threads(scratch[-1], f)
+    sum_threads(scratch[-2], scratch[-1], f)
 
 
 @nb.njit(**PAR)
 def linear_tm_force_threaded(data, scratch, u, f):
     """tensor_mass.linear_tm_force (f = -K u) on the chunks' threads, each a range of vertex rows.
 
-    data: Threaded(TensorData, chunks over vertices).   scratch: threaded_scratch(no_scratch, T, N).
+    data: Threaded(TensorData, chunks over vertices).   scratch: threaded_scratch(no_scratch, T, N, float64, spans).
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
     """
     linear_tm_unsummed(data, scratch, u, f)
-    sum_threads(scratch[-1], f)
+    sum_threads(scratch[-2], scratch[-1], f)
 
 
 def block_chunks(n_blocks: int, threads: int) -> np.ndarray:
@@ -248,11 +331,12 @@ def linear_tm_kernel(tm, threads: int = 1, dtype=np.float64) -> tuple:
     data = tm.kernel_data(dtype)
     if threads == 1:
         return linear_tm_force, linear_tm_energy, data, no_scratch
+    chunks = row_chunks(data.row_start, threads)
     return (
         THREADED[linear_tm_force.__name__],
         partial(threaded_energy, linear_tm_energy),
-        Threaded(data, row_chunks(data.row_start, threads)),
-        scratch_factory(no_scratch, threads, tm.n_vertices, dtype),
+        Threaded(data, chunks),
+        scratch_factory(no_scratch, threads, tm.n_vertices, dtype, row_spans(data.cols, data.row_start, chunks)),
     )
 
 
@@ -274,7 +358,7 @@ def block_kernel(force, energy, scratch, data, n_vertices: int, threads: int) ->
         THREADED[force.__name__],
         partial(threaded_energy, energy),
         Threaded(data, chunks),
-        scratch_factory(scratch, threads, n_vertices, data.geo.dtype),
+        scratch_factory(scratch, threads, n_vertices, data.geo.dtype, block_spans(data.tets, chunks)),
     )
 
 

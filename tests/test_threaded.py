@@ -130,31 +130,39 @@ def test_the_threads_run_in_a_layer_two_python_threads_may_enter_at_once():
 @pytest.mark.parametrize("parts", [1, 2, 3])
 def test_the_threaded_update_sums_the_threads_forces_with_the_serial_updates_bits(threads, parts):
     """Symplectic Euler's update of a threaded model (steppers.se_sum_update_threads) adds the threads'
-    forces F (T, N + pad, 3) as it updates, each thread a range of the components. It must write the
-    force threaded.sum_threads writes and update every component exactly as the serial update does
-    after that sum (the same arithmetic on each number: equal bits), and count the same components
-    past the bound, NaN included; a range left out or run twice would show as a difference. Two
-    threads take the fused loop, three the sum first; 3 parts on 2 cores checks that the ranges do not
-    depend on the thread count."""
+    forces F (T, N + pad, 3) as it updates, each thread a range of the components, each F[t] read
+    inside its span alone. It must write the force threaded.sum_threads writes and update every
+    component exactly as the serial update does after that sum (the same arithmetic on each number:
+    equal bits), and count the same components past the bound, NaN included; a range left out or run
+    twice would show as a difference. The spans overlap, leave vertices to one thread or to none (a
+    vertex of no tetrahedron), and F holds numbers outside them, which neither sum may read. Two
+    threads take the fused loop, three the sum first; 3 parts on 2 cores checks that the ranges do
+    not depend on the thread count."""
     from realtime.steppers import se_sum_update_threads, se_update
     from realtime.threaded import sum_threads
 
     rng = np.random.default_rng(3)
     n = 1001
     F = rng.standard_normal((threads, n + 5, 3))
+    spans = np.array([[0, 600], [450, 990], [300, 700]])[:threads]  # 990 .. 1000 in no span
+    inside = np.zeros((threads, n, 3), bool)
+    for t, (a, b) in enumerate(spans):
+        inside[t, a:b] = True
     per_dof = np.abs(rng.standard_normal((3 * n, 2)))
     per_dof[::7, :] = 0.0  # constrained components
     u, v = rng.standard_normal(3 * n), rng.standard_normal(3 * n)
     u[5], F[0, 3, 2] = np.nan, 1e12  # one NaN, one past the bound after the step (component 11)
     summed = np.empty((n, 3))
-    sum_threads(F, summed)
-    expected = F[0, :n] + F[1, :n] + (F[2, :n] if threads == 3 else 0.0)
+    sum_threads(spans, F, summed)
+    expected = np.zeros((n, 3))
+    for t in range(threads):
+        expected = expected + np.where(inside[t], F[t, :n], 0.0)
     assert np.array_equal(summed, expected)
     serial = [u.copy(), v.copy()]
     threaded = [u.copy(), v.copy()]
     f = np.full(3 * n, np.nan)
     out_serial = se_update(per_dof.reshape(-1), (), *serial, summed.reshape(-1), 1e-3, 0.99, 1e3, 1)
-    out_threaded = se_sum_update_threads(per_dof.reshape(-1), (F,), *threaded, f, 1e-3, 0.99, 1e3, parts)
+    out_threaded = se_sum_update_threads(per_dof.reshape(-1), (spans, F), *threaded, f, 1e-3, 0.99, 1e3, parts)
     assert out_serial == out_threaded == 2
     assert np.array_equal(f, summed.reshape(-1))
     for a, b in zip(serial, threaded, strict=True):
@@ -163,3 +171,42 @@ def test_the_threaded_update_sums_the_threads_forces_with_the_serial_updates_bit
     held = slice(0, None, 7)  # the constrained components: v = 0, u where it was
     assert np.array_equal(serial[0][held], u[held], equal_nan=True)
     assert not serial[1][held].any()
+
+
+@pytest.mark.parametrize("model_name", THREADED_MODELS)
+def test_each_thread_writes_forces_inside_its_span_alone(model_name, rng):
+    """A threaded kernel's chunk zeroes its force array inside its span only and the sums read it
+    there only (threaded.force_spans): a write outside would be added to nothing and kept to the next
+    step. Every F[t] starts filled with NaN; after a force the NaN outside the span are untouched and
+    none is left inside, and the force equals the serial one. On the liver numbered along the body the
+    two spans of an element model overlap on little more than the interface of the two chunks (the
+    vertices both hold): the numbering puts the interface of the mesh's two halves between the halves'
+    own vertices, and the chunks, whole blocks, differ from the halves by the corners of fewer than a
+    block of tetrahedra."""
+    from realtime.blocks import BLOCK
+    from realtime.threaded import UNSUMMED
+
+    mesh = stored_mesh("liver-renumbered")
+    mat = Material(2.8e4, 0.4, 1000.0, law="stvk")
+    serial = build_model(model_name, mesh.points, mesh.tets, mat)
+    threaded = build_model(model_name, mesh.points, mesh.tets, mat, threads=2)
+    scratch = threaded.new_scratch()
+    spans, F = scratch[-2], scratch[-1]
+    F[:] = np.nan
+    u = 1e-4 * rng.standard_normal(mesh.points.shape)
+    f = np.zeros_like(u)
+    UNSUMMED[threaded.force_kernel.__name__](threaded.data, scratch, u, f)
+    for t, (a, b) in enumerate(spans):
+        assert not np.isnan(F[t, a:b]).any()
+        assert np.isnan(F[t, :a]).all() and np.isnan(F[t, b:]).all()
+    threaded.force_kernel(threaded.data, scratch, u, f)
+    fs = serial.internal_force(u)
+    assert np.abs(f - fs).max() <= 64 * EPS * np.abs(fs).max()
+    if model_name != "linear-tm":
+        tets, split = threaded.data.data.tets, BLOCK * threaded.data.chunks[1]
+        interface = np.intersect1d(tets[:split], tets[split:])
+        assert spans[1, 0] <= interface.min() and interface.max() < spans[0, 1]
+        halves = np.intersect1d(mesh.tets[: -(-len(mesh.tets) // 2)], mesh.tets[-(-len(mesh.tets) // 2) :])
+        between = abs(split - -(-len(mesh.tets) // 2))
+        assert between < BLOCK
+        assert spans[0, 1] - spans[1, 0] <= len(halves) + 4 * between
