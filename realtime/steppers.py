@@ -19,7 +19,7 @@ from numba.experimental import structref
 from .blocks import U1, U2
 from .linsolve import factor_solve
 from .model import _tool_value
-from .threaded import in_span, sum_range, thread_range, two_span_cuts
+from .threaded import sum_range, thread_range
 
 _JIT = dict(nogil=True, cache=True)
 
@@ -178,33 +178,11 @@ def se_update(p1, scratch, u1, v1, f1, dt, damp, bound, parts):
 
 @nb.njit(inline="always", **_JIT)
 def _se_sum_update(p1, spans, F, u1, v1, f1, dt, damp, bound, lo, hi):
-    """f1[k] = the sum over t of F[t, k] inside t's span (in the order of t: threaded.sum_range's
-    bits), and _se_component under it, for k = lo .. hi - 1; F (T, M) the threads' flat forces (M >=
-    3N), spans (T, 2) int64 (threaded.force_spans). Two threads' forces are added in the update's own
-    loop, which then reads no f, one loop for each piece between the spans' ends
-    (threaded.two_span_cuts: both, either or neither); for more, the range is summed first."""
-    out = 0
-    if F.shape[0] == 2:
-        c = two_span_cuts(spans, lo, hi)
-        for i in range(5):
-            x, y = np.uint64(c[i]), np.uint64(c[i + 1])
-            first, second = in_span(spans, 0, c[i]), in_span(spans, 1, c[i])
-            if first and second:
-                for k in range(x, y):
-                    fk = F[0, k] + F[1, k]
-                    f1[k] = fk
-                    out += _se_component(p1, k, fk, u1, v1, dt, damp, bound)
-            elif first or second:
-                t = 0 if first else 1
-                for k in range(x, y):
-                    fk = F[t, k]
-                    f1[k] = fk
-                    out += _se_component(p1, k, fk, u1, v1, dt, damp, bound)
-            else:
-                for k in range(x, y):
-                    f1[k] = 0.0
-                    out += _se_component(p1, k, 0.0, u1, v1, dt, damp, bound)
-        return out
+    """f1[k] = the sum over t of F[t, k] inside t's span (threaded.sum_range), then _se_component under
+    it, for k = lo .. hi - 1; F (T, M) the threads' flat forces (M >= 3N), spans (T, 2) int64
+    (threaded.force_spans). Two plain loops: one that summed as it updated was slower (on liver-x10,
+    two threads, the update alone in a loop: 38 us a step, against 26 for the sum and then the update;
+    its reads and writes of seven arrays at once against three and five)."""
     sum_range(spans, F, f1, lo, hi)
     return _se_update(p1, u1, v1, f1, dt, damp, bound, lo, hi)
 
@@ -223,9 +201,7 @@ def se_sum_update_threads(p1, scratch, u1, v1, f1, dt, damp, bound, parts):
     over its range of components (threaded.thread_range), writes them to f1 and updates them. The
     ranges are threaded.sum_threads', so each thread works on numbers it has just summed, in its
     core's cache (the serial update of a threaded model's force cost 53 us on liver-x10, against 25
-    after a serial force, reading the half the other core wrote); and the sum is not a pass of its
-    own, which wrote f for the update to read again (on liver-x10 the two passes took 45 us, the
-    update alone 30)."""
+    after a serial force, reading the half the other core wrote)."""
     n = u1.shape[0]
     spans, F = scratch[-2], scratch[-1]
     Fs = F.reshape(F.shape[0], F.shape[1] * 3)
