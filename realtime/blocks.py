@@ -107,9 +107,10 @@ def block_data(points: np.ndarray, tets: np.ndarray, material: Material | Materi
     The tetrahedra are grouped by material, each group in Morton order (neighbours share blocks; the
     kernels sum over all of them, so their order is internal) and padded to whole blocks with
     zero-volume tetrahedra on the first vertex of the group's last one, which contribute nothing (and
-    keep a threaded chunk's forces in the range of vertices its own tetrahedra span): every block holds one material, whose
-    law_params are its row of prm, so the kernels read the coefficients once a block. Block b holds, for
-    its tetrahedron q (row b BLOCK + q of the returned tets), with G = GEO_ROWS:
+    keep a threaded chunk's forces in the range of vertices its own tetrahedra span): every block
+    holds one material, whose law_params are its row of prm, so the kernels read the coefficients
+    once a block. Block b holds, for its tetrahedron q (row b BLOCK + q of the returned tets), with
+    G = GEO_ROWS:
     geo[(G b + 3 a + c) BLOCK + q] = g_{a+1, c} (1/m, a, c = 0..2; g_0 = -(g_1 + g_2 + g_3)),
     geo[(G b + 9) BLOCK + q] = V (m^3) and geo[(G b + 10 + c) BLOCK + q] = a_c, the material's unit
     fibre direction at the centroid (zeros for an isotropic material).

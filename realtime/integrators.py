@@ -104,9 +104,9 @@ class _Prepared:
     # symplectic Euler's (force, update): the model's kernel and se_update, or a threaded model's unsummed
     # kernel (threaded.UNSUMMED) and se_sum_update_threads, which adds the threads' arrays as it updates
     se_kernels: tuple
-    # a linear tensor-mass model's shared tensors and their generation when it was built: a model that
-    # cut (realtime.models.cut) has changed since is refused (Model.check_current), without looking
-    # the two up in Model.extra at every call
+    # a linear tensor-mass model's shared tensors and their generation when it was built: a model whose
+    # tensors a cut (realtime.models.cut) has changed since is refused (Model.check_current), without
+    # looking the two up in Model.extra at every call
     tensors: object = None
     generation: int = 0
     version: int = 0  # set_forces calls: a stored acceleration from an older version is stale
