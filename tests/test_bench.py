@@ -55,7 +55,8 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     assert roof["vector_bits"] in (128, 256, 512)
     rows = {r["name"]: r for r in out["results"]}
     haptic = {f"{m}, one step a call (haptic loop)" for m in ("linear-tm", "stvk-tm")}
-    placed = {"linear-tm", "stvk-tm", "mass-spring", "scipy-bsr-matvec"} | haptic
+    phases = {"stvk-tm, element arithmetic alone", "stvk-tm, gather and scatter alone"}
+    placed = {"linear-tm", "stvk-tm", "mass-spring", "scipy-bsr-matvec"} | haptic | phases
     for name in placed:
         r = rows[name]
         assert (
@@ -71,6 +72,11 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
         assert r["precision"] == "float32" and "roofline_us" not in r
         assert r["speedup"] == pytest.approx(rows[m]["step_us"] / r["step_us"])
     threaded = [r for r in out["results"] if r.get("threads")]
+    for name in phases:  # each phase of stvk-tm's force beside the whole, where the whole was timed
+        r = rows[name]
+        assert r["part_of"] == "stvk-tm, force alone"
+        if threaded:
+            assert r["share"] == pytest.approx(r["step_us"] / rows[r["part_of"]]["step_us"])
     for r in threaded:  # the step and the force alone, each beside its one-thread row of the same rounds
         assert r["speedup"] == pytest.approx(rows[r["versus"]]["step_us"] / r["step_us"])
         assert r["versus"] == r["name"].replace(f", {r['threads']} threads", "")
@@ -105,6 +111,40 @@ def test_the_force_alone_rows_compute_the_models_force(threads):
     f = np.zeros_like(u)
     _force_loop(model.force_kernel, model.data, model.new_scratch(), u, f, 2)
     assert np.array_equal(f, model.internal_force(u)) and np.abs(f).max() > 0
+
+
+def test_the_phase_rows_do_the_phases_of_stvk_tms_force():
+    """The rows "stvk-tm, element arithmetic alone" and "stvk-tm, gather and scatter alone" time loops of
+    their own; each must do its phase of the kernel (a loop that called nothing would time nothing). On
+    a box of one block (48 tetrahedra): the gather, then the arithmetic loop, then the scatter give the
+    model's force; and the gather-and-scatter loop leaves in f the scatter of the displacement
+    differences themselves as the scatter reads them (the gather writes corner a's component r where
+    the scatter reads corner r's component a: f_{a+1, r} -= u_{r+1, a} - u_{0, a}, f_0 += their sum),
+    as numpy adds them (to round-off: the order of the sums)."""
+    from meshes import structured_box
+    from realtime import Material, build_model
+    from realtime.blocks import BLOCK, gather, scatter_block
+    from verification.bench import _gather_scatter_loop, _stvk_arithmetic_loop
+
+    mesh = structured_box((0.02, 0.02, 0.02), (2, 2, 2))
+    model = build_model("stvk-tm", mesh.points, mesh.tets, Material(1e5, 0.3, 1000.0, law="stvk"))
+    tets = model.data.tets
+    assert len(tets) == BLOCK
+    u = 1e-3 * np.random.default_rng(2).standard_normal(mesh.points.shape)
+    (W,) = model.new_scratch()
+    f = np.zeros_like(u)
+    gather(tets.reshape(-1), 0, u.reshape(-1), W)
+    _stvk_arithmetic_loop(model.data, W, 1)
+    scatter_block(tets.reshape(-1), 0, W, f.reshape(-1), model.data.everywhere)
+    expected = model.internal_force(u)
+    assert np.abs(f - expected).max() <= 16 * np.finfo(float).eps * np.abs(expected).max()
+    _gather_scatter_loop(model.data, W, u, f, 2)
+    d = (u[tets[:, 1:]] - u[tets[:, :1]]).transpose(0, 2, 1)  # (P, 3, 3): [a, r] = u_{r+1, a} - u_{0, a}
+    moved = np.zeros_like(u)
+    np.add.at(moved, tets[:, 1:], -d)
+    np.add.at(moved, tets[:, 0], d.sum(axis=1))
+    assert np.abs(moved).max() > 0
+    assert np.abs(f - moved).max() <= 16 * np.finfo(float).eps * np.abs(u).max()
 
 
 def test_bench_peers_without_the_peers_says_how_to_get_them(capsys):

@@ -20,6 +20,9 @@ asserted in the tests: this command reports it.
 Each row with a fixed amount of work (linear-tm, stvk-tm, mass-spring, scipy's product) also gets its
 roofline (verification.roofline): the least time its flops and bytes allow at this core's measured FMA
 peak and at the triad bandwidth for data of its size, and the fraction of that bound the row achieves.
+The rows "stvk-tm, element arithmetic alone" and "stvk-tm, gather and scatter alone" split stvk-tm's
+force in its two phases, each with its roofline (roofline.stvk_phase_work) and its share of the row
+"stvk-tm, force alone": where the kernel's time goes.
 """
 
 from __future__ import annotations
@@ -34,11 +37,13 @@ import numpy as np
 from meshes import stored_mesh
 from meshes.store import RENUMBERED, STORED
 from realtime import Loading, Material, State, SymplecticEuler, build_model
+from realtime.blocks import BLOCK, GEO_ROWS_U, HOT, gather, scatter_block
 from realtime.geometry import unique_edges
 from realtime.models import FLOAT32_MODELS, nonlinear_fraction
 from realtime.quasistatic import QuasiStatic
+from realtime.stvk import stvk_block
 
-from .roofline import Roofline, bsr_work, step_work, thread_loops, thread_scaling
+from .roofline import Roofline, bsr_work, step_work, stvk_phase_work, thread_loops, thread_scaling
 from .runner import git_commit, log, versions
 
 MESHES = ("liver", "liver-x10", "liver-x10-renumbered")
@@ -122,6 +127,50 @@ def _force_case(model, u, n):
         _force_loop(model.force_kernel, model.data, scratch, u, f, n)
 
     return fn
+
+
+# stvk-tm's force in its two phases, compiled like its kernel (blocks.HOT) but not cached: numba checks
+# a cached function against its own file only, and these inline the engine's block code.
+_PHASE_JIT = {**HOT, "cache": False}
+
+
+@nb.njit(**_PHASE_JIT)
+def _stvk_arithmetic_loop(data, W, n):
+    """n passes of stvk-tm's element arithmetic over every block of BlockData ``data``, in place on W
+    (9 BLOCK,), as stvk_block: no gather, no scatter. The bench gives it a new scratch's zeros (the
+    flops do not depend on the values, and zeros stay zeros, never denormal)."""
+    tets, geo, prm, _ = data
+    for _ in range(n):
+        for b in range(tets.shape[0] // BLOCK):
+            stvk_block(W, geo, np.uint64(b) * GEO_ROWS_U, prm[b], False)
+
+
+@nb.njit(**_PHASE_JIT)
+def _gather_scatter_loop(data, W, u, f, n):
+    """n passes of stvk-tm's gather of u (N, 3) m and scatter into f (N, 3) N over every block of
+    BlockData ``data`` (f zeroed first, as the kernel does), with no element arithmetic between."""
+    tets, _, _, everywhere = data
+    t1, u1, f1 = tets.reshape(-1), u.reshape(-1), f.reshape(-1)
+    for _ in range(n):
+        f[:] = 0.0
+        for b in range(tets.shape[0] // BLOCK):
+            gather(t1, b * BLOCK, u1, W)
+            scatter_block(t1, b * BLOCK, W, f1, everywhere)
+
+
+def _phase_cases(model, u, n, base) -> list[dict]:
+    """stvk-tm's force split in its phases, each a row beside "stvk-tm, force alone" (its share of it):
+    the element arithmetic alone and the gather and scatter alone, placed on their rooflines
+    (roofline.stvk_phase_work). They show where the kernel's time goes: the arithmetic's fraction of
+    the FMA roofline is the kernel's once its indexed loads and stores are set apart."""
+    (W,), f = model.new_scratch(), np.zeros_like(u)
+    data = model.data
+    return [
+        {**base, "name": "stvk-tm, element arithmetic alone", "model": "stvk-tm", "phase": "arithmetic", "n": n,
+         "part_of": "stvk-tm, force alone", "fn": lambda: _stvk_arithmetic_loop(data, W, n)},
+        {**base, "name": "stvk-tm, gather and scatter alone", "model": "stvk-tm", "phase": "gather and scatter",
+         "n": n, "part_of": "stvk-tm, force alone", "fn": lambda: _gather_scatter_loop(data, W, u, f, n)},
+    ]  # fmt: skip
 
 
 def _step_case(integ, model, state, dt, n, calls=1):
@@ -272,6 +321,7 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                     "fn": _force_case(model, u0, n),
                 },
             ]
+        cases += _phase_cases(built["stvk-tm"], u0, n, base)
         # what the machine itself gains from the threads, in the same rounds: the roofline's loops on one
         # thread and on all, the triad on as many bytes as stvk-tm's step streams
         n_edges = len(unique_edges(mesh.tets))
@@ -367,6 +417,8 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
             c.update(c.pop("probe", dict)())
             if c["name"] == "scipy-bsr-matvec":
                 work = bsr_work(c["nnz_blocks"], mesh.n_vertices)
+            elif "phase" in c:
+                work = stvk_phase_work(c["phase"], mesh.n_vertices, mesh.n_tets)
             elif c["name"] == c["model"] or c["name"].startswith(f"{c['model']}, one step"):
                 work = step_work(c["model"], mesh.n_vertices, mesh.n_tets, n_edges)
             else:  # a variant (fibres, penalty) does more than the counted kernel
@@ -378,6 +430,9 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
                 # measured in the same rounds as the one-thread float64 row it is a variant of
                 one = next(r for r in rows if r["mesh"] == name and r["name"] == c["versus"])
                 c["speedup"] = one["step_us"] / c["step_us"]
+            whole = next((r for r in rows if r["mesh"] == name and r["name"] == c.get("part_of")), None)
+            if c["mesh"] == name and whole is not None:  # "force alone" is timed on a machine with threads
+                c["share"] = c["step_us"] / whole["step_us"]
     return {
         "machine": {**machine(), "roofline": roof.summary(), "thread_scaling": thread_ceilings},
         "results": rows,
@@ -411,6 +466,8 @@ def format_table(out: dict) -> str:
                 lines.append(f"  {r['name']:<52} skipped: {r['skipped']}")
                 continue
             note = f"  ({r['nonlinear_fraction']:.0%} of tetrahedra non-linear)" if "nonlinear_fraction" in r else ""
+            if "share" in r:
+                note += f"  {r['share']:.0%} of {r['part_of']}"
             if "speedup" in r:
                 note += f"  {r['speedup']:.2f}x its {'float64' if r.get('precision') else 'one-thread'} row"
             if "roofline_us" in r:

@@ -174,6 +174,25 @@ KERNEL_WORK = {
     "linear-tm": {"vertex": (0.0, 8.0), "edge": (39.0, 80.0)},
     "mass-spring": {"edge": (30.0, 32.0)},
 }
+#: stvk-tm's force in its two phases (the bench's rows "stvk-tm, element arithmetic alone" and
+#: "stvk-tm, gather and scatter alone"), per tetrahedron: the element arithmetic is KERNEL_WORK's
+#: flops less the gather's 9 and the scatter's 18, on the geometry rows the isotropic loop reads; the
+#: gather and the scatter are those 27 flops and the 4 int64 indices, and read u and write f once a
+#: vertex (VERTEX_STATE_BYTES, added per vertex). The indexed loads and stores of u and f (12 and 24
+#: a tetrahedron, from the caches) are in neither count: the second row's fraction shows what they cost.
+STVK_PHASE_WORK = {
+    "arithmetic": (230.0 - 27.0, 8.0 * (GEO_ROWS - 3)),
+    "gather and scatter": (27.0, 32.0),
+}
+
+
+def stvk_phase_work(phase: str, n_vertices: int, n_tets: int) -> tuple[float, float]:
+    """(flops, bytes) of one pass of ``phase`` (a key of STVK_PHASE_WORK) of stvk-tm's force."""
+    flops, nbytes = STVK_PHASE_WORK[phase]
+    state = VERTEX_STATE_BYTES * n_vertices if phase == "gather and scatter" else 0.0
+    return flops * n_tets, nbytes * n_tets + state
+
+
 #: Symplectic Euler's update per vertex: 3 components of (2 FMA + 3 mul/add) flops; bytes: the per-dof
 #: table (3 float64), u and v read and written, f read: (3 + 2 + 2 + 1) x 8 x 3.
 UPDATE_WORK = (3 * 7.0, 3 * 8 * 8.0)
