@@ -11,6 +11,7 @@ from realtime.geometry import (
     InvalidMeshError,
     boundary_faces,
     check_tets,
+    inverse_order,
     min_altitudes,
     orient_positive,
     red_refinement,
@@ -134,15 +135,13 @@ class TetMesh:
 
     def renumbered(self) -> tuple[TetMesh, np.ndarray, np.ndarray]:
         """The same mesh numbered along the body (realtime.geometry.spatial_numbering: the tetrahedra in
-        Morton order, the vertices in the order they first appear in them), which the real-time engine
+        Morton order, the vertices in the order they first appear in them, those only the first half of
+        the tetrahedra holds before those both halves hold, before the rest), which the real-time engine
         steps faster, more so on threads; with vertex_order (N,) and tet_order (M,) int64, the old index
         of each new vertex and tetrahedron (a field on the old vertices maps by ``u[vertex_order]``).
         Tags and cell fields follow their vertices and tetrahedra."""
         vertex_order, tet_order = spatial_numbering(self.points, self.tets)
-        new_vertex = np.empty_like(vertex_order)
-        new_vertex[vertex_order] = np.arange(len(vertex_order))
-        new_tet = np.empty_like(tet_order)
-        new_tet[tet_order] = np.arange(len(tet_order))
+        new_vertex, new_tet = inverse_order(vertex_order), inverse_order(tet_order)
         mesh = TetMesh(
             self.points[vertex_order],
             new_vertex[self.tets[tet_order]],

@@ -38,6 +38,15 @@ def _cofactors(r):
 
 
 @nb.njit(inline="always", **HOT)
+def _norm2(r):
+    """|R|_F^2 of a row-major 9-tuple."""
+    return (
+        r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3] + r[4] * r[4]
+        + r[5] * r[5] + r[6] * r[6] + r[7] * r[7] + r[8] * r[8]
+    )  # fmt: skip
+
+
+@nb.njit(inline="always", **HOT)
 def _mix(a, r, b, c):
     """a r + b c, r and c row-major 9-tuples."""
     return (
@@ -55,11 +64,7 @@ def _polar_step(r, scaled):
     c, det = _cofactors(r)
     gam = 1.0
     if scaled:
-        nr = r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3] + r[4] * r[4] + r[5] * r[5] + r[6] * r[6]
-        nr += r[7] * r[7] + r[8] * r[8]
-        nc = c[0] * c[0] + c[1] * c[1] + c[2] * c[2] + c[3] * c[3] + c[4] * c[4] + c[5] * c[5] + c[6] * c[6]
-        nc += c[7] * c[7] + c[8] * c[8]
-        gam = np.sqrt(np.sqrt(nc / (det * det * nr)))
+        gam = np.sqrt(np.sqrt(_norm2(c) / (det * det * _norm2(r))))
     n = _mix(0.5 * gam, r, 0.5 / (gam * det), c)
     change = (
         (n[0] - r[0]) ** 2 + (n[1] - r[1]) ** 2 + (n[2] - r[2]) ** 2

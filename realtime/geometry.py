@@ -209,6 +209,13 @@ def spatial_numbering(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray,
     return np.concatenate([by_first[np.argsort(group, kind="stable")], unused]).astype(np.int64), tet_order
 
 
+def inverse_order(order: np.ndarray) -> np.ndarray:
+    """(K,) int64: the new index of each old item, for ``order`` (K,) int64 the old index of each new one."""
+    new = np.empty(len(order), dtype=np.int64)
+    new[order] = np.arange(len(order))
+    return new
+
+
 def renumbered(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The mesh (points (N, 3) m, tets (M, 4) int) renumbered along the body (spatial_numbering): new
     points (N, 3), new tets (M, 4) int64 (the same tetrahedra, corners in the same order, so the same
@@ -216,9 +223,7 @@ def renumbered(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.nda
     numbering maps to the new one by ``u[vertex_order]``, and back by ``u_old[vertex_order] = u``.
     Build the model on the new mesh once, before a simulation: it steps faster, more so on threads."""
     vertex_order, tet_order = spatial_numbering(points, tets)
-    new_of_old = np.empty(len(vertex_order), dtype=np.int64)
-    new_of_old[vertex_order] = np.arange(len(vertex_order))
-    return np.asarray(points)[vertex_order], new_of_old[np.asarray(tets)[tet_order]], vertex_order
+    return np.asarray(points)[vertex_order], inverse_order(vertex_order)[np.asarray(tets)[tet_order]], vertex_order
 
 
 def red_refinement(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

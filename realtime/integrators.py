@@ -102,7 +102,7 @@ class _Prepared:
     reaction: np.ndarray  # (L, 3) N, the tools' force on the body in the last step
     threads: int  # the threads of the model's force (Model.extra), on which symplectic Euler's update runs
     # symplectic Euler's (force, update): the model's kernel and se_update, or a threaded model's unsummed
-    # kernel (threaded.UNSUMMED) and se_sum_update_threads, which adds the threads' arrays as it updates
+    # kernel (threaded.UNSUMMED) and se_sum_update_threads, which adds the threads' arrays and updates
     se_kernels: tuple
     # a linear tensor-mass model's shared tensors and their generation when it was built: a model whose
     # tensors a cut (realtime.models.cut) has changed since is refused (Model.check_current), without

@@ -116,7 +116,7 @@ class StepWork(structref.StructRefProxy):
     25 arrays passed one by one took 1.3 us of a haptic loop's call (numba's entry point unboxes each).
     The arrays are the workspace's own, so what ``set_forces`` and ``set_tool`` write in place is read
     by the next call. Fields: data and scratch (the force kernel's), points (N, 3) m, mass (N,) kg,
-    inv_mass (N,) 1/kg, free (N, 3) (the Loading's mask), per_dof (3N, 2) (_se_component),
+    inv_mass (N,) 1/kg, free (N, 3) (the Loading's mask), per_dof (3N, 2) (_se_update),
     fext (N, 3) N, tools (model.Tools), bound m, f and w (N, 3), vt (P, 3) m/s, reaction (L, 3) N, parts
     (int) the threads of a threaded model's force (1 otherwise), on which the update runs too."""
 
@@ -135,26 +135,12 @@ def step_work(data, scratch, points, mass, inv_mass, free, per_dof, fext, tools,
 
 
 @nb.njit(inline="always", **_JIT)
-def _se_component(p1, k, fk, u1, v1, dt, damp, bound):
-    """Symplectic Euler's update of component k under the force fk (N): v = (v + dt a) damp, u += dt v,
-    with u1, v1 (3N,) the flat state (m, m/s) and p1 (6N,) the flat per_dof (3N, 2): per component, the
-    free mask / m (1/kg) and the external acceleration f_ext / m on free components (m/s^2). A
-    constrained component (1/m masked to 0) keeps v = 0 and does not move (tools overwrite theirs
-    afterwards). Returns 1 if it left |u| < bound (NaN counts), else 0."""
-    b = U2 * k
-    im = p1[b]
-    vk = (v1[k] + dt * (im * fk + p1[b + U1])) * damp
-    vk = vk if im != 0.0 else 0.0
-    uk = u1[k] + dt * vk
-    v1[k] = vk
-    u1[k] = uk
-    return not abs(uk) < bound
-
-
-@nb.njit(inline="always", **_JIT)
 def _se_update(p1, u1, v1, f1, dt, damp, bound, lo, hi):
-    """_se_component of the components lo .. hi - 1 under the force f1 (3N,) N. Returns how many of
-    them left |u| < bound.
+    """Symplectic Euler's update of the components lo .. hi - 1 under the force f1 (3N,) N: v = (v + dt
+    a) damp, u += dt v, with u1, v1 (3N,) the flat state (m, m/s) and p1 (6N,) the flat per_dof (3N,
+    2): per component, the free mask / m (1/kg) and the external acceleration f_ext / m on free
+    components (m/s^2). A constrained component (1/m masked to 0) keeps v = 0 and does not move
+    (tools overwrite theirs afterwards). Returns how many of them left |u| < bound (NaN counts).
 
     One branch-free loop that reads four arrays and writes two, which LLVM vectorises (more arrays,
     and it would need more run-time overlap checks than it is willing to emit). Its indices are
@@ -165,7 +151,14 @@ def _se_update(p1, u1, v1, f1, dt, damp, bound, lo, hi):
     three-number loop, three processes)."""
     out = 0
     for k in range(np.uint64(lo), np.uint64(hi)):
-        out += _se_component(p1, k, f1[k], u1, v1, dt, damp, bound)
+        b = U2 * k
+        im = p1[b]
+        vk = (v1[k] + dt * (im * f1[k] + p1[b + U1])) * damp
+        vk = vk if im != 0.0 else 0.0
+        uk = u1[k] + dt * vk
+        v1[k] = vk
+        u1[k] = uk
+        out += not abs(uk) < bound
     return out
 
 
@@ -176,22 +169,17 @@ def se_update(p1, scratch, u1, v1, f1, dt, damp, bound, parts):
     return _se_update(p1, u1, v1, f1, dt, damp, bound, 0, u1.shape[0])
 
 
-@nb.njit(inline="always", **_JIT)
-def _se_sum_update(p1, spans, F, u1, v1, f1, dt, damp, bound, lo, hi):
-    """f1[k] = the sum over t of F[t, k] inside t's span (threaded.sum_range), then _se_component under
-    it, for k = lo .. hi - 1; F (T, M) the threads' flat forces (M >= 3N), spans (T, 2) int64
-    (threaded.force_spans). Two plain loops: one that summed as it updated was slower (on liver-x10,
-    two threads, the update alone in a loop: 38 us a step, against 26 for the sum and then the update;
-    its reads and writes of seven arrays at once against three and five)."""
-    sum_range(spans, F, f1, lo, hi)
-    return _se_update(p1, u1, v1, f1, dt, damp, bound, lo, hi)
-
-
 @nb.njit(**_JIT)
 def _se_sum_update_part(p1, spans, F, u1, v1, f1, dt, damp, bound, lo, hi):
-    """_se_sum_update in a compiled call of its own, for se_sum_update_threads' parallel loop (the
-    threaded force kernels' chunks are called the same way)."""
-    return _se_sum_update(p1, spans, F, u1, v1, f1, dt, damp, bound, lo, hi)
+    """f1[k] = the sum over t of F[t, k] inside t's span (threaded.sum_range), then _se_update, for k =
+    lo .. hi - 1; F (T, M) the threads' flat forces (M >= 3N), spans (T, 2) int64
+    (threaded.force_spans). Two plain loops: one that summed as it updated was slower (on liver-x10,
+    two threads, the update alone in a loop: 38 us a step, against 26 for the sum and then the update;
+    its reads and writes of seven arrays at once against three and five). A compiled call of its own,
+    for se_sum_update_threads' parallel loop (the threaded force kernels' chunks are called the same
+    way)."""
+    sum_range(spans, F, f1, lo, hi)
+    return _se_update(p1, u1, v1, f1, dt, damp, bound, lo, hi)
 
 
 @nb.njit(nogil=True, cache=True, parallel=True)
@@ -221,7 +209,7 @@ def _run_symplectic_euler(n, dt, t0, force, update, work, alpha, beta, u, v):
 
     ``force`` and ``update``: the model's force kernel and se_update, or for a threaded model its
     unsummed force (threaded.UNSUMMED) and se_sum_update_threads, which adds the threads' forces into f
-    as it updates (on ``work.parts`` threads). ``update`` is an argument, as the force kernel is,
+    and updates (on ``work.parts`` threads). ``update`` is an argument, as the force kernel is,
     rather than a function this loop calls: a cached loop that calls a parallel function crashed when
     loaded in a process that had not started numba's threads.
     """

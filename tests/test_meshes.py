@@ -394,9 +394,9 @@ def test_a_temporary_file_a_killed_writer_left_is_removed_by_the_next_write(tmp_
 def test_a_renumbered_mesh_is_the_same_mesh_numbered_along_the_body():
     """TetMesh.renumbered (and the stored name with "-renumbered") keeps every vertex, tetrahedron,
     orientation, tag and cell field, only renumbered: the tetrahedra in Morton order, the vertices in
-    the order they first appear in them. So the vertices only the first half of the tetrahedra touch
-    (a two-thread kernel's first thread) all come before those only the second half touches, which
-    the mesh file's own numbering did not do."""
+    the order they first appear in them, grouped by the halves that hold them. So the vertices only
+    the first half of the tetrahedra touch (a two-thread kernel's first thread) all come before those
+    only the second half touches, which the mesh file's own numbering did not do."""
     from realtime.geometry import signed_volumes
 
     mesh = stored_mesh("liver")
