@@ -208,12 +208,21 @@ def sum_range(spans, F, f, lo, hi):
 
 @nb.njit(inline="always", **HOT)
 def thread_range(spans, n, p, parts):
-    """The components [lo, hi) of the n that thread p of ``parts`` sums and updates: for two threads
-    of two spans, split in the middle of their overlap (rounded to 8 components, a cache line), so that
-    each thread reads the other's forces on half the overlap and its own elsewhere; else the p-th of
-    ``parts`` equal ranges."""
+    """The components [lo, hi) of the n that thread p of ``parts`` sums and updates. For two threads
+    of two spans, the cut lies inside their overlap [a, b), where the two threads' costs are equal, a
+    component costing one pass and one more read where both arrays are summed: m + (m - a) = (n - m)
+    + (b - m), m = (n + a + b) / 4, rounded down to 8 components (a cache line) where the overlap
+    allows. Each thread then reads the other's forces on a part of the overlap and its own elsewhere.
+    Spans that do not overlap are cut at n / 2 inside the gap between them. Otherwise the p-th of
+    ``parts`` equal ranges. (The middle of the overlap, the rule before, gave thread 0 63% of
+    linear-tm's liver-x10 update, whose spans overlap on their right: 28.9 against 17.3 us, one core
+    running each part in turn; 25.1 and 20.3 with this one.)"""
     if parts == 2 and spans.shape[0] == 2:
-        mid = (3 * (spans[1, 0] + spans[0, 1]) // 2) // 8 * 8
+        a, b = 3 * spans[1, 0], 3 * spans[0, 1]
+        if a < b:
+            mid = min(max((n + a + b) // 4 // 8 * 8, a), b)
+        else:
+            mid = min(max(n // 2 // 8 * 8, b), a)
         mid = min(max(mid, 0), n)
         return (0, mid) if p == 0 else (mid, n)
     return p * n // parts, (p + 1) * n // parts

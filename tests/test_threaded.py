@@ -109,6 +109,36 @@ def test_chunks_split_the_work_evenly_and_cover_it_once():
     assert list(rows) == [0, 1, 5]  # the first row's ten edges are half the work
 
 
+def test_two_threads_split_the_sum_and_update_where_their_costs_are_equal():
+    """threaded.thread_range cuts two threads' components where each does as much work, a component
+    costing one pass and one more read where both spans hold it, and the cut lies inside the spans'
+    overlap, so that each reads the other's forces there alone; spans that do not overlap are cut in
+    the gap between them. The middle of the overlap, the rule before, failed the first case (liver-x10
+    renumbered, linear-tm's spans: 26 432 against 17 788 units). Tolerance: the cut is rounded to a
+    cache line, 8 components, each worth at most 2 units."""
+    from realtime.threaded import thread_range
+
+    def cost(spans, lo, hi):
+        both = max(0, min(hi, 3 * spans[0, 1]) - max(lo, 3 * spans[1, 0]))
+        return hi - lo + both
+
+    for spans, n in (
+        ([[0, 8811], [5358, 11287]], 3 * 11287),  # linear-tm's on liver-x10 renumbered
+        ([[0, 6410], [4996, 11287]], 3 * 11287),  # stvk-tm's
+        ([[0, 300], [0, 300]], 900),  # both threads everywhere
+        ([[0, 10], [5, 300]], 900),  # an overlap far from the middle
+    ):
+        spans = np.array(spans)
+        (lo0, mid), (mid1, hi1) = (thread_range(spans, n, p, 2) for p in (0, 1))
+        assert lo0 == 0 and mid == mid1 and hi1 == n
+        assert 3 * spans[1, 0] <= mid <= 3 * spans[0, 1]
+        balanced = abs(cost(spans, 0, mid) - cost(spans, mid, n)) <= 2 * 2 * 8
+        assert balanced or mid in (3 * spans[1, 0], 3 * spans[0, 1])  # or as near it as the overlap allows
+    apart = np.array([[0, 100], [150, 300]])
+    assert thread_range(apart, 900, 0, 2) == (0, 448) and thread_range(apart, 900, 1, 2) == (448, 900)
+    assert thread_range(apart, 900, 1, 3) == (300, 600)  # three parts: equal ranges
+
+
 @pytest.mark.parametrize("bad", [0, -1, 1.5, "2", True])
 def test_a_bad_thread_count_is_a_one_line_error(bad):
     mesh = stored_mesh("beam")
