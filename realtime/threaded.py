@@ -20,6 +20,7 @@ runs, or why none can.
 
 from __future__ import annotations
 
+import warnings
 from functools import partial
 from typing import NamedTuple
 
@@ -124,13 +125,23 @@ def check_threads(threads) -> int:
 
 def check_threading() -> str:
     """The name of the threading layer the threaded kernels run in, the first of THREADING_LAYERS that
-    starts, or InputError saying why none could (install Debian's libgomp1, or libtbb12)."""
+    starts, or InputError saying why none could (install Debian's libgomp1, or libtbb12). A layer other
+    than GNU OpenMP works but gains nothing, and says so once (a RuntimeWarning): TBB's threads sleep
+    between steps, and two of them gave stvk-tm no speed-up on liver-x10."""
     reasons = []
     for layer in THREADING_LAYERS:
         nb.config.THREADING_LAYER = layer
         try:
             _probe(np.zeros(4))
-            return nb.threading_layer()
+            running = nb.threading_layer()
+            if running != "omp":
+                warnings.warn(
+                    f"threads > 1 run in numba's {running} threading layer, whose threads sleep between "
+                    "steps: expect no speed-up (install Debian's libgomp1 for GNU OpenMP's)",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
+            return running
         except (ValueError, RuntimeError) as e:
             reasons.append(f"{layer}: {str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__}")
     raise InputError(

@@ -156,6 +156,28 @@ def test_the_threads_run_in_a_layer_two_python_threads_may_enter_at_once():
     assert int(os.environ["GOMP_SPINCOUNT"]) >= 1_000_000
 
 
+def test_threads_on_tbb_say_once_that_they_gain_nothing():
+    """Without GNU OpenMP the threaded kernels fall back to TBB, whose threads sleep between steps (no
+    speed-up on liver-x10): threads > 1 are still accepted, and one RuntimeWarning, once a process, says
+    why and what to install. In a process of its own: numba keeps the first layer it starts, and this one has OpenMP's. TBB is
+    there on every machine make test installs (gmsh's OpenCascade depends on Debian's libtbb12)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numba\n"
+        "from realtime import threaded\n"
+        "threaded.THREADING_LAYERS = ('tbb',)\n"
+        "for _ in range(2):\n"
+        "    print(threaded.check_threads(2), numba.threading_layer())\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["2", "tbb", "2", "tbb"]
+    said = [line for line in run.stderr.splitlines() if "RuntimeWarning" in line]
+    assert len(said) == 1 and "tbb threading layer" in said[0] and "libgomp1" in said[0]
+
+
 @pytest.mark.parametrize("threads", [2, 3])
 @pytest.mark.parametrize("parts", [1, 2, 3])
 def test_the_threaded_update_sums_the_threads_forces_with_the_serial_updates_bits(threads, parts):
