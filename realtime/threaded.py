@@ -321,7 +321,8 @@ def stvk_force_threaded(data, scratch, u, f):
 def corotational_force_threaded(data, scratch, u, f):
     """corotational.corotational_force on the chunks' threads.
 
-    data: Threaded(BlockData, chunks over blocks).   scratch: threaded_scratch(corotational_scratch, T, N, float64, spans).
+    data: Threaded(BlockData, chunks over blocks).
+    scratch: threaded_scratch(corotational_scratch, T, N, float64, spans).
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
     """
     corotational_unsummed(data, scratch, u, f)

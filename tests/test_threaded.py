@@ -159,8 +159,9 @@ def test_the_threads_run_in_a_layer_two_python_threads_may_enter_at_once():
 def test_threads_on_tbb_say_once_that_they_gain_nothing():
     """Without GNU OpenMP the threaded kernels fall back to TBB, whose threads sleep between steps (no
     speed-up on liver-x10): threads > 1 are still accepted, and one RuntimeWarning, once a process, says
-    why and what to install. In a process of its own: numba keeps the first layer it starts, and this one has OpenMP's. TBB is
-    there on every machine make test installs (gmsh's OpenCascade depends on Debian's libtbb12)."""
+    why and what to install. In a process of its own: numba keeps the first layer it starts, and this
+    one has OpenMP's. TBB is there on every machine make test installs (gmsh's OpenCascade depends on
+    Debian's libtbb12)."""
     import subprocess
     import sys
 
@@ -188,8 +189,8 @@ def test_the_threaded_update_sums_the_threads_forces_with_the_serial_updates_bit
     equal bits), and count the same components past the bound, NaN included; a range left out or run
     twice would show as a difference. The spans overlap, leave vertices to one thread or to none (a
     vertex of no tetrahedron), and F holds numbers outside them, which neither sum may read. Two
-    threads take the fused loop, three the sum first; 3 parts on 2 cores checks that the ranges do
-    not depend on the thread count."""
+    threads sum their spans' pieces (two_span_cuts), three each span in turn; 3 parts on 2 cores
+    checks that the ranges do not depend on the thread count."""
     from realtime.steppers import se_sum_update_threads, se_update
     from realtime.threaded import sum_threads
 
