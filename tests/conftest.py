@@ -15,17 +15,6 @@ from verification.cli import quiet_compilers
 quiet_compilers()  # FFCx's JIT logs its compiler calls at INFO
 
 
-def _has_fma() -> bool:
-    from llvmlite import binding as llvm
-
-    features = llvm.get_host_cpu_features()
-    return bool(features.get("avx2") and features.get("fma"))
-
-
-#: For tests that read the packed instructions of compiled loops.
-needs_fma = pytest.mark.skipif(not _has_fma(), reason="this CPU has no AVX2/FMA: nothing to vectorise to")
-
-
 #: Scenes whose P2 reference (with its estimate) and P1 solution the suite's studies ask for (compare,
 #: sweep, advise, gate, report); with the stability study's variants of the cantilever they are solved
 #: ahead, on all cores, when the session runs slow tests.

@@ -6,24 +6,30 @@ import re
 import numpy as np
 import pytest
 
-from .conftest import needs_fma
 
+def test_the_compiled_code_report_counts_what_it_names():
+    """make bench reports what the hot loops compile to (verification.codegen), since the counts differ
+    by target. Its patterns must count packed double instructions on 256- and 512-bit registers and
+    nothing scalar or single-precision: lines as LLVM prints them for AVX2 and AVX-512."""
+    from verification import codegen
 
-@needs_fma
-def test_the_fma_peak_loop_is_packed_fused_multiply_adds():
-    """The roofline's compute ceiling is only a ceiling if its loop runs at the SIMD peak: a scalar loop
-    would measure a quarter of it or less and make every kernel look near its bound (the first version
-    stored eight outputs a lane, LLVM declined to vectorise it, and the "peak" was 13 GFLOP/s against
-    107)."""
-    import numba
-
-    from verification import roofline
-
-    kernel = numba.njit(**{**roofline._FAST, "cache": False})(roofline._polynomials.py_func)
-    kernel(np.full((roofline._CHAINS, 64), 0.5), 1)
-    asm = kernel.inspect_asm(kernel.signatures[0])
-    packed = len(re.findall(r"vfmadd\w*pd\s+%[yz]mm", asm))
-    assert packed >= roofline._CHAINS * roofline._DEGREE, f"{packed} packed FMAs in the peak loop"
+    asm = """
+        vfmadd231pd	%zmm1, %zmm2, %zmm3
+        vfmadd213pd	(%rax), %ymm4, %ymm5
+        vfmadd231sd	%xmm1, %xmm2, %xmm3
+        vfmadd231ps	%ymm1, %ymm2, %ymm3
+        vaddpd	%ymm0, %ymm1, %ymm1
+        vaddsd	%xmm0, %xmm1, %xmm1
+        vmovupd	%zmm0, 64(%rdi)
+        sarq	$63, %rcx
+        sarq	$3, %rcx
+        imulq	%rdx, %rcx
+    """
+    assert codegen._count(codegen.PACKED_FMA, asm) == 2
+    assert codegen._count(codegen.PACKED_ADD, asm) == 1
+    assert codegen._count(codegen.PACKED, asm) == 4
+    assert codegen._count(codegen.SIGN_SHIFT, asm) == 1
+    assert codegen._count(codegen.STRIDE_MUL, asm) == 1
 
 
 @pytest.mark.parametrize("parts", [1, 2, 3])

@@ -16,7 +16,7 @@ from realtime import InputError, Loading, Material, Materials, State, Symplectic
 from realtime.threaded import balanced_chunks, check_threading, row_chunks
 from realtime.topology import slit, suture
 
-from .conftest import assert_same_model, needs_fma
+from .conftest import assert_same_model
 from .test_topology import block, slit_faces
 
 EPS = np.finfo(float).eps
@@ -265,27 +265,13 @@ def test_each_thread_writes_forces_inside_its_span_alone(model_name, rng):
         assert spans[0, 1] - spans[1, 0] <= len(halves) + 4 * between
 
 
-@needs_fma
-def test_the_threads_forces_are_summed_in_vectorised_loops():
+def test_the_threads_forces_are_summed_piece_by_piece():
     """The sum of two threads' forces (threaded.sum_range, each piece between the spans' ends a plain
-    loop) must compile to packed additions: with signed indices numba tests each access for
-    wrap-around and the loops stayed scalar (0 packed additions; liver-x10's two-thread sum took
-    17.8 us against 5 to 8). Compiled afresh: numba shows no assembly for cached code. Measured 20
-    packed additions; a scalar sum has none."""
-    import re
-
-    import numba
-
-    from realtime import blocks, threaded
-
-    @numba.njit(**{**blocks.HOT, "cache": False})
-    def summed(spans, F, f, lo, hi):
-        threaded.sum_range(spans, F, f, lo, hi)
+    loop: one span alone, both, the other alone) adds each component once per span that holds it. How
+    many packed additions it compiles to is reported by make bench (verification.codegen)."""
+    from realtime import threaded
 
     F, f = np.ones((2, 900)), np.zeros(900)
     spans = np.array([[0, 200], [150, 300]])
-    summed(spans, F, f, 0, 900)
+    threaded.sum_range(spans, F, f, 0, 900)
     assert np.array_equal(f, np.r_[np.ones(450), 2 * np.ones(150), np.ones(300)])
-    asm = summed.inspect_asm(summed.signatures[0])
-    packed = len(re.findall(r"vaddpd\s+[^\n]*%[yz]mm", asm))
-    assert packed >= 4, f"{packed} packed additions: the threads' sum is no longer vectorised"

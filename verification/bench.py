@@ -22,7 +22,9 @@ roofline (verification.roofline): the least time its flops and bytes allow at th
 peak and at the triad bandwidth for data of its size, and the fraction of that bound the row achieves.
 The rows "stvk-tm, element arithmetic alone" and "stvk-tm, gather and scatter alone" split stvk-tm's
 force in its two phases, each with its roofline (roofline.stvk_phase_work) and its share of the row
-"stvk-tm, force alone": where the kernel's time goes.
+"stvk-tm, force alone": where the kernel's time goes. Last, what the hot loops compile to on this
+target (verification.codegen: packed instructions, signed-index shifts): the counts that explain the
+timings, measured here because they differ from one machine to the next.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from realtime.models import FLOAT32_MODELS, nonlinear_fraction
 from realtime.quasistatic import QuasiStatic
 from realtime.stvk import stvk_block
 
+from . import codegen
 from .roofline import Roofline, bsr_work, step_work, stvk_phase_work, thread_loops, thread_scaling
 from .runner import git_commit, log, versions
 
@@ -433,8 +436,10 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
             whole = next((r for r in rows if r["mesh"] == name and r["name"] == c.get("part_of")), None)
             if c["mesh"] == name and whole is not None:  # "force alone" is timed on a machine with threads
                 c["share"] = c["step_us"] / whole["step_us"]
+    log("bench: what the hot loops compile to on this target (verification.codegen)")
     return {
         "machine": {**machine(), "roofline": roof.summary(), "thread_scaling": thread_ceilings},
+        "compiled_code": codegen.report(),
         "results": rows,
         "meshes": {m: STORED.get(m) or (*STORED[m.removesuffix(RENUMBERED)], "renumbered") for m in meshes},
     }
@@ -478,4 +483,6 @@ def format_table(out: dict) -> str:
                 f"  {r['name']:<52} {r['step_us']:>10.1f} us  ({r['step_us_min']:.1f} - {r['step_us_max']:.1f})"
                 f"  x{r['step_us'] / lin:5.2f} linear-tm  x{r['step_us'] / bsr:5.2f} bsr{note}"
             )
+    if "compiled_code" in out:
+        lines.append("\n" + codegen.format_report(out["compiled_code"]))
     return "\n".join(lines)

@@ -1,0 +1,145 @@
+"""What the engine's hot loops compile to on this machine: reported by `make bench`, never asserted.
+
+The engine's speed rests on LLVM vectorising a few loops (stvk-tm's element loop across tetrahedra, the
+threads' sum of forces, the roofline's FMA peak loop) and on indexed loops that neither wrap signed
+indices nor multiply by run-time strides. How many packed instructions a loop compiles to depends on
+the target (AVX2 or AVX-512, which Zen or Xeon generation), on LLVM's version and its cost model: on an
+AMD EPYC with AVX2 the isotropic StVK loop held more packed instructions than the general one, where a
+Xeon with AVX-512 had half as many. So the counts are measurements of this machine, stated beside the
+timings they explain (a loop that stopped vectorising shows as a count near zero and a slower row), not
+properties a test can demand of every machine a user has.
+
+Each function is compiled afresh (numba shows no assembly for cached code) for numba's target in this
+process (``NUMBA_CPU_NAME``/``NUMBA_CPU_FEATURES`` choose another).
+"""
+
+from __future__ import annotations
+
+import re
+
+import numba
+import numpy as np
+
+#: A packed double-precision instruction on 256- or 512-bit registers (AT&T syntax: the register last).
+PACKED = r"\bv\w+pd\s+[^\n]*%[yz]mm"
+PACKED_FMA = r"\bvfmadd\w*pd\s+[^\n]*%[yz]mm"
+PACKED_ADD = r"\bvaddpd\s+[^\n]*%[yz]mm"
+#: numba's wrap-around of a negative signed index (its sign by an arithmetic shift of 63) and an array
+#: indexed by its run-time strides (a multiplication).
+SIGN_SHIFT = r"\bsar[ql]?\s+\$63,"
+STRIDE_MUL = r"\bimul[ql]?\b"
+
+
+def _count(pattern: str, asm: str) -> int:
+    return len(re.findall(pattern, asm))
+
+
+def _fresh(fn, hot: dict):
+    return numba.njit(**{**hot, "cache": False})(fn.py_func)
+
+
+def _asm(dispatcher) -> str:
+    return dispatcher.inspect_asm(dispatcher.signatures[0])
+
+
+def fma_peak_loop() -> dict:
+    """The roofline's peak loop: packed FMAs against the chains x degree it must issue to be a peak."""
+    from . import roofline
+
+    kernel = _fresh(roofline._polynomials, roofline._FAST)
+    kernel(np.full((roofline._CHAINS, 64), 0.5), 1)
+    return {"packed_fma": _count(PACKED_FMA, _asm(kernel)), "expected_at_least": roofline._CHAINS * roofline._DEGREE}
+
+
+def stvk_loops() -> dict:
+    """stvk-tm's force (packed FMAs) and its element loop compiled alone for an isotropic block and a
+    general one (fibres and the penalty: packed double instructions of each)."""
+    from meshes import structured_box
+    from realtime import Material, blocks, build_model, stvk
+
+    mesh = structured_box((0.02, 0.02, 0.02), (2, 2, 2))
+    model = build_model("stvk-tm", mesh.points, mesh.tets, Material(1e4, 0.3, 1000.0, law="stvk"))
+    kernel = _fresh(stvk.stvk_force, blocks.HOT)
+    kernel(model.data, model.new_scratch(), np.zeros_like(mesh.points), np.zeros_like(mesh.points))
+
+    def lanes(general: bool) -> int:
+        @numba.njit(**{**blocks.HOT, "cache": False})
+        def loop(W, geo, prm):
+            stvk._stvk_lanes(W, geo, np.uint64(0), prm, False, general)
+
+        loop(np.zeros(9 * blocks.BLOCK), np.zeros(blocks.GEO_ROWS * blocks.BLOCK), np.zeros(5))
+        return _count(PACKED, _asm(loop))
+
+    return {
+        "force_packed_fma": _count(PACKED_FMA, _asm(kernel)),
+        "isotropic_packed": lanes(False),
+        "general_packed": lanes(True),
+    }
+
+
+def threads_sum() -> dict:
+    """The threads' sum of forces (threaded.sum_range): its packed additions."""
+    from realtime import blocks, threaded
+
+    @numba.njit(**{**blocks.HOT, "cache": False})
+    def summed(spans, F, f, lo, hi):
+        threaded.sum_range(spans, F, f, lo, hi)
+
+    summed(np.array([[0, 200], [150, 300]]), np.ones((2, 900)), np.zeros(900), 0, 900)
+    return {"packed_add": _count(PACKED_ADD, _asm(summed))}
+
+
+def indexed_loops() -> dict:
+    """linear-tm's, stvk-tm's and mass-spring's force kernels: the sign shifts and multiplications of
+    numba's signed, strided indexing left in their machine code (at most 1 and 3 of each, outside the
+    loops, on the Xeon where the unsigned flat views were written; 11 to 33 and 23 to 35 before)."""
+    import importlib
+
+    from meshes import structured_box
+    from realtime import Material, blocks, build_model
+
+    mesh = structured_box((0.04, 0.01, 0.01), (4, 1, 1))
+    out = {}
+    for name, kernel in (
+        ("linear-tm", "tensor_mass.linear_tm_force"),
+        ("stvk-tm", "stvk.stvk_force"),
+        ("mass-spring", "springs.spring_force"),
+    ):
+        module, fn = kernel.split(".")
+        compiled = _fresh(getattr(importlib.import_module(f"realtime.{module}"), fn), blocks.HOT)
+        model = build_model(name, mesh.points, mesh.tets, Material(1e4, 0.3, 1000.0))
+        compiled(model.data, model.new_scratch(), np.zeros_like(mesh.points), np.zeros_like(mesh.points))
+        asm = _asm(compiled)
+        out[name] = {"sign_shifts": _count(SIGN_SHIFT, asm), "stride_multiplications": _count(STRIDE_MUL, asm)}
+    return out
+
+
+def report() -> dict:
+    """Every count above, with numba's target (CPU name and features) they were compiled for."""
+    from numba.core import config
+
+    target = config.CPU_NAME or "host"
+    return {
+        "target": target,
+        "features": config.CPU_FEATURES or "host",
+        "fma_peak_loop": fma_peak_loop(),
+        "stvk": stvk_loops(),
+        "threads_sum": threads_sum(),
+        "indexed_loops": indexed_loops(),
+    }
+
+
+def format_report(r: dict) -> str:
+    s, peak = r["stvk"], r["fma_peak_loop"]
+    lines = [
+        f"compiled code (numba target {r['target']}):",
+        f"  FMA peak loop: {peak['packed_fma']} packed FMAs ({peak['expected_at_least']} make it a peak)",
+        f"  stvk-tm force: {s['force_packed_fma']} packed FMAs; element loop, packed instructions: "
+        f"isotropic {s['isotropic_packed']}, general {s['general_packed']}",
+        f"  threads' sum of forces: {r['threads_sum']['packed_add']} packed additions",
+    ]
+    for name, c in r["indexed_loops"].items():
+        lines.append(
+            f"  {name} force: {c['sign_shifts']} signed-index shifts, {c['stride_multiplications']} stride multiplications"
+        )
+    return "\n".join(lines)
