@@ -161,9 +161,8 @@ def test_two_threads_stepping_two_states_on_one_model_match_serial_runs_bit_for_
 def test_one_integrator_called_from_a_second_thread_mid_step_refuses(integrator):
     """An integrator's workspace is its own: two threads stepping through one integrator at once
     overwrote each other's forces and returned wrong states without a word. The second call now
-    raises at once, and the first run ends where a serial run does."""
-    import time
-
+    raises at once, and the first run ends where a serial run does. The first call is held inside its
+    step until the second has been refused (an event, not a race against the machine's speed)."""
     from realtime import InputError
 
     mesh = stored_mesh("liver")
@@ -173,25 +172,35 @@ def test_one_integrator_called_from_a_second_thread_mid_step_refuses(integrator)
     model = build_model("linear-tm", mesh.points, mesh.tets, MAT, Loading(free=free, external_force=np.zeros((n, 3))))
     dt = 0.5 / np.sqrt(model.element_eigenvalue_bound())  # a quarter of a lower bound on the critical step
     pull = model.mass[:, None] * np.array([0.0, 0.0, -400.0])
-    steps = 3000 if integrator is not ImplicitEuler else 20  # about 0.1 s: long enough to be caught mid-call
 
     def run(integ, out):
         integ.set_forces(model, pull)
         state = State.at_rest(n)
-        integ.step(model, state, dt, steps)
+        integ.step(model, state, dt, 20)
         out.append(state.u.copy())
 
     serial, shared, caught = [], integrator(alpha=20.0), []
     run(integrator(alpha=20.0), serial)
+    inside, release = threading.Event(), threading.Event()
+    steps = shared._step
+
+    def held(*args):  # the first thread's step, entered (its lock taken) and held until released
+        inside.set()
+        assert release.wait(60.0), "the test never released the first thread"
+        return steps(*args)
+
+    shared._step = held
     first = threading.Thread(target=run, args=(shared, caught))
     first.start()
-    deadline = time.perf_counter() + 10.0
-    while not shared._busy.locked() and time.perf_counter() < deadline:
-        time.sleep(1e-4)
-    assert shared._busy.locked(), "the first thread never started its step"
-    with pytest.raises(InputError, match=rf"^{integrator.name}: this integrator is already stepping in another thread"):
-        shared.step(model, State.at_rest(n), dt, 1)
-    first.join()
+    try:
+        assert inside.wait(60.0), "the first thread never started its step"
+        with pytest.raises(
+            InputError, match=rf"^{integrator.name}: this integrator is already stepping in another thread"
+        ):
+            shared.step(model, State.at_rest(n), dt, 1)
+    finally:
+        release.set()
+        first.join()
     assert np.array_equal(caught[0], serial[0])
     shared.step(model, State.at_rest(n), dt, 1)  # free again once the first call returned
 

@@ -313,8 +313,9 @@ def test_deformation_summary_of_a_rigid_rotation():
 @pytest.mark.slow
 def test_advise_small_displacement_recommends_a_linear_model(capsys):
     # P1 against P2 on the pressed block is 5.3% for every model: the tolerance admits the P1
-    # discretisation error, so what decides is cost, and linear costs least
-    assert main(["advise", "block-press", "--tol", "0.08", "--rate", "1000", "--json"]) == 0
+    # discretisation error, so what decides is cost, and linear costs least (at 10 Hz, a rate every model
+    # holds on every machine: the choice is made by the error and the cost, not by this machine's speed)
+    assert main(["advise", "block-press", "--tol", "0.08", "--rate", "10", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["model"] in LINEAR_MODELS
     assert out["why"].startswith("linear is enough")
@@ -323,7 +324,7 @@ def test_advise_small_displacement_recommends_a_linear_model(capsys):
 
 @pytest.mark.slow
 def test_advise_large_rotation_recommends_a_rotation_invariant_model(capsys):
-    assert main(["advise", "block-twist", "--tol", "0.05", "--rate", "1000", "--json"]) == 0
+    assert main(["advise", "block-twist", "--tol", "0.05", "--rate", "10", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["model"] not in LINEAR_MODELS and out["model"] is not None
     assert out["why"].startswith("needs a rotation-invariant model")

@@ -86,9 +86,10 @@ def deformation_summary(points: np.ndarray, tets: np.ndarray, u: np.ndarray) -> 
     }
 
 
-def frame_budget(row: dict, rate: float, dynamic: bool, share: float = 1.0) -> dict:
+def frame_budget(row: dict, rate: float, dynamic: bool, share: float = FRAME_SHARE) -> dict:
     """Whether a run (a ``compare`` row) holds ``rate`` frames per second on this machine, using at
-    most ``share`` of each frame, and what reaching its answer costs.
+    most ``share`` of each frame (FRAME_SHARE for every command, so that ``compare --rate`` and
+    ``advise`` decide alike), and what reaching its answer costs.
 
     - A quasi-static model (precomputed, condensed) updates once per frame: the update must fit.
     - On a dynamic scene a time-stepping model must keep up with the wall clock: a frame of 1/rate s
@@ -232,7 +233,7 @@ def _candidates(
             progress.step(f"{m} implicit-euler")
     for r in rows:
         if r["status"] == "ok":
-            r["frame"] = frame_budget(r, rate, dynamic, FRAME_SHARE)
+            r["frame"] = frame_budget(r, rate, dynamic)
     return merge_same_answers(rows, metric, dynamic)
 
 
@@ -546,7 +547,7 @@ def _run_plans(scene: Scene, proposal: dict, metric: str, tol: float, rate: floa
         row = _compare_or_unsettled(level_scene, r0["model"], r0["integrator"], fraction, use_cache)
         progress.step(f"{r0['model']} level {p['level']}")
         if row["status"] == "ok":
-            row["frame"] = frame_budget(row, rate, dynamic, FRAME_SHARE)
+            row["frame"] = frame_budget(row, rate, dynamic)
         row["level"] = p["level"]
         ok, line = _verdict(row, metric, tol)
         tried.append(

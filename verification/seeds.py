@@ -1032,7 +1032,7 @@ def rates(size: Size) -> dict:
                 rel_l2=rel_l2(u, ref) if settled else None,
             )
             for label, hz in RATES:
-                row[f"holds_{label}"] = frame_budget(run, hz, dynamic=False, share=FRAME_SHARE)["holds"]
+                row[f"holds_{label}"] = frame_budget(run, hz, dynamic=False)["holds"]
             rows.append(row)
     out["table"] = rows
     ok = [r for r in rows if "step_us" in r]  # timed: settled or not
