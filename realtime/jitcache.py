@@ -24,19 +24,66 @@ new one, whose type matches nothing. So no process ever found another's step loo
 process compiled them again in every run, 16 s of its cantilever section, and each settling worker did
 too. ``stable_identities`` gives each of the engine's compiled functions an identity drawn from its name
 and the sources' stamp instead, the same in every process of one version of the engine.
+
+numba saves a new specialisation by reading the function's index, taking the first data file number
+the index does not use, and writing the index and then the data file. Two processes saving at once
+(four test workers or studies compiling on a cold cache) read the same index, gave their two keys the
+same data file, and each wrote an index holding its own key alone: one specialisation was lost, and
+the surviving key could name the other's machine code, which numba then files under that code's own
+signature (a miss, compiled again by every later process). ``serialise_saves`` makes every numba
+cache save in the process hold an exclusive lock on its folder (``cache_lock``) from the reading of
+the index to the writing of the data; ``clear_if_stale`` holds the same lock.
 """
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
 import numba
+from numba.core import caching
 from numba.core.dispatcher import Dispatcher
 
 STAMP = "tissuebench-realtime.sha256"
+#: The file in a numba cache folder whose lock the processes saving there take in turn.
+LOCK = "tissuebench-cache.lock"
+
+
+@contextmanager
+def cache_lock(folder):
+    """Hold an exclusive lock, across processes, on the numba cache folder ``folder`` (flock on LOCK in
+    it; closing the file releases it, also when the process dies). A folder that cannot be written is
+    not locked: numba does not cache there either."""
+    try:
+        fd = os.open(os.path.join(folder, LOCK), os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError:
+        fd = None
+    try:
+        if fd is not None:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        if fd is not None:
+            os.close(fd)
+
+
+def serialise_saves() -> None:
+    """Make numba's cache save (index read, data file chosen, index and data written) one step under
+    ``cache_lock`` for every cached function of this process (module docstring). Idempotent."""
+    save = caching.IndexDataCacheFile.save
+    if getattr(save, "serialised", False):
+        return
+
+    def locked_save(self, key, data):
+        with cache_lock(self._cache_path):
+            save(self, key, data)
+
+    locked_save.serialised = True
+    caching.IndexDataCacheFile.save = locked_save
 
 
 def sources_digest(sources: list[Path]) -> str:
@@ -62,12 +109,21 @@ def clear_if_stale(cache_dir: Path, sources: list[Path]) -> bool:
         pass
     try:
         cache_dir.mkdir(parents=True, exist_ok=True)
-        stale = [p for p in cache_dir.iterdir() if p.suffix in (".nbi", ".nbc")]
-        for p in stale:
-            p.unlink(missing_ok=True)
     except OSError:
         return False
-    return write_stamp(stamp, digest) and bool(stale)
+    with cache_lock(cache_dir):  # another process may have cleared and saved since the stamp was read
+        try:
+            if stamp.read_text() == digest:
+                return False
+        except OSError:
+            pass
+        try:
+            stale = [p for p in cache_dir.iterdir() if p.suffix in (".nbi", ".nbc")]
+            for p in stale:
+                p.unlink(missing_ok=True)
+        except OSError:
+            return False
+        return write_stamp(stamp, digest) and bool(stale)
 
 
 def write_stamp(path: Path, digest: str) -> bool:
@@ -84,10 +140,11 @@ def write_stamp(path: Path, digest: str) -> bool:
 
 
 def guard() -> None:
-    """clear_if_stale for the directory numba caches the engine's functions in (the step loops' own), and
-    tolerate_vanished on every compiled function of the engine."""
+    """serialise_saves, clear_if_stale for the directory numba caches the engine's functions in (the step
+    loops' own), and tolerate_vanished on every compiled function of the engine."""
     from .steppers import _run_symplectic_euler
 
+    serialise_saves()
     sources = list(Path(__file__).parent.glob("*.py"))
     cache = getattr(_run_symplectic_euler, "_cache", None)
     path = getattr(cache, "cache_path", None)
