@@ -183,6 +183,17 @@ class TetMesh:
             h.update(np.ascontiguousarray(self.cell_fields[name], dtype="<f8").tobytes())
         return h.hexdigest()
 
+    def tags_sha256(self) -> str:
+        """Hash of the vertex and cell tags, by name (indices as int64). Apart from ``sha256``, which is
+        the mesh's geometry and cell data (the stored meshes' manifest and the gates' baselines record
+        it); a scene's hash holds both, since a region or a material drawn by tag depends on them."""
+        h = hashlib.sha256()
+        for kind, tags in (("vertex", self.vertex_tags), ("cell", self.cell_tags)):
+            for name in sorted(tags):
+                h.update(f"{kind}:{name}".encode())
+                h.update(np.ascontiguousarray(np.sort(tags[name]), dtype="<i8").tobytes())
+        return h.hexdigest()
+
     def quality(self) -> dict:
         """Quality report: dihedral angles (degrees), aspect ratio, volumes, edge lengths.
 

@@ -312,3 +312,46 @@ def test_a_material_drawn_from_a_cell_field_of_the_mesh_file(tmp_path, capsys):
         wrong = text.replace(bad, 'name = "zones"' if "name" in bad else "min = 2.0")
         with pytest.raises(SceneError, match=message):
             load_scene(_scene_file(tmp_path, wrong)).mesh  # noqa: B018
+
+
+def test_a_mesh_file_whose_tags_alone_change_is_not_served_its_old_reference(tmp_path):
+    """A material drawn by a volume group: the same vertices and tetrahedra with the groups drawn
+    elsewhere are another body. The mesh's hash is its geometry (the manifest and the gates record
+    it) and stays; the scene's hash, which keys every cached reference, holds the tags and changes."""
+    import meshio
+
+    from meshes import structured_box
+    from verification.runner import reference_key
+    from verification.scene import load_scene
+
+    box = structured_box((0.02, 0.01, 0.01), (4, 2, 2))
+    x = box.points[box.tets].mean(axis=1)[:, 0]
+    path = tmp_path / "two.msh"
+
+    def write(cut):
+        group = np.where(x < cut, 1, 2)
+        meshio.write(
+            path,
+            meshio.Mesh(
+                box.points,
+                [("tetra", box.tets)],
+                cell_data={"gmsh:physical": [group], "gmsh:geometrical": [group]},
+                field_data={"soft": np.array([1, 3]), "stiff": np.array([2, 3])},
+            ),
+            file_format="gmsh22",
+            binary=False,
+        )
+
+    scene_text = TWO.replace(
+        'generator = "grid"\nsize = [0.02, 0.01, 0.01]\nh = 0.005', f'generator = "file"\nfile = "{path}"'
+    )
+    scene_text = scene_text.replace("box = [[0.01, -1.0, -1.0], [1.0, 1.0, 1.0]]", 'tag = "stiff"')
+    toml = _scene_file(tmp_path, scene_text)
+    write(0.01)
+    before = load_scene(toml)
+    key = reference_key(before, 2, 0, True)
+    write(0.015)
+    after = load_scene(toml)
+    assert after.mesh.sha256() == before.mesh.sha256()
+    assert not np.array_equal(after.body_material().index, before.body_material().index)
+    assert after.sha256() != before.sha256() and reference_key(after, 2, 0, True) != key

@@ -115,11 +115,12 @@ class Scene:
 
     def sha256(self) -> str:
         """Hash of the scene's content: the canonical JSON of its TOML, what was parsed from it (so that
-        a variant made with dataclasses.replace, a 90 or a 60 degree twist, has a hash of its own) and
-        its mesh."""
+        a variant made with dataclasses.replace, a 90 or a 60 degree twist, has a hash of its own), its
+        mesh and the mesh's tags (a region or a material drawn by tag changes with them alone)."""
         text = json.dumps(self.raw, sort_keys=True, default=str)
         parsed = repr((self.material, self.problem, self.time, self.manufactured, self.level, self.zones))
-        return hashlib.sha256((text + parsed + self.mesh.sha256()).encode()).hexdigest()
+        mesh = self.mesh.sha256() + self.mesh.tags_sha256()
+        return hashlib.sha256((text + parsed + mesh).encode()).hexdigest()
 
     def refined(self, levels: int = 1) -> Scene:
         """This scene on its mesh cut uniformly ``levels`` more times (``TetMesh.refined``: h halves at
