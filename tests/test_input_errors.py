@@ -391,3 +391,58 @@ def test_fuzzed_scenes_exit_0_or_2_with_one_line(tmp_path, capsys):
             assert_one_line(err, path.name)
         statuses[code] += 1
     assert statuses[2] > 150  # most mutations are errors; a fuzz that only ever passes tests nothing
+
+
+def test_misspelt_keys_are_named_with_the_key_meant_and_all_in_one_message(tmp_path, capsys):
+    """A newcomer's scene with four slips: `poison` for poisson (a required key: it was reported as
+    "material.poisson: missing key", never naming the key the file has), a misspelt optional key, a
+    misspelt value and a misspelt table key. One run names all four, each with the key or value meant."""
+    data = builtin("cantilever")
+    data["material"]["poison"] = data["material"].pop("poisson")
+    data["fixed"][0]["compnents"] = ["x", "y", "z"]
+    data["load"] = [{"kind": "gravty", "value": [0.0, 0.0, -9.81]}]
+    data["time"] = {"mdoe": "static"}
+    code, _, err = run(["check", str(write_scene(tmp_path / "slips.toml", data))], capsys)
+    assert code == 2
+    assert_one_line(
+        err,
+        "slips.toml: 4 errors",
+        "material.poison: unknown key, did you mean 'poisson'?",
+        "fixed[0].compnents: unknown key, did you mean 'components'?",
+        "load[0].kind: 'gravty' is not one of gravity, force, traction, displacement (did you mean 'gravity'?)",
+        "time.mdoe: unknown key, did you mean 'mode'?",
+    )
+
+
+def test_check_prints_the_extent_and_warns_of_a_mesh_in_millimetres(tmp_path, capsys):
+    """SOFA's liver file read at scale 100 is a 214 m organ: check prints the extent in metres (what a
+    user writes regions in) and a warning naming scale, and so does every other command, on stderr,
+    before it works. A modulus in kPa and a density in g/cm^3 are warned of too. The built-in scenes
+    warn of nothing."""
+    data = builtin("sofa-liver")
+    data["mesh"]["scale"] = 100.0
+    data["mesh"]["file"] = str(SCENES_DIR / data["mesh"]["file"])
+    data["material"].update(young=28.0, density=1.0)
+    for table in data["fixed"] + data["load"]:  # the regions drawn on the body as read, 1000 times larger
+        table["sphere"] = {
+            "center": [1e3 * c for c in table["sphere"]["center"]],
+            "radius": 1e3 * table["sphere"]["radius"],
+        }
+    path = write_scene(tmp_path / "mm.toml", data)
+    code, out, _ = run(["check", str(path)], capsys)
+    assert code == 0
+    assert "extent: 214.4 x 116.6 x 130.9 m" in out
+    warnings = [line.strip() for line in out.splitlines() if line.strip().startswith("warning:")]
+    assert len(warnings) == 3 and "214 m across" in warnings[0] and "scale = 0.001" in warnings[0]
+    assert "material.young = 28 Pa" in warnings[1] and "material.density = 1 kg/m^3" in warnings[2]
+    from verification.scene import implausible, load_scene
+
+    assert implausible(load_scene(path)) == [w.removeprefix("warning: ") for w in warnings]
+    assert all(implausible(load_scene(name)) == [] for name in builtin_scenes())
+    from verification.cli import _scene
+
+    class Args:
+        scene = str(path)
+
+    _scene(Args())
+    assert capsys.readouterr().err.count("tissuebench: warning:") == 3

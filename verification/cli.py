@@ -19,7 +19,7 @@ from meshes.store import stored_names
 from realtime import INTEGRATORS, MODELS, DivergenceError, InputError, NotConvergedError
 from reference.errors import ReferenceSolveError
 
-from .scene import builtin_scenes, load_scene
+from .scene import builtin_scenes, implausible, load_scene
 
 
 def _print_json(obj) -> None:
@@ -66,9 +66,16 @@ def cmd_scenes(args) -> int:
     return 0
 
 
-def _scene(args):
-    """The command's scene, cut ``--mesh-refine`` more times than its file says."""
-    return load_scene(args.scene, refine=getattr(args, "mesh_refine", 0))
+def _scene(args, warn: bool = True):
+    """The command's scene, cut ``--mesh-refine`` more times than its file says; with ``warn``, what
+    no soft tissue has (scene.implausible) goes to stderr before any work."""
+    scene = load_scene(args.scene, refine=getattr(args, "mesh_refine", 0))
+    if warn:
+        from .runner import log
+
+        for line in implausible(scene):
+            log(f"tissuebench: warning: {scene.path}: {line}")
+    return scene
 
 
 def _write_vtk(target: str, name: str, res) -> None:
@@ -106,9 +113,10 @@ def cmd_check(args) -> int:
 
     from .loading import build_loading
 
-    scene = _scene(args)
+    scene = _scene(args, warn=False)  # check prints them with the rest
     mesh = scene.mesh
     loading = build_loading(mesh, scene.densities(), scene.problem)
+    lo, hi = mesh.bounding_box()
     model = realtime.build_model("linear-tm", mesh.points, mesh.tets, scene.body_material(), loading)
     regions = []
     for i, fx in enumerate(scene.problem.fixed):
@@ -131,6 +139,8 @@ def cmd_check(args) -> int:
         "material": {"lambda_pa": m.lam, "mu_pa": m.mu, "wave_speed_m_s": m.wave_speed},
         "materials": _zones(scene),
         "dt_crit_element_s": realtime.element_critical_dt(model),
+        "extent_m": {"min": lo.tolist(), "max": hi.tolist(), "size": (hi - lo).tolist()},
+        "warnings": implausible(scene),
     }
 
     def text(o):
@@ -140,6 +150,13 @@ def cmd_check(args) -> int:
             f"{q['parts']} part(s), dihedral angles {q['min_dihedral_deg']:.1f} to {q['max_dihedral_deg']:.1f} "
             f"degrees, aspect ratio up to {q['max_aspect_ratio']:.2f}"
         ]
+        e = o["extent_m"]
+        lines.append(
+            "  extent: {:.4g} x {:.4g} x {:.4g} m, from ({:.4g}, {:.4g}, {:.4g}) to ({:.4g}, {:.4g}, {:.4g}) m".format(
+                *e["size"], *e["min"], *e["max"]
+            )
+        )
+        lines += [f"  warning: {w}" for w in o["warnings"]]
         lines += [f"  mesh repaired: {n}" for n in q["notes"]]
         lines += [
             f"  {z['table']}: {z['region']} holds {z['tets']} tetrahedra: E = {z['young_pa']:.4g} Pa, "

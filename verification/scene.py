@@ -8,6 +8,7 @@ scene is evaluated as code.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import hashlib
 import json
 import math
@@ -223,6 +224,9 @@ class _Reader:
         self.used.add(k)
         if k not in self.table:
             if default is ...:
+                near = difflib.get_close_matches(k, [str(t) for t in self.table if t != k], n=1, cutoff=0.75)
+                if near:  # a misspelling: name the key the file has, and the one it meant
+                    self.fail(near[0], f"unknown key, did you mean {k!r}? ({k} is required)")
                 self.fail(k, "missing key")
             return default
         return self.table[k]
@@ -248,14 +252,43 @@ class _Reader:
         if not isinstance(v, str):
             self.fail(k, f"must be a string, got {v!r}")
         if allowed is not None and v not in allowed:
-            self.fail(k, f"{v!r} is not one of {', '.join(allowed)}")
+            near = difflib.get_close_matches(v, list(allowed), n=1, cutoff=0.6)
+            hint = f" (did you mean {near[0]!r}?)" if near else ""
+            self.fail(k, f"{v!r} is not one of {', '.join(allowed)}{hint}")
         return v
 
     def finish(self, allowed: tuple[str, ...] | None = None):
+        """Fail naming every key of the table that was not read, each with its closest allowed key."""
         extra = sorted(set(self.table) - self.used)
         if extra:
-            allow = ", ".join(sorted(allowed if allowed is not None else self.used))
-            self.fail(extra[0], f"unknown key (allowed: {allow})")
+            valid = sorted(allowed if allowed is not None else self.used)
+            names = []
+            for k in extra:
+                near = difflib.get_close_matches(k, valid, n=1, cutoff=0.6)
+                names.append(f"{self.key(k)}: unknown key" + (f", did you mean {near[0]!r}?" if near else ""))
+            raise SceneError(f"{self.path}: " + "; ".join(names) + f" (allowed: {', '.join(valid)})")
+
+
+class _Errors:
+    """The errors of one scene file, gathered section by section ([mesh], each [[load]], ...), so that
+    one message names them all instead of one per run."""
+
+    def __init__(self, path: Path):
+        self.path, self.items = path, []
+
+    def section(self, fn, *args):
+        """fn(*args), or None with its SceneError kept."""
+        try:
+            return fn(*args)
+        except SceneError as exc:
+            self.items.append(str(exc).removeprefix(f"{self.path}: "))
+            return None
+
+    def check(self):
+        if len(self.items) == 1:
+            raise SceneError(f"{self.path}: {self.items[0]}")
+        if self.items:
+            raise SceneError(f"{self.path}: {len(self.items)} errors: " + "; ".join(self.items))
 
 
 REGION_KEYS = ("box", "sphere", "tag", "all")
@@ -348,97 +381,19 @@ def _tables(r: _Reader, key: str) -> list[_Reader]:
 
 
 def parse(path: Path, data: dict) -> Scene:
-    """Validate parsed TOML ``data`` read from ``path``."""
+    """Validate parsed TOML ``data`` read from ``path``; every section's errors in one SceneError."""
+    errors = _Errors(path)
     top = _Reader(path, data, "")
-    name = top.string("name", default=path.stem)
-    description = top.string("description", default="")
-
-    mr = _Reader(path, top.get("mesh"), "mesh")
-    gen = mr.string("generator", tuple(MESH_PARAMS))
-    spec = {"generator": gen}
-    for k, kind in MESH_PARAMS[gen].items():
-        if kind == "vec3":
-            spec[k] = list(mr.vec3(k))
-            if min(spec[k]) <= 0:
-                mr.fail(k, f"every side must be > 0, got {spec[k]}")
-        elif kind == "str":
-            spec[k] = mr.string(k)
-        else:
-            spec[k] = mr.number(k, MESH_OPTIONAL.get((gen, k), ...), positive=True)
-    refine = mr.get("refine", 0)
-    if not (isinstance(refine, int) and not isinstance(refine, bool) and 0 <= refine <= MAX_REFINE):
-        mr.fail("refine", f"must be a whole number from 0 to {MAX_REFINE} (uniform refinements), got {refine!r}")
-    mr.finish(("generator", "refine") + tuple(MESH_PARAMS[gen]))
-    if gen == "tube" and not spec["inner_radius"] < spec["outer_radius"]:
-        mr.fail("inner_radius", f"{spec['inner_radius']!r} must be below outer_radius = {spec['outer_radius']!r}")
-    if gen != "file":
-        n_tets = _volume(spec) / (spec["h"] ** 3 / (6.0 * math.sqrt(2.0)))
-        if n_tets > MAX_TETS:
-            mr.fail("h", f"{spec['h']!r} m would make about {n_tets:.1e} tetrahedra (the limit is {MAX_TETS:.0e})")
-
-    zones = None
-    if isinstance(top.table.get("material"), list):
-        zones = []
-        for table in _tables(top, "material"):
-            zones.append((_region(table, MATERIAL_REGION_KEYS), _material(table, MATERIAL_REGION_KEYS)))
-        if not zones:
-            top.fail("material", "an empty array of tables: give [material] or at least one [[material]]")
-        for i, (_, m) in enumerate(zones[1:], start=1):
-            if m.law != zones[0][1].law:
-                top.fail(
-                    f"material[{i}].law",
-                    f"{m.law!r} differs from material[0].law = {zones[0][1].law!r}: one law for the whole body",
-                )
-        material = zones[0][1]
-        zones = tuple(zones)
-    else:
-        material = _material(_Reader(path, top.get("material"), "material"), ())
-
-    fixed = []
-    for fr in _tables(top, "fixed"):
-        fixed.append(Fixed(_region(fr), _components(fr)))
-        fr.finish(("components",) + REGION_KEYS)
-    loads = []
-    for lr in _tables(top, "load"):
-        loads.append(_load(lr))
-
-    tr = _Reader(path, top.get("time", {}), "time")
-    mode = tr.string("mode", MODES, default="static")
-    damping = _Reader(path, tr.get("damping", {}), "time.damping")
-    tspec = TimeSpec(
-        mode=mode,
-        end=tr.number("end", 1.0, positive=True),
-        output_every=tr.number("output_every", 0.01, positive=True),
-        damping_mass=damping.number("mass", 0.0, nonneg=True),
-        damping_stiffness=damping.number("stiffness", 0.0, nonneg=True),
-    )
-    damping.finish(("mass", "stiffness"))
-    tr.finish(("mode", "end", "output_every", "damping"))
-    if mode == "dynamic":
-        n_out = tspec.end / tspec.output_every
-        if abs(n_out - round(n_out)) > 1e-9 * max(n_out, 1.0) or round(n_out) < 1:
-            tr.fail(
-                "end",
-                f"{tspec.end!r} s is not a whole multiple of output_every = {tspec.output_every!r} s "
-                f"({n_out:.6g} outputs): both sides are compared at the output times 0, output_every, ..., end",
-            )
-    manufactured = None
-    if top.has("manufactured"):
-        mr2 = _Reader(path, top.get("manufactured"), "manufactured")
-        degrees = mr2.get("degrees", [1, 2])
-        if not (isinstance(degrees, list) and degrees and all(d in (1, 2) for d in degrees)):
-            mr2.fail("degrees", f"must be a list of 1 and/or 2, got {degrees!r}")
-        sizes = _Reader(path, mr2.get("sizes"), "manufactured.sizes")
-        per = {}
-        for d in degrees:
-            v = sizes.get(str(d))
-            if not (isinstance(v, list) and len(v) >= 2 and all(isinstance(n, int) and n >= 1 for n in v)):
-                sizes.fail(str(d), f"must be a list of at least two mesh sizes (cubes per side), got {v!r}")
-            per[str(d)] = v
-        sizes.finish(tuple(str(d) for d in degrees))
-        mr2.finish(("degrees", "sizes"))
-        manufactured = {"degrees": degrees, "sizes": per}
-    top.finish(("name", "description", "mesh", "material", "fixed", "load", "time", "manufactured"))
+    name = errors.section(top.string, "name", None, path.stem)
+    description = errors.section(top.string, "description", None, "")
+    spec = errors.section(_mesh_spec, top)
+    material, zones = errors.section(_materials, top) or (None, None)
+    fixed = [f for f in (errors.section(_fixed, fr) for fr in errors.section(_tables, top, "fixed") or []) if f]
+    loads = [ld for ld in (errors.section(_load, lr) for lr in errors.section(_tables, top, "load") or []) if ld]
+    tspec = errors.section(_time, top)
+    manufactured = errors.section(_manufactured, top) if top.has("manufactured") else None
+    errors.section(top.finish, ("name", "description", "mesh", "material", "fixed", "load", "time", "manufactured"))
+    errors.check()
     if zones and manufactured:
         top.fail("manufactured", "a manufactured solution is for one [material]; this scene has [[material]] tables")
     if (
@@ -463,6 +418,98 @@ def parse(path: Path, data: dict) -> Scene:
         manufactured=manufactured,
         zones=zones,
     )
+
+
+def _mesh_spec(top: _Reader) -> dict:
+    """The [mesh] table: a generator and its parameters."""
+    mr = _Reader(top.path, top.get("mesh"), "mesh")
+    gen = mr.string("generator", tuple(MESH_PARAMS))
+    spec = {"generator": gen}
+    for k, kind in MESH_PARAMS[gen].items():
+        if kind == "vec3":
+            spec[k] = list(mr.vec3(k))
+            if min(spec[k]) <= 0:
+                mr.fail(k, f"every side must be > 0, got {spec[k]}")
+        elif kind == "str":
+            spec[k] = mr.string(k)
+        else:
+            spec[k] = mr.number(k, MESH_OPTIONAL.get((gen, k), ...), positive=True)
+    refine = mr.get("refine", 0)
+    if not (isinstance(refine, int) and not isinstance(refine, bool) and 0 <= refine <= MAX_REFINE):
+        mr.fail("refine", f"must be a whole number from 0 to {MAX_REFINE} (uniform refinements), got {refine!r}")
+    mr.finish(("generator", "refine") + tuple(MESH_PARAMS[gen]))
+    if gen == "tube" and not spec["inner_radius"] < spec["outer_radius"]:
+        mr.fail("inner_radius", f"{spec['inner_radius']!r} must be below outer_radius = {spec['outer_radius']!r}")
+    if gen != "file":
+        n_tets = _volume(spec) / (spec["h"] ** 3 / (6.0 * math.sqrt(2.0)))
+        if n_tets > MAX_TETS:
+            mr.fail("h", f"{spec['h']!r} m would make about {n_tets:.1e} tetrahedra (the limit is {MAX_TETS:.0e})")
+    return spec
+
+
+def _materials(top: _Reader) -> tuple[Material, tuple | None]:
+    """The [material] table, or the [[material]] tables as (region, Material) zones, one law for all."""
+    if not isinstance(top.table.get("material"), list):
+        return _material(_Reader(top.path, top.get("material"), "material"), ()), None
+    zones = [(_region(t, MATERIAL_REGION_KEYS), _material(t, MATERIAL_REGION_KEYS)) for t in _tables(top, "material")]
+    if not zones:
+        top.fail("material", "an empty array of tables: give [material] or at least one [[material]]")
+    for i, (_, m) in enumerate(zones[1:], start=1):
+        if m.law != zones[0][1].law:
+            top.fail(
+                f"material[{i}].law",
+                f"{m.law!r} differs from material[0].law = {zones[0][1].law!r}: one law for the whole body",
+            )
+    return zones[0][1], tuple(zones)
+
+
+def _fixed(fr: _Reader) -> Fixed:
+    fixed = Fixed(_region(fr), _components(fr))
+    fr.finish(("components",) + REGION_KEYS)
+    return fixed
+
+
+def _time(top: _Reader) -> TimeSpec:
+    """The [time] table (static when absent)."""
+    tr = _Reader(top.path, top.get("time", {}), "time")
+    mode = tr.string("mode", MODES, default="static")
+    damping = _Reader(top.path, tr.get("damping", {}), "time.damping")
+    tspec = TimeSpec(
+        mode=mode,
+        end=tr.number("end", 1.0, positive=True),
+        output_every=tr.number("output_every", 0.01, positive=True),
+        damping_mass=damping.number("mass", 0.0, nonneg=True),
+        damping_stiffness=damping.number("stiffness", 0.0, nonneg=True),
+    )
+    damping.finish(("mass", "stiffness"))
+    tr.finish(("mode", "end", "output_every", "damping"))
+    if mode == "dynamic":
+        n_out = tspec.end / tspec.output_every
+        if abs(n_out - round(n_out)) > 1e-9 * max(n_out, 1.0) or round(n_out) < 1:
+            tr.fail(
+                "end",
+                f"{tspec.end!r} s is not a whole multiple of output_every = {tspec.output_every!r} s "
+                f"({n_out:.6g} outputs): both sides are compared at the output times 0, output_every, ..., end",
+            )
+    return tspec
+
+
+def _manufactured(top: _Reader) -> dict:
+    """The [manufactured] table: the degrees and mesh sizes of a manufactured-solution study."""
+    mr2 = _Reader(top.path, top.get("manufactured"), "manufactured")
+    degrees = mr2.get("degrees", [1, 2])
+    if not (isinstance(degrees, list) and degrees and all(d in (1, 2) for d in degrees)):
+        mr2.fail("degrees", f"must be a list of 1 and/or 2, got {degrees!r}")
+    sizes = _Reader(top.path, mr2.get("sizes"), "manufactured.sizes")
+    per = {}
+    for d in degrees:
+        v = sizes.get(str(d))
+        if not (isinstance(v, list) and len(v) >= 2 and all(isinstance(n, int) and n >= 1 for n in v)):
+            sizes.fail(str(d), f"must be a list of at least two mesh sizes (cubes per side), got {v!r}")
+        per[str(d)] = v
+    sizes.finish(tuple(str(d) for d in degrees))
+    mr2.finish(("degrees", "sizes"))
+    return {"degrees": degrees, "sizes": per}
 
 
 def _material(mat: _Reader, region_keys: tuple) -> Material:
@@ -502,6 +549,44 @@ def _material(mat: _Reader, region_keys: tuple) -> Material:
             .replace("fiber_point", "fiber_around.point")
         )
         raise SceneError(f"{path}: {mat.key(key)} {str(exc).split(' ', 1)[1]}") from None
+
+
+#: What a body of soft tissue spans, for the warnings of ``implausible``: its largest extent, m (a
+#: millimetre patch of vessel wall to a metre-long torso); Young's modulus, Pa (brain about 1 kPa,
+#: tendon about 1 GPa); density, kg/m^3 (inflated lung about 300, bone about 2000).
+TISSUE_RANGES = {"extent": (1e-3, 1.0), "young": (100.0, 1e9), "density": (200.0, 3000.0)}
+
+
+def implausible(scene: Scene) -> list[str]:
+    """One line per number of the scene that no soft tissue has: a body larger than a metre (a mesh in
+    millimetres read as metres: ``scale``), a modulus or a density outside TISSUE_RANGES (a unit
+    slip: kPa for Pa, g/cm^3 for kg/m^3). Warnings, not errors: a rubber phantom or a steel probe is
+    a valid scene. A manufactured-solution scene is a mathematical problem and is not judged."""
+    if scene.manufactured:
+        return []
+    out = []
+    lo, hi = scene.mesh.bounding_box()
+    extent = float(np.max(hi - lo))
+    low, high = TISSUE_RANGES["extent"]
+    if not low <= extent <= high:
+        unit = "millimetres: scale = 0.001" if extent > high else "other units: scale = the metres in one of them"
+        fix = (
+            f"; if the file is in {unit} in [mesh]"
+            if scene.mesh_spec["generator"] == "file"
+            else " (lengths in metres)"
+        )
+        out.append(f"mesh: the body is {extent:.3g} m across, outside the {low:g} to {high:g} m of an organ{fix}")
+    tables = [m for _, m in scene.zones] if scene.zones else [scene.material]
+    for i, m in enumerate(tables):
+        where = f"material[{i}]" if scene.zones else "material"
+        for key, unit, hint in (
+            ("young", "Pa", "in Pa: 1 kPa = 1e3, 1 MPa = 1e6"),
+            ("density", "kg/m^3", "in kg/m^3: 1 g/cm^3 = 1000"),
+        ):
+            v, (low, high) = getattr(m, key), TISSUE_RANGES[key]
+            if not low <= v <= high:
+                out.append(f"{where}.{key} = {v:g} {unit}: soft tissue spans {low:g} to {high:g} ({hint})")
+    return out
 
 
 def zone_index(scene: Scene, mesh: TetMesh) -> np.ndarray:
