@@ -383,6 +383,41 @@ QUASI_STATIC = ("precomputed", "condensed", "ffd")
 GEOMETRIC = ("ffd",)
 
 
+#: The material terms beyond E, nu and rho that each model represents: "fibres" (a transversely
+#: isotropic law) and "penalty" (Material.volume_penalty, the incompressibility term of Picinbono et al.
+#: 2003). The linear models take fibres in their tensors and have no penalty (adaptive-tm is StVK on
+#: its mixed mesh, and has both); corotational-tm refuses
+#: fibres at build (its rotated-frame force would not be the gradient of an energy); hybrid-tm has the
+#: penalty on its StVK tetrahedra only; mass-spring has one stiffness per edge. ffd has no mechanics at
+#: all (GEOMETRIC) and claims none. A model runs without what it lacks; ``unrepresented`` names it, and
+#: the verification layer says so in every result, table row and report.
+REPRESENTS = {
+    "linear-tm": ("fibres",),
+    "corotational-tm": (),
+    "stvk-tm": ("fibres", "penalty"),
+    "hybrid-tm": ("fibres",),
+    "mass-spring": (),
+    "precomputed": ("fibres",),
+    "condensed": ("fibres",),
+    "ffd": ("fibres", "penalty"),
+    "adaptive-tm": ("fibres", "penalty"),
+}
+
+
+def unrepresented(name: str, material: Material | Materials) -> list[str]:
+    """What ``material`` asks of model ``name`` that it does not represent (REPRESENTS): one phrase per
+    term with the material's value, e.g. "the volume penalty (volume_penalty = 50000 Pa)"."""
+    mats = material.materials if isinstance(material, Materials) else (material,)
+    asked = {
+        "fibres": next((f"the fibres (young_fiber = {m.young_fiber:g} Pa)" for m in mats if m.transverse), None),
+        "penalty": next(
+            (f"the volume penalty (volume_penalty = {m.volume_penalty:g} Pa)" for m in mats if m.volume_penalty > 0),
+            None,
+        ),
+    }
+    return [text for term, text in asked.items() if text is not None and term not in REPRESENTS[name]]
+
+
 def build_model(
     name: str, points, tets, material: Material | Materials, loading: Loading | None = None, **options
 ) -> Model:

@@ -7,6 +7,7 @@ import pytest
 
 from verification.cli import main
 from verification.results import Result
+from verification.scene import SCENES_DIR
 
 METRICS = [
     "rel_l2",
@@ -213,3 +214,27 @@ def test_a_damaged_cache_entry_is_computed_again(tmp_path, capsys, monkeypatch):
     assert again["cached"] is False and again["rel_l2"] == first["rel_l2"]
     assert ref.meta["degree"] == 1
     assert cached_compare(scene, "linear-tm", ref_opts=opts)["cached"] is True
+
+
+@pytest.mark.slow
+def test_a_model_run_without_a_term_of_the_material_says_so(tmp_path, capsys):
+    """block-press with the volume penalty: linear-tm runs without it (its error measures what that
+    costs) and its row, its text and the sweep's table say so; stvk-tm represents it and says nothing."""
+    from verification.sweep import format_sweep
+
+    text = (SCENES_DIR / "block-press.toml").read_text().replace("poisson = ", "volume_penalty = 5.0e5\npoisson = ", 1)
+    path = tmp_path / "penalty.toml"
+    path.write_text(text)
+    rows = {}
+    for model in ("linear-tm", "stvk-tm"):
+        assert main(["compare", str(path), "--model", model, "--json"]) == 0
+        rows[model] = json.loads(capsys.readouterr().out)
+    assert rows["linear-tm"]["unrepresented"] == ["the volume penalty (volume_penalty = 500000 Pa)"]
+    assert rows["stvk-tm"]["unrepresented"] == []
+    assert main(["compare", str(path), "--model", "linear-tm"]) == 0
+    assert "not represented    the volume penalty (volume_penalty = 500000 Pa)" in capsys.readouterr().out
+    rows["linear-tm"]["pareto"] = rows["stvk-tm"]["pareto"] = False
+    result = {"scene": "penalty", "reference": rows["stvk-tm"]["reference"], "rows": list(rows.values())}
+    result.update(pareto=[], computed=2, cached=0)
+    table = format_sweep(result)
+    assert table.count("(without the volume penalty") == 1

@@ -209,9 +209,10 @@ def _verdict(r: dict, metric: str, tol: float) -> tuple[bool, str]:
         bad.append(f"{metric} {value:.3g} > {tol:g}" + (f" ({parts})" if parts else ""))
     if not r["frame"]["holds"]:
         bad.append(r["frame"]["why"])
+    without = "".join(f"; ran without {term}" for term in r.get("unrepresented") or [])
     if bad:
-        return False, f"{_label(r)}: {'; '.join(bad)}"
-    return True, f"{_label(r)}: {metric} {value:.3g} <= {tol:g}; {r['frame']['why']}"
+        return False, f"{_label(r)}: {'; '.join(bad)}{without}"
+    return True, f"{_label(r)}: {metric} {value:.3g} <= {tol:g}; {r['frame']['why']}{without}"
 
 
 def _candidates(

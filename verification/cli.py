@@ -292,6 +292,8 @@ def cmd_compare(args) -> int:
         if out.get("frame"):
             f = out["frame"]
             print(f"  {'frame':<18} {'holds' if f['holds'] else 'does not hold'} {args.rate:g} Hz: {f['why']}")
+        for term in out.get("unrepresented") or []:
+            print(f"  {'not represented':<18} {term}: ran without it, and the errors above include what that costs")
     return 0 if out["status"] == "ok" else 1
 
 

@@ -239,6 +239,7 @@ def _sweep_table(rows: list[dict]) -> str:
             )
             continue
         acc = " <em>(at reference accuracy)</em>" if r["at_reference_accuracy"] else ""
+        acc += "".join(f" <em>(ran without {html.escape(t)})</em>" for t in r.get("unrepresented") or [])
         out.append(
             f"<tr><td>{r['model']}</td><td>{r['integrator']}</td><td>{_fmt(r['dt'])}</td><td>{ratio}</td>"
             f"<td>{_fmt(r['rel_l2'])}{acc}</td><td>{_fmt(r['surface_rel_l2'])}</td><td>{_fmt(r['max_err'])}</td>"

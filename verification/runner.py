@@ -26,7 +26,7 @@ import numpy as np
 import realtime
 from meshes import TetMesh
 from realtime import DivergenceError, ImplicitEuler, State, SymplecticEuler, build_model, make_integrator, solve_static
-from realtime.models import FLOAT32_MODELS, QUASI_STATIC
+from realtime.models import FLOAT32_MODELS, QUASI_STATIC, unrepresented
 from realtime.quasistatic import QuasiStatic
 from realtime.spectra import max_eigenvalue, min_eigenvalue
 from realtime.statics import solve_static_implicit
@@ -787,19 +787,22 @@ def compare(
     """Metrics of one model run against the scene's reference (docs/architecture.md section 6).
 
     A diverging run gives {"status": "diverged", ...} with the step, dt and dt_crit instead of errors.
+    ``unrepresented`` lists what the material asks that the model does not represent (fibres, the
+    volume penalty: realtime.models.unrepresented): it ran without it, and its errors measure the cost.
     ``vtk`` (a directory or a .pvd path) also writes both displacements and the pointwise error at every
     output time as one ParaView series. ``budget`` adds ``error_budget`` (see ``error_budget``).
     ``float32``: for a model of FLOAT32_MODELS under an explicit integrator, the row's ``float32`` holds
     its float32 twin (``float32_twin``): rel_l2_vs_float64, its distance from this run by the row's own
     metric, beside its rel_l2 against the reference, and its step times; None for the other models.
     """
-    ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
     # a quasi-static model has its own update whatever integrator was asked for
     base = {
         "scene": scene.name,
         "model": model_name,
         "integrator": "quasi-static" if model_name in QUASI_STATIC else integrator,
     }
+    base["unrepresented"] = unrepresented(model_name, scene.body_material())
+    ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
     try:
         res = run_model(scene, model_name, dt=dt, dt_fraction=dt_fraction, integrator=integrator, max_steps=max_steps)
     except DivergenceError as exc:

@@ -171,11 +171,12 @@ def sweep_csv(result: dict) -> str:
     ]
     parts = ("mesh", "model", "time")
     single = ("rel_l2_vs_float64", "rel_l2", "step_us")
-    lines = [",".join(cols + [f"budget_{p}" for p in parts] + [f"float32_{c}" for c in single])]
+    lines = [",".join(cols + [f"budget_{p}" for p in parts] + [f"float32_{c}" for c in single] + ["unrepresented"])]
     for r in result["rows"]:
         budget = r.get("error_budget") or {}
         twin = r.get("float32") or {}
         values = [r.get(c) for c in cols] + [budget.get(p) for p in parts] + [twin.get(c) for c in single]
+        values.append(" and ".join(r.get("unrepresented") or []).replace(",", ";") or None)
         lines.append(",".join("" if v is None else str(v) for v in values))
     return "\n".join(lines) + "\n"
 
@@ -209,6 +210,7 @@ def format_sweep(result: dict) -> str:
         reaction = "-" if r["reaction_rel_err"] is None else f"{r['reaction_rel_err']:.3g}"
         flag = " pareto" if r["pareto"] else ""
         flag += " (at reference accuracy)" if r["at_reference_accuracy"] else ""
+        flag += "".join(f" (without {term})" for term in r.get("unrepresented") or [])
         out.append(
             f"{r['model']:<16} {dt:>10} {ratio:>8} {r['rel_l2']:>10.4g} {reaction:>9} {r['step_us']:>9.1f} "
             f"{r['rate_hz']:>9.0f}{_float32_cells(r) if twins else ''} {flag}"
