@@ -11,7 +11,6 @@ slower on a 40k-dof P2 Jacobian), named in ``solver_options`` and so in every re
 from __future__ import annotations
 
 import math
-import sys
 import time
 from dataclasses import dataclass
 
@@ -30,6 +29,7 @@ from realtime.material import Material, Materials
 from .errors import ReferenceSolveError
 from .materials import LAWS, volume_penalty_energy
 from .problem import Force, Problem, Traction
+from .progress import Progress, line
 
 #: Every tangent the reference factorises is symmetric: its residual is the derivative of an energy
 #: (hyperelastic laws, the volume penalty, dead loads) plus symmetric linear terms (consistent mass,
@@ -247,11 +247,7 @@ class Newton:
     def _more_workspace(self) -> bool:
         """grow_ksp_workspace on this solver's KSP (rank 0 says so on stderr)."""
 
-        def log(msg):
-            if self.comm.rank == 0:
-                print(msg, file=sys.stderr, flush=True)
-
-        return grow_ksp_workspace(self.ksp, log)
+        return grow_ksp_workspace(self.ksp, lambda msg: line(msg, self.comm.rank))
 
     def _factorise(self) -> None:
         """Assemble the tangent at the current u and have the next solve factorise it."""
@@ -313,8 +309,10 @@ class Newton:
         first = previous = previous_held = before = best = None
         fresh_step = False  # whether the last step was taken with the tangent at its own u
         start = self.factorisations
+        progress = Progress("reference: Newton iteration", None, self.comm.rank)
         for it in range(4 * max_it + 1):
             free, held = self._assemble_raw()
+            progress.tick(it, f": free residual {free:.3g} N, {self.factorisations - start} factorisations")
             undo = previous is not None and not fresh_step and not (np.isfinite(free) and free <= previous)
             if undo:
                 u.x.array[:] = before  # an old tangent led astray: undo its step, take Newton's
@@ -890,10 +888,13 @@ class ElasticityProblem:
                 linear_part=self._newmark_linear_part(u_old, v_old, a_old, (c1, c2, c3, dt, gamma), rayleigh),
             )
         iterations = 0
+        what = "reference: Newmark step" + ("" if linear else "s")
+        progress = Progress(what, n_steps, self.comm.rank)
         for step in range(1, n_steps + 1):
             t = step * dt
             self.set_tool_fraction_at(t)
             if linear:
+                progress.tick(step - 1, f", t = {t:.4g} s of {end:.4g}; one factorisation, back-substitutions")
                 with b.localForm() as loc:
                     loc.set(0.0)
                 fem.petsc.assemble_vector(b, L_form)
@@ -927,11 +928,9 @@ class ElasticityProblem:
                         "a finer mesh may help"
                     )
                 iterations += int(its)
-                if step % 100 == 0:
-                    self._log(
-                        f"reference: Newmark step {step} of {n_steps}: {iterations} Newton iterations, "
-                        f"{solver.factorisations} factorisations ({time.perf_counter() - t0:.1f} s)"
-                    )
+                progress.tick(
+                    step, f", t = {t:.4g} s: {iterations} Newton iterations, {solver.factorisations} factorisations"
+                )
             a_new = c1 * (u.x.array - u_old.x.array) - c2 * v_old.x.array - c3 * a_old.x.array
             v_old.x.array[:] = v_old.x.array + dt * ((1.0 - gamma) * a_old.x.array + gamma * a_new)
             a_old.x.array[:] = a_new
@@ -1047,9 +1046,8 @@ class ElasticityProblem:
         return float(self.comm.allreduce(float(local), op=MPI.MIN))
 
     def _log(self, msg: str) -> None:
-        """Progress to stderr, from rank 0 only."""
-        if self.comm.rank == 0:
-            print(msg, file=sys.stderr, flush=True)
+        """Progress to stderr, from rank 0 only, one whole line (reference.progress)."""
+        line(msg, self.comm.rank)
 
     # ---- post-processing (MPI-safe) ----
 

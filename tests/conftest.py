@@ -10,10 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from verification.cli import quiet_compilers
-
-quiet_compilers()  # FFCx's JIT logs its compiler calls at INFO
-
+import verification  # noqa: F401  (its import keeps FFCx's compiler calls off stderr: quiet_compilers)
 
 #: Scenes whose P2 reference (with its estimate) and P1 solution the suite's studies ask for (compare,
 #: sweep, advise, gate, report); with the stability study's variants of the cantilever they are solved

@@ -452,3 +452,47 @@ def test_a_factor_keeps_the_workspace_set_on_it_when_newton_factorises_again():
     again = newton.ksp.getPC().getFactorMatrix()
     assert again.handle == factor.handle and again.getMumpsIcntl(14) == 40
     assert again.getMumpsInfog(1) == 0
+
+
+@pytest.mark.parametrize("law", ["linear", "stvk"])
+def test_a_newmark_run_reports_its_steps_as_it_goes(monkeypatch, tmp_path, capfd, law):
+    """A dynamic reference tells a user who waits where it is: a line at most every progress.EVERY
+    seconds (5), whatever the law (the linear law's back-substitutions said nothing at all, for 1081 s
+    on a stiff beam) and however long each step is. Set to 0 here, so that every step reports, each on
+    a whole line of its own."""
+    from reference import fem, progress
+
+    monkeypatch.setattr(progress, "EVERY", 0.0)
+    p = tmp_path / "swing.toml"
+    p.write_text(SWING.replace('law = "stvk"', f'law = "{law}"'))
+    scene = load_scene(p)
+    ep = fem.ElasticityProblem(scene.mesh, scene.material, scene.problem, degree=1)
+    ep.solve_dynamic(5e-4, 0.01, 5e-3, scene.mesh.points)
+    lines = [ln for ln in capfd.readouterr().err.splitlines() if ln.startswith("reference: Newmark step")]
+    assert len(lines) >= 19, lines  # 20 steps: the linear loop reports before each, Newton's after
+    assert all(ln.count("reference:") == 1 and ln.endswith(" s)") for ln in lines)
+
+
+@pytest.mark.slow
+def test_the_studies_workers_print_whole_progress_lines_and_no_compiler_calls(tmp_path):
+    """Two references solved ahead on two spawned workers, on a cold FFCx cache (its forms compiled
+    afresh): stderr held the C compiler's command lines ("INFO:root:x86_64-linux-gnu-gcc ...") from each
+    worker, and the two workers' first lines ran together on one line. Now: neither."""
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "swing.toml").write_text(SWING)
+    code = (
+        "from verification.prefetch import solve_references\n"
+        "from verification.scene import load_scene\n"
+        f"s = load_scene({str(tmp_path / 'swing.toml')!r})\n"
+        "print(solve_references([(s, dict(degree=2, estimate=True)), (s, dict(degree=1, estimate=False))], 2))\n"
+    )
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "xdg"), "TISSUEBENCH_CACHE": str(tmp_path / "cache")}
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0 and out.stdout.strip() == "{}", out.stderr[-3000:]
+    assert "INFO" not in out.stderr and "gcc" not in out.stderr, out.stderr[-3000:]
+    lines = out.stderr.splitlines()
+    assert sum(ln.startswith("reference: swing P") for ln in lines) == 2, out.stderr
+    assert all(ln.count("reference:") <= 1 for ln in lines), out.stderr

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import sys
 from pathlib import Path
 
@@ -682,7 +681,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    quiet_compilers()
     args = build_parser().parse_args(argv)
     where = f"{args.scene}: " if isinstance(getattr(args, "scene", None), str) else ""
     try:
@@ -699,18 +697,6 @@ def main(argv=None) -> int:
         return _fail(
             "tissuebench: interrupted; what had finished is cached, and the same command resumes from there", 130
         )
-
-
-def quiet_compilers() -> None:
-    """Keep FFCx's JIT compiler calls off stderr: cffi lowers the root logger's threshold to INFO while it
-    compiles, so a level is not enough; a filter on the root logger drops those records."""
-    root = logging.getLogger()
-    root.setLevel(logging.WARNING)
-    if not any(getattr(f, "tissuebench", False) for f in root.filters):
-        only_warnings = logging.Filter()
-        only_warnings.filter = lambda record: record.levelno >= logging.WARNING
-        only_warnings.tissuebench = True
-        root.addFilter(only_warnings)
 
 
 def _one_line(exc: BaseException) -> str:

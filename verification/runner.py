@@ -16,7 +16,6 @@ import math
 import os
 import platform
 import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +29,7 @@ from realtime.models import FLOAT32_MODELS, QUASI_STATIC, unrepresented
 from realtime.quasistatic import QuasiStatic
 from realtime.spectra import max_eigenvalue, min_eigenvalue
 from realtime.statics import solve_static_implicit
+from reference.progress import line
 
 from .loading import build_loading
 from .metrics import compute, rel_l2
@@ -45,11 +45,11 @@ P1_OWN_MESH = {"degree": 1, "refine": 0, "estimate": False, "own_mesh": True}
 
 def log(msg: str) -> None:
     """Progress to stderr (stdout is kept for --json), from the first MPI rank only (under mpirun every
-    rank runs the same driver, and each line came once per rank)."""
+    rank runs the same driver, and each line came once per rank), in one write (reference.progress)."""
     from . import _RANK
 
     if _RANK in (None, "0"):
-        print(msg, file=sys.stderr, flush=True)
+        line(msg)
 
 
 def cache_dir() -> Path:
