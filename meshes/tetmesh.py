@@ -165,6 +165,19 @@ class TetMesh:
         count, labels = connected_components(graph, directed=False)
         return int(count), labels.astype(np.int64)
 
+    def blocks(self) -> tuple[int, np.ndarray]:
+        """Blocks: tetrahedra joined through shared faces (rigid together); blocks that meet only at a
+        vertex or an edge turn about it. Their number and the block of each tetrahedron, (M,) int64."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        faces = np.sort(self.tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], axis=2).reshape(-1, 3)
+        _, face = np.unique(faces, axis=0, return_inverse=True)
+        tet = np.repeat(np.arange(self.n_tets), 4)
+        graph = coo_matrix((np.ones(len(tet)), (tet, face.ravel())), shape=(self.n_tets, face.max() + 1))
+        count, labels = connected_components(graph @ graph.T, directed=False)
+        return int(count), labels.astype(np.int64)
+
     def volumes(self) -> np.ndarray:
         """(M,) float64, m^3."""
         return signed_volumes(self.points, self.tets)

@@ -80,6 +80,32 @@ def min_eigenvalue(model: Model, tol: float = 1e-3) -> float:
     )
 
 
+def zero_energy_modes(model: Model, tol: float = 1e-10, most: int = 6) -> tuple[int, float]:
+    """The held body's modes without stiffness at rest: how many generalised eigenvalues of (K, M) on the
+    free components lie below ``tol`` times the largest (counted up to ``most``), and the smallest such
+    ratio. A static problem with one has no unique equilibrium: a part held at too few vertices (free to
+    turn about them), or tetrahedra joined only at a vertex or an edge (a ball joint, a hinge). Round-off
+    leaves such a mode near 1e-16 of the largest; a slender beam's first bending mode lies far above
+    ``tol``. K is the model's rest stiffness (Model.rest_stiffness); the largest eigenvalue is taken from
+    the element bound (an upper bound, Model.element_eigenvalue_bound). Dense below a few hundred free
+    components, else shift-invert Lanczos about a small negative shift (K + s M is then never singular)."""
+    fidx = np.flatnonzero(model.loading.free.reshape(-1) != 0.0)
+    if len(fidx) == 0:
+        return 0, math.inf
+    K = model.rest_stiffness()[fidx][:, fidx]
+    m = np.repeat(model.mass, 3)[fidx]
+    top = model.element_eigenvalue_bound()
+    if len(fidx) <= 600:
+        s = 1.0 / np.sqrt(m)
+        lam = np.linalg.eigvalsh(s[:, None] * K.toarray() * s[None, :])[: min(most, len(fidx))]
+    else:
+        lam = spla.eigsh(
+            K.tocsc(), k=most, M=sp.diags(m).tocsc(), sigma=-1e-6 * top, which="LM", return_eigenvectors=False
+        )
+    ratio = np.sort(np.asarray(lam)) / top
+    return int(np.count_nonzero(ratio < tol)), float(max(ratio[0], 0.0))
+
+
 def element_critical_dt(model: Model) -> float:
     """A proven lower bound, s, on the undamped explicit critical step 2 / omega_max at rest.
 

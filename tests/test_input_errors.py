@@ -446,3 +446,29 @@ def test_check_prints_the_extent_and_warns_of_a_mesh_in_millimetres(tmp_path, ca
 
     _scene(Args())
     assert capsys.readouterr().err.count("tissuebench: warning:") == 3
+
+
+def test_a_static_body_free_to_turn_about_a_hinge_is_refused_before_any_work(tmp_path, capsys):
+    """Two tetrahedra sharing only an edge (a hinge, as in SOFA's 6_tetra_bad.msh, whose six meet only at
+    vertices and edges), the first held: the second turns freely about the edge, so a static scene has
+    no equilibrium. A run drifted under gravity until it was called diverged, at any time step, with
+    the time step blamed. Now every command refuses it in one line naming the blocks and the fix; held
+    also at a vertex off the hinge, the same body is accepted."""
+    import meshio
+
+    points = 0.01 * np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1], [1, 0, 1]], dtype=float)
+    tets = np.array([[0, 1, 2, 3], [1, 3, 4, 5]])
+    meshio.write(tmp_path / "hinge.vtu", meshio.Mesh(points, [("tetra", tets)]))
+    data = builtin("cantilever")
+    data["mesh"] = {"generator": "file", "file": "hinge.vtu"}
+    data["fixed"] = [{"box": [[-1e-9, -1e-9, -1e-9], [1e-9, 0.0101, 1e-9]]}]  # vertices 0 and 2
+    data["fixed"].append({"sphere": {"center": [0.0, 0.0, 0.01], "radius": 1e-6}})  # and 3: the first tet
+    data["load"] = [{"kind": "gravity", "value": [0.0, 0.0, -9.81]}]
+    data.pop("time", None)
+    for command in (["check"], ["run", "--model", "linear-tm"], ["reference"]):
+        code, _, err = run([command[0], str(write_scene(tmp_path / "hinge.toml", data)), *command[1:]], capsys)
+        assert code == 2, err
+        assert_one_line(err, "hinge.toml: fixed: the held body has", "2 blocks that meet only at vertices or edges")
+    data["fixed"].append({"sphere": {"center": [0.01, 0.01, 0.01], "radius": 1e-6}})  # vertex 4, off the hinge
+    code, out, err = run(["check", str(write_scene(tmp_path / "hinge.toml", data))], capsys)
+    assert code == 0, err

@@ -18,6 +18,7 @@ from meshes.store import stored_names
 from realtime import INTEGRATORS, MODELS, DivergenceError, InputError, NotConvergedError
 from reference.errors import ReferenceSolveError
 
+from .loading import check_held
 from .scene import builtin_scenes, implausible, load_scene
 
 
@@ -69,6 +70,7 @@ def _scene(args, warn: bool = True):
     """The command's scene, cut ``--mesh-refine`` more times than its file says; with ``warn``, what
     no soft tissue has (scene.implausible) goes to stderr before any work."""
     scene = load_scene(args.scene, refine=getattr(args, "mesh_refine", 0))
+    check_held(scene)
     if warn:
         from .runner import log
 

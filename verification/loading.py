@@ -81,3 +81,45 @@ def build_loading(mesh: TetMesh, density: float, problem: Problem) -> Loading:
             tool_ramp_shape=np.asarray(tools["shape"], dtype=np.int64),
         )
     return Loading(free=free, external_force=fext)
+
+
+#: Free components up to which ``check_held`` looks for zero-energy modes (a sparse factorisation of
+#: the P1 stiffness): the refined meshes behind it pose the same problem, and are not checked again.
+HELD_CHECK_LIMIT = 200_000
+
+
+def check_held(scene) -> None:
+    """SceneError, before any work, for a static scene whose held body has a zero-energy mode
+    (realtime.spectra.zero_energy_modes on the P1 linear stiffness of the scene's base mesh with its
+    fixed and driven components held): no static equilibrium exists for either solver, and a run
+    would drift until its displacement 'diverged' at any time step. Says how many of the body's blocks
+    (tetrahedra joined through faces) meet only at vertices or edges, which is the usual cause in a
+    mesh file, beside too few held vertices."""
+    from realtime import build_model
+    from realtime.spectra import zero_energy_modes
+
+    from .scene import SceneError
+
+    if scene.time.mode != "static" or scene.manufactured:
+        return
+    base = scene.base or scene
+    mesh = base.mesh
+    if 3 * mesh.n_vertices > HELD_CHECK_LIMIT:
+        return
+    loading = build_loading(mesh, base.densities(), base.problem)
+    model = build_model("linear-tm", mesh.points, mesh.tets, base.body_material(), loading)
+    count, ratio = zero_energy_modes(model)
+    if not count:
+        return
+    n_blocks, _ = mesh.blocks()
+    joints = (
+        f"its {mesh.n_tets} tetrahedra form {n_blocks} blocks that meet only at vertices or edges (each a joint "
+        "free to turn), "
+        if n_blocks > 1
+        else ""
+    )
+    raise SceneError(
+        f"{scene.path}: fixed: the held body has {count}{'+' if count == 6 else ''} zero-energy mode(s) (smallest "
+        f"stiffness eigenvalue {ratio:.1e} of the largest): {joints}or too few of its vertices are held, so a "
+        "static scene has no equilibrium; hold more of the body with [[fixed]] regions"
+    )
