@@ -24,7 +24,9 @@ from mpi4py import MPI
 from meshes import TetMesh
 from realtime.material import Material, Materials
 
+from .errors import ReferenceSolveError
 from .problem import Problem
+from .progress import line
 
 
 def _materials_of(material: Material | Materials) -> tuple:
@@ -59,19 +61,31 @@ def solve_static(
 
     levels = [refine, refine + 1] if estimate else [refine]
     problems, infos = [], []
-    coarse = None
+    coarse = unchecked = None
     for level in levels:
         t0 = time.perf_counter()
         ep = ElasticityProblem(mesh, material, problem, degree=degree, refine=level, comm=comm)
-        if not ep.linear:
-            warm = nested and coarse is not None
-            if warm:
-                ep.start_from(coarse)
-            info = ep.solve(
-                steps=newton_steps, min_increment=min_increment, start_at_full_load=warm, petsc_options=petsc_options
-            )
-        else:
-            info = ep.solve(petsc_options=petsc_options)
+        try:
+            if not ep.linear:
+                warm = nested and coarse is not None
+                if warm:
+                    ep.start_from(coarse)
+                info = ep.solve(
+                    steps=newton_steps,
+                    min_increment=min_increment,
+                    start_at_full_load=warm,
+                    petsc_options=petsc_options,
+                )
+            else:
+                info = ep.solve(petsc_options=petsc_options)
+        except ReferenceSolveError as exc:
+            if coarse is None:  # nothing converged: nothing is known
+                raise
+            # the level behind the estimate failed where the solution it checks converged: that solution
+            # is kept, said to be unverified, and the reason is kept with it
+            unchecked = f"the check at refine {level} found no equilibrium ({exc})"
+            line(f"reference: {unchecked}; returning refine {refine}, whose error is not estimated", comm.rank)
+            break
         coarse = ep
         problems.append(ep)
         info.update(
@@ -94,6 +108,8 @@ def solve_static(
         "versions": {"dolfinx": dolfinx.__version__, "python": platform.python_version()},
     }
     meta["min_det_F"] = infos[-1].get("min_det_F")
+    if unchecked:
+        meta["unchecked"] = unchecked
     answer = evaluate_static(problems, meta, mesh.points if points is None else points)
     return {**answer, "problems": problems}
 
@@ -154,7 +170,7 @@ def evaluate_static(problems: list, meta: dict, points: np.ndarray) -> dict:
         )
     else:
         meta["returned_level"] = refine
-        meta["estimate"] = "none: reference unverified"
+        meta["estimate"] = "none: reference unverified" + (f"; {meta['unchecked']}" if meta.get("unchecked") else "")
     return {"displacement": values[-1], "reaction": reactions[-1], "meta": meta}
 
 

@@ -496,3 +496,36 @@ def test_the_studies_workers_print_whole_progress_lines_and_no_compiler_calls(tm
     lines = out.stderr.splitlines()
     assert sum(ln.startswith("reference: swing P") for ln in lines) == 2, out.stderr
     assert all(ln.count("reference:") <= 1 for ln in lines), out.stderr
+
+
+def test_a_solution_whose_check_level_fails_is_kept_and_said_to_be_unverified(monkeypatch, tmp_path, capfd):
+    """SOFA's liver under gravity: the P2 solve converged on the file's mesh, then the refined level
+    behind the estimate met inverted elements and the whole reference failed, discarding a converged
+    solution. The check level failing now returns the level it checks, with no estimate and the reason,
+    on one line of stderr; a first level that fails still fails (nothing is known)."""
+    from reference import fem
+    from reference.errors import ReferenceSolveError
+
+    p = tmp_path / "swing.toml"
+    p.write_text(SWING)
+    scene = load_scene(p)
+    solve = fem.ElasticityProblem.solve
+
+    def failing_at(level):
+        def patched(self, **kwargs):
+            if self.refine == level:
+                raise ReferenceSolveError("reference: Newton found no equilibrium (inverted elements)")
+            return solve(self, **kwargs)
+
+        return patched
+
+    monkeypatch.setattr(fem.ElasticityProblem, "solve", failing_at(1))
+    out = reference_static(scene.mesh, scene.material, scene.problem, degree=1, refine=0, estimate=True)
+    meta = out["meta"]
+    assert meta["returned_level"] == 0 and "ref_err_estimate" not in meta
+    assert "the check at refine 1 found no equilibrium" in meta["unchecked"] and "unverified" in meta["estimate"]
+    assert np.abs(out["displacement"]).max() > 0
+    assert "returning refine 0, whose error is not estimated" in capfd.readouterr().err
+    monkeypatch.setattr(fem.ElasticityProblem, "solve", failing_at(0))
+    with pytest.raises(ReferenceSolveError, match="no equilibrium"):
+        reference_static(scene.mesh, scene.material, scene.problem, degree=1, refine=0, estimate=True)

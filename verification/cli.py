@@ -207,6 +207,7 @@ def cmd_reference(args) -> int:
                 f"{scene.name}: P{args.degree} refine {args.refine}, max |u| = {summary['max_displacement']:.4g} m"
                 + (f", ref_err_estimate = {est:.3g}" if est is not None else "")
                 + (f", written to {args.out}" if args.out else "")
+                + (f"; unverified: {res.meta['unchecked']}" if res.meta.get("unchecked") else "")
             )
     return 0
 
