@@ -529,3 +529,28 @@ def test_a_solution_whose_check_level_fails_is_kept_and_said_to_be_unverified(mo
     monkeypatch.setattr(fem.ElasticityProblem, "solve", failing_at(0))
     with pytest.raises(ReferenceSolveError, match="no equilibrium"):
         reference_static(scene.mesh, scene.material, scene.problem, degree=1, refine=0, estimate=True)
+
+
+@pytest.mark.parametrize("memory", ["enough", "none"])
+def test_an_iterative_solve_that_fails_falls_back_and_says_so(monkeypatch, capfd, memory):
+    """SOFA's raptor (8418 tetrahedra, linear, nu = 0.45) failed its iterative solve with PETSc reason -5
+    (GMRES broke down) after 86 s, and the reference gave up. A failed iterative solve is now tried again
+    by a direct factorisation where it is predicted to fit in half the available memory, else by a
+    stronger multigrid, with one line on stderr; both give the direct answer. The failure is made here
+    by GAMG allowed one iteration on a problem forced onto the iterative path."""
+    from reference import fem
+
+    lin = load_scene("block-twist").with_material(law="linear")
+    direct = reference_static(lin.mesh, lin.material, lin.problem, degree=1, estimate=False)["displacement"]
+    monkeypatch.setattr(fem, "DIRECT_LIMIT", 10)
+    monkeypatch.setattr(fem, "GAMG_OPTIONS", {**fem.GAMG_OPTIONS, "ksp_max_it": 1})
+    if memory == "none":
+        monkeypatch.setattr(fem, "available_bytes", lambda: 0.0)
+    capfd.readouterr()
+    got = reference_static(lin.mesh, lin.material, lin.problem, degree=1, estimate=False)
+    err = capfd.readouterr().err
+    assert "reference: the iterative solve failed (PETSc reason" in err
+    assert ("trying a direct factorisation" if memory == "enough" else "trying stronger multigrid") in err
+    assert np.linalg.norm(got["displacement"] - direct) <= 1e-9 * np.linalg.norm(direct)
+    # a solver the user chose is the user's: no fallback
+    assert fem.fallback_options(fem.solver_options(10**6, {"pc_type": "gamg"}), 10**6, {"pc_type": "gamg"}) is None
