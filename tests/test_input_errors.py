@@ -472,3 +472,12 @@ def test_a_static_body_free_to_turn_about_a_hinge_is_refused_before_any_work(tmp
     data["fixed"].append({"sphere": {"center": [0.01, 0.01, 0.01], "radius": 1e-6}})  # vertex 4, off the hinge
     code, out, err = run(["check", str(write_scene(tmp_path / "hinge.toml", data))], capsys)
     assert code == 0, err
+    # one block, held at two vertices: it turns about the line through them
+    data["mesh"]["file"] = str(SCENES_DIR / "data" / "sofa-liver2.msh")
+    data["mesh"]["scale"] = 0.1
+    lo = [-0.1201, -0.05329, -0.08495]
+    data["fixed"] = [{"box": [[c - 1.0 for c in lo], [lo[0] + 1e-6, 1.0, 1.0]]}]
+    code, _, err = run(["check", str(write_scene(tmp_path / "liver.toml", data))], capsys)
+    held = int(err.split(": ")[-1].split(" of its vertices")[0]) if code == 2 else None
+    assert code == 2 and held is not None and held < 3, err
+    assert_one_line(err, "zero-energy mode", "too few or on one line")

@@ -89,12 +89,14 @@ HELD_CHECK_LIMIT = 200_000
 
 
 def check_held(scene) -> None:
-    """SceneError, before any work, for a static scene whose held body has a zero-energy mode
-    (realtime.spectra.zero_energy_modes on the P1 linear stiffness of the scene's base mesh with its
-    fixed and driven components held): no static equilibrium exists for either solver, and a run
-    would drift until its displacement 'diverged' at any time step. Says how many of the body's blocks
-    (tetrahedra joined through faces) meet only at vertices or edges, which is the usual cause in a
-    mesh file, beside too few held vertices."""
+    """SceneError, before any work, for a static scene whose held body has a zero-energy mode with a
+    cause in the mesh or the constraints: no static equilibrium exists for either solver, and a run
+    would drift until its displacement 'diverged' at any time step. A mode is an eigenvalue of the P1
+    linear stiffness on the held components below 1e-10 of the element bound
+    (realtime.spectra.zero_energy_modes); a cause is blocks of tetrahedra (joined through faces) that
+    meet only at vertices or edges, or fewer than three non-collinear vertices held in all three
+    components. Both are asked for: a slender body's soft bending modes also fall below that ratio
+    (SOFA's 16 m raptor, finely meshed at its tips: 3e-12), and are physics, not a mechanism."""
     from realtime import build_model
     from realtime.spectra import zero_energy_modes
 
@@ -107,19 +109,27 @@ def check_held(scene) -> None:
     if 3 * mesh.n_vertices > HELD_CHECK_LIMIT:
         return
     loading = build_loading(mesh, base.densities(), base.problem)
+    n_blocks, _ = mesh.blocks()
+    anchors = mesh.points[np.all(loading.free == 0.0, axis=1)]
+    extent = float(np.ptp(mesh.points, axis=0).max())
+    spread = np.linalg.svd(anchors - anchors.mean(axis=0), compute_uv=False) if len(anchors) else np.zeros(1)
+    too_few = len(anchors) < 3 or (len(spread) < 2 or spread[1] <= 1e-9 * extent)
+    if n_blocks == 1 and not too_few:
+        return
     model = build_model("linear-tm", mesh.points, mesh.tets, base.body_material(), loading)
     count, ratio = zero_energy_modes(model)
     if not count:
         return
-    n_blocks, _ = mesh.blocks()
-    joints = (
-        f"its {mesh.n_tets} tetrahedra form {n_blocks} blocks that meet only at vertices or edges (each a joint "
-        "free to turn), "
-        if n_blocks > 1
-        else ""
-    )
+    causes = []
+    if n_blocks > 1:
+        causes.append(
+            f"its {mesh.n_tets} tetrahedra form {n_blocks} blocks that meet only at vertices or edges, each joint "
+            "free to turn"
+        )
+    if too_few:
+        causes.append(f"{len(anchors)} of its vertices are held in all three components, too few or on one line")
     raise SceneError(
         f"{scene.path}: fixed: the held body has {count}{'+' if count == 6 else ''} zero-energy mode(s) (smallest "
-        f"stiffness eigenvalue {ratio:.1e} of the largest): {joints}or too few of its vertices are held, so a "
-        "static scene has no equilibrium; hold more of the body with [[fixed]] regions"
+        f"stiffness eigenvalue {ratio:.1e} of the largest): {'; '.join(causes)}; a static scene has no "
+        "equilibrium, so hold more of the body with [[fixed]] regions"
     )
