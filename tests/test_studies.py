@@ -550,3 +550,33 @@ def test_spawned_jobs_still_queued_do_not_run_once_the_caller_stops(tmp_path):
     ran = sorted(int(p.name) for p in tmp_path.iterdir())
     # the first, the one running and the executor's call queue (a worker's and one more) ran; of eight
     assert ran[:2] == [0, 1] and len(ran) <= 4, ran
+
+
+def test_a_gate_whose_baseline_no_longer_describes_its_measurement_says_so(tmp_path, capsys):
+    """The rule (gates.stale): a baseline names the scene (its hash: material, loads, regions, time, mesh
+    tags) and the reference's solver it was measured with, and both must be today's. The shipped
+    baselines had said PETSc's LU while the reference had used Cholesky for months, and a changed
+    material or load went unnoticed. A baseline with another scene hash, another solver, or none
+    recorded fails, each saying why; the shipped file passes."""
+    import re
+
+    from verification.gates import DEFAULT_CONFIG
+
+    text = DEFAULT_CONFIG.read_text()
+    first = text.index("[[gate]]")
+    gate = text[first : text.index("[[gate]]", first + 1)]  # cantilever-pull, linear-tm, rel_l2, quick
+    cases = {
+        "scene": (re.sub(r'scene_sha256 = "[0-9a-f]{6}', 'scene_sha256 = "000000', gate), "the scene changed"),
+        "solver": (
+            re.sub(r'solver = "(?:[^"\\]|\\.)*"', 'solver = "lu"', gate),
+            "solver changed",
+        ),
+        "none": (re.sub(r'scene_sha256 = "[0-9a-f]+", ', "", gate), "records no scene hash"),
+    }
+    for name, (changed, needle) in cases.items():
+        assert changed != gate, name
+        path = tmp_path / f"{name}.toml"
+        path.write_text(changed)
+        capsys.readouterr()
+        assert main(["gate", "--config", str(path)]) == 1, name
+        assert needle in capsys.readouterr().out, name

@@ -4,10 +4,12 @@ mesh hash, solver options, date).
 
 ``tissuebench gate`` runs them, prints a table and exits 1 when a gate fails, saying why: the measured
 value exceeds its bound (the decision), or it moved from its baseline by more than ``drift`` (relative,
-default DEFAULT_DRIFT: a change nobody decided on, better or worse), or the scene's mesh is no longer
-the one the baseline was measured on. ``--quick`` runs the gates marked quick (the test suite does);
-``--update-baselines`` records the measured values and the settings the runs used (the bounds stay as
-they are: a bound is a decision, a baseline a measurement).
+default DEFAULT_DRIFT: a change nobody decided on, better or worse), or the baseline no longer
+describes what the gate measures (``stale``): the scene's mesh, the scene itself (its material,
+loads, regions, time and mesh tags: the scene's hash) or the reference's solver options differ from
+those the baseline recorded, or it recorded none of them. ``--quick`` runs the gates marked quick (the
+test suite does); ``--update-baselines`` records the measured values and what they were measured on
+(the bounds stay as they are: a bound is a decision, a baseline a measurement).
 """
 
 from __future__ import annotations
@@ -95,8 +97,8 @@ def run_gates(
                     f"moved {100 * moved:.1f}% from its baseline {base['value']:.4g} ({base.get('commit', '?')}), "
                     f"more than the {100 * drift:g}% allowed"
                 )
-        if baselines and base.get("mesh_sha256") and base["mesh_sha256"] != mesh_sha:
-            why.append(f"the mesh changed: hash {mesh_sha[:12]}, the baseline's {base['mesh_sha256'][:12]}")
+        if baselines and base:
+            why += stale(base, mesh_sha, scene.sha256(), _solver(r.get("reference")))
         passed = not why
         rows.append(
             {
@@ -111,12 +113,41 @@ def run_gates(
                 "why": "; ".join(why),
                 "baseline": g.get("baseline"),
                 "mesh_sha256": mesh_sha,
+                "scene_sha256": scene.sha256(),
                 "dt": r.get("dt"),
                 "integrator": r.get("integrator"),
                 "reference": r.get("reference"),
             }
         )
     return rows
+
+
+def _solver(ref: dict | None) -> str:
+    """The reference's PETSc options of a run's row, as the canonical JSON a baseline records."""
+    opts = (ref or {}).get("petsc_options")
+    return json.dumps(opts, sort_keys=True) if opts else "?"
+
+
+def stale(base: dict, mesh_sha: str, scene_sha: str, solver: str) -> list[str]:
+    """Why a baseline no longer describes what its gate measures, one phrase a reason (none: it does).
+    The rule: the baseline must name the mesh, the scene and the reference's solver options it was
+    measured with, and each must be today's. A value measured on another problem or with another
+    solver cannot tell drift from change, so the gate fails until --update-baselines re-measures it."""
+    out = []
+    if base.get("mesh_sha256") and base["mesh_sha256"] != mesh_sha:
+        out.append(f"the mesh changed: hash {mesh_sha[:12]}, the baseline's {base['mesh_sha256'][:12]}")
+    if not base.get("scene_sha256"):
+        out.append("the baseline records no scene hash (material, loads, regions): re-measure with --update-baselines")
+    elif base["scene_sha256"] != scene_sha:
+        out.append(
+            f"the scene changed (material, loads, regions, time or mesh tags): hash {scene_sha[:12]}, the baseline's "
+            f"{base['scene_sha256'][:12]}; re-measure with --update-baselines"
+        )
+    if base.get("solver") and base["solver"] != solver:
+        out.append(
+            f"the reference's solver changed: {solver}, the baseline's {base['solver']}; re-measure with --update-baselines"
+        )
+    return out
 
 
 def format_gates(rows: list[dict]) -> str:
@@ -139,15 +170,16 @@ def update_baselines(path: Path, rows: list[dict]) -> None:
     stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     for r in rows:
         ref = r.get("reference") or {}
-        solver = json.dumps(ref.get("petsc_options"), sort_keys=True) if ref.get("petsc_options") else "?"
         gates[r["index"]]["baseline"] = {
             "value": r["value"],
             "commit": git_commit(),
             "mesh_sha256": r["mesh_sha256"],
+            "scene_sha256": r["scene_sha256"],
+            "solver": _solver(ref),
             "date": stamp,
             # the settings the runs used, read from their results
             "options": f"{r['integrator']} at dt = {r['dt']} s; reference {ref.get('law')} P{ref.get('degree')} "
-            f"refine {ref.get('refine')} (returned level {ref.get('returned_level')}), PETSc {solver}",
+            f"refine {ref.get('refine')} (returned level {ref.get('returned_level')})",
         }
     lines = [
         "# CI accuracy gates: tissuebench gate [--quick] [--update-baselines]. A gate fails when the measured",
