@@ -53,6 +53,7 @@ def solve_static(
     chunk: int = 200,
     safety: float = 0.9,
     steps: int | None = None,
+    progress=None,
 ) -> StaticResult:
     """Static equilibrium under the full loads by damped explicit dynamics (dynamic relaxation).
 
@@ -80,6 +81,9 @@ def solve_static(
     the equilibrium, after 8000 steps 3e-6, then no closer), so no residual can say when to stop.
     Given the steps its float64 twin took at the same dt, the float32 run has made the same progress
     and differs from it by round-off (``verification``'s sweep does this).
+
+    ``progress``: called as progress(steps taken, relative residual) after every chunk, for a caller
+    that reports to a user who waits (the engine itself prints nothing).
     """
     if steps is None and model.precision != "float64":
         raise InputError(
@@ -128,6 +132,8 @@ def solve_static(
         r = (f + lo.external_force) * free
         scale = max(fmag, float(np.linalg.norm(model.reaction(state.u))), 1e-300)
         residual = float(np.linalg.norm(r)) / scale
+        if progress is not None:
+            progress(taken, residual)
         if state.t >= arrived and steps is None:
             if residual < rtol:
                 break

@@ -580,3 +580,17 @@ def test_a_gate_whose_baseline_no_longer_describes_its_measurement_says_so(tmp_p
         capsys.readouterr()
         assert main(["gate", "--config", str(path)]) == 1, name
         assert needle in capsys.readouterr().out, name
+
+
+def test_a_settling_run_reports_its_steps_as_it_goes(monkeypatch, capfd):
+    """The engine's settling (damped dynamics to equilibrium, minutes on a refined mesh, often in a
+    worker) reports like the reference's loops: a line at most every progress.EVERY seconds, set to 0
+    here so that every chunk of steps reports, with the residual against the tolerance asked."""
+    from reference import progress
+    from verification.runner import run_model
+    from verification.scene import load_scene
+
+    monkeypatch.setattr(progress, "EVERY", 0.0)
+    run_model(load_scene("block-press"), "linear-tm", dt_fraction=0.5)
+    lines = [ln for ln in capfd.readouterr().err.splitlines() if ln.startswith("settling: block-press / linear-tm")]
+    assert len(lines) >= 2 and all("residual" in ln and "(asked 1e-10)" in ln for ln in lines), lines

@@ -29,7 +29,7 @@ from realtime.models import FLOAT32_MODELS, QUASI_STATIC, unrepresented
 from realtime.quasistatic import QuasiStatic
 from realtime.spectra import max_eigenvalue, min_eigenvalue
 from realtime.statics import solve_static_implicit
-from reference.progress import line
+from reference.progress import Progress, line
 
 from .loading import build_loading
 from .metrics import compute, rel_l2
@@ -417,7 +417,18 @@ def settled(
         if dt is None:
             dt = (0.9 if dt_fraction is None else dt_fraction) * dt_crit
         if static is None or static.dt != dt:
-            static = solve_static(model, dt=dt, rtol=rtol, max_steps=max_steps)
+            from . import _RANK
+
+            ticker = Progress(f"settling: {scene.name} / {model.name}, step", rank=int(_RANK or 0))
+            static = solve_static(
+                model,
+                dt=dt,
+                rtol=rtol,
+                max_steps=max_steps,
+                progress=lambda taken, residual: ticker.tick(
+                    taken, f": residual {residual:.2e} of the load (asked {rtol:.0e})"
+                ),
+            )
     out = Settled(static.state, static.steps, static.residual, dt, dt_crit, omega2, time.perf_counter() - t1, cg)
     numbers = {k: getattr(out, k) for k in _SETTLED_NUMBERS}
     atomic_savez(path, u=out.state.u, v=out.state.v, t=out.state.t, state_steps=out.state.steps, **numbers)
