@@ -70,11 +70,14 @@ def solve_static(
                 warm = nested and coarse is not None
                 if warm:
                     ep.start_from(coarse)
+                # the check level gives up sooner than the level it checks: 10 times that level's time
+                limit = {} if coarse is None else {"time_limit": max(120.0, 10.0 * infos[-1]["wall_s"])}
                 info = ep.solve(
                     steps=newton_steps,
                     min_increment=min_increment,
                     start_at_full_load=warm,
                     petsc_options=petsc_options,
+                    **limit,
                 )
             else:
                 info = ep.solve(petsc_options=petsc_options)

@@ -554,3 +554,19 @@ def test_an_iterative_solve_that_fails_falls_back_and_says_so(monkeypatch, capfd
     assert np.linalg.norm(got["displacement"] - direct) <= 1e-9 * np.linalg.norm(direct)
     # a solver the user chose is the user's: no fallback
     assert fem.fallback_options(fem.solver_options(10**6, {"pc_type": "gamg"}), 10**6, {"pc_type": "gamg"}) is None
+
+
+def test_a_matrix_solved_at_every_step_is_factorised_once_where_the_factor_fits(monkeypatch):
+    """A linear Newmark run solves one matrix at each of its steps: above DIRECT_LIMIT it took GAMG's
+    iterations every step (a stiff beam's dynamic reference, 1081 s). It is factorised once wherever
+    the factor is predicted to fit in half the available memory, and only one solve, or a factor that
+    does not fit, takes the iterative path."""
+    from reference import fem
+
+    n = 4 * fem.DIRECT_LIMIT
+    monkeypatch.setattr(fem, "available_bytes", lambda: 4.0 * fem.direct_bytes(n))
+    assert fem.solver_options(n, linear=True, reused=True)["pc_type"] == "cholesky"
+    assert fem.solver_options(n, linear=True)["pc_type"] == "gamg"
+    monkeypatch.setattr(fem, "available_bytes", lambda: 1.5 * fem.direct_bytes(n))
+    assert fem.solver_options(n, linear=True, reused=True)["pc_type"] == "gamg"
+    assert fem.solver_options(n, {"pc_type": "lu"}, linear=True, reused=True) == {"pc_type": "lu"}
