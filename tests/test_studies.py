@@ -594,3 +594,48 @@ def test_a_settling_run_reports_its_steps_as_it_goes(monkeypatch, capfd):
     run_model(load_scene("block-press"), "linear-tm", dt_fraction=0.5)
     lines = [ln for ln in capfd.readouterr().err.splitlines() if ln.startswith("settling: block-press / linear-tm")]
     assert len(lines) >= 2 and all("residual" in ln and "(asked 1e-10)" in ln for ln in lines), lines
+
+
+def test_a_studys_workers_end_with_the_process_that_spawned_them(tmp_path):
+    """A killed advise left its two spawned workers solving references for minutes. A worker now ends
+    when its parent does, however the parent ends (here SIGKILL, which no handler sees)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from verification.runner import ROOT
+
+    code = (
+        "import os, time\n"
+        "from verification.prefetch import _spawned\n"
+        "for k, r in _spawned(time.sleep, [(0,), (300,)], 1):\n"
+        "    print(k, flush=True)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    parent.stdout.readline()  # the first job ended: the worker is up and sleeping in the second
+    workers = [int(p) for p in os.listdir("/proc") if p.isdigit() and _ppid(int(p)) == parent.pid]
+    assert workers, "no worker found"
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+    deadline = time.monotonic() + 30.0
+    while time.monotonic() < deadline and any(_alive(w) for w in workers):
+        time.sleep(0.1)
+    assert not any(_alive(w) for w in workers), "a worker outlived its parent"
+
+
+def _ppid(pid: int) -> int | None:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return int(fh.read().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False

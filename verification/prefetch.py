@@ -42,11 +42,30 @@ def _workers(workers: int | None, n_jobs: int) -> int:
     return 0 if workers < 2 or MPI.COMM_WORLD.size > 1 else workers
 
 
+def _end_with_parent(parent: int) -> None:
+    """A worker's initializer: the worker is ended when the process that spawned it ends, however it
+    ends (a killed advise left its two workers solving for minutes). Linux's PR_SET_PDEATHSIG sends
+    SIGTERM then; where it is not available, nothing changes. If the parent ended before the call, the
+    worker ends now."""
+    import ctypes
+    import signal
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:
+        os._exit(1)
+
+
 def _spawned(fn, jobs: list[tuple], workers: int):
     """Run ``fn(*job)`` for each of ``jobs``, in that order of submission, on ``workers`` spawned
-    processes (a fresh interpreter: no MPI or PETSc state forked); yields (index, result) as each ends."""
+    processes (a fresh interpreter: no MPI or PETSc state forked), which end with this one
+    (``_end_with_parent``); yields (index, result) as each ends."""
     context = multiprocessing.get_context("spawn")
-    pool = concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context)
+    pool = concurrent.futures.ProcessPoolExecutor(
+        max_workers=workers, mp_context=context, initializer=_end_with_parent, initargs=(os.getpid(),)
+    )
     try:
         futures = {pool.submit(fn, *job): i for i, job in enumerate(jobs)}
         for future in concurrent.futures.as_completed(futures):
