@@ -26,7 +26,7 @@ from realtime.material import Material, Materials
 
 from .errors import ReferenceSolveError
 from .problem import Problem
-from .progress import line
+from .progress import Heartbeat, line
 
 
 def _materials_of(material: Material | Materials) -> tuple:
@@ -209,15 +209,19 @@ def solve_dynamic(
 
     def run(level, step):
         t0 = time.perf_counter()
-        ep = ElasticityProblem(mesh, material, problem, degree=degree, refine=level, comm=comm)
-        times, vals, reac, info = ep.solve_dynamic(
-            step,
-            end,
-            output_every,
-            mesh.points if points is None else points,
-            rayleigh=rayleigh,
-            petsc_options=petsc_options,
-        )
+        # building the level and Newmark's set-up (its first solves, a mass factorisation) report nothing
+        # of their own: a heartbeat until the time loop, which reports itself
+        with Heartbeat(f"reference: refine {level}, dt {step:.3g} s: building and setting up Newmark", comm.rank) as hb:
+            ep = ElasticityProblem(mesh, material, problem, degree=degree, refine=level, comm=comm)
+            times, vals, reac, info = ep.solve_dynamic(
+                step,
+                end,
+                output_every,
+                mesh.points if points is None else points,
+                rayleigh=rayleigh,
+                petsc_options=petsc_options,
+                before_loop=hb.stop,
+            )
         info.update(level=level, n_dofs=ep.n_dofs, wall_s=time.perf_counter() - t0)
         return times, vals, reac, info
 

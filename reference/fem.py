@@ -29,7 +29,7 @@ from realtime.material import Material, Materials
 from .errors import ReferenceSolveError
 from .materials import LAWS, volume_penalty_energy
 from .problem import Force, Problem, Traction
-from .progress import Progress, line
+from .progress import Heartbeat, Progress, line
 
 #: Every tangent the reference factorises is symmetric: its residual is the derivative of an energy
 #: (hyperelastic laws, the volume penalty, dead loads) plus symmetric linear terms (consistent mass,
@@ -883,6 +883,7 @@ class ElasticityProblem:
         newmark=(0.25, 0.5),
         petsc_options=None,
         newton_rtol: float = 1e-10,
+        before_loop=None,
     ):
         """Newmark time integration from rest (average acceleration by default: beta = 1/4, gamma = 1/2,
         second order, no numerical damping), consistent mass, Rayleigh damping C = a M + b K0 (K0 the
@@ -891,6 +892,7 @@ class ElasticityProblem:
 
         Linear law without penalty: the effective matrix M/(beta dt^2) + C gamma/(beta dt) + K is
         assembled and factored once. Otherwise Newton on the same residual at every step.
+        ``before_loop``: called when the set-up is done and the time loop begins (a heartbeat's stop).
         Returns times (T,), displacements (T, K, 3) at ``points`` and reactions (T, 3), the first
         output at t = 0; ``self.velocity`` and ``self.acceleration`` hold the final state. The tools'
         dofs move with their exact velocity and acceleration (``Displacement.kinematics``). Reactions
@@ -961,6 +963,8 @@ class ElasticityProblem:
                 external=self.residual,
                 linear_part=self._newmark_linear_part(u_old, v_old, a_old, (c1, c2, c3, dt, gamma), rayleigh),
             )
+        if before_loop is not None:
+            before_loop()
         iterations = 0
         what = "reference: Newmark step" + ("" if linear else "s")
         progress = Progress(what, n_steps, self.comm.rank)
@@ -975,7 +979,11 @@ class ElasticityProblem:
                 fem.petsc.apply_lifting(b, [a_form], bcs=[self.bcs])
                 b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
                 fem.petsc.set_bc(b, self.bcs)
-                ksp.solve(b, u.vector)
+                if step == 1:  # the factorisation, in the first solve
+                    with Heartbeat(f"reference: factorising the Newmark matrix ({self.n_dofs} dofs)", self.comm.rank):
+                        ksp.solve(b, u.vector)
+                else:
+                    ksp.solve(b, u.vector)
                 while ksp.getConvergedReason() < 0 and grow_ksp_workspace(ksp, self._log):
                     A.zeroEntries()  # the same operator in a new state: the preconditioner factorises it again
                     fem.petsc.assemble_matrix(A, a_form, bcs=self.bcs)

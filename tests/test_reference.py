@@ -457,7 +457,7 @@ def test_a_factor_keeps_the_workspace_set_on_it_when_newton_factorises_again():
 @pytest.mark.parametrize("law", ["linear", "stvk"])
 def test_a_newmark_run_reports_its_steps_as_it_goes(monkeypatch, tmp_path, capfd, law):
     """A dynamic reference tells a user who waits where it is: a line at most every progress.EVERY
-    seconds (5), whatever the law (the linear law's back-substitutions said nothing at all, for 1081 s
+    seconds (3), whatever the law (the linear law's back-substitutions said nothing at all, for 1081 s
     on a stiff beam) and however long each step is. Set to 0 here, so that every step reports, each on
     a whole line of its own."""
     from reference import fem, progress
@@ -570,3 +570,34 @@ def test_a_matrix_solved_at_every_step_is_factorised_once_where_the_factor_fits(
     monkeypatch.setattr(fem, "available_bytes", lambda: 1.5 * fem.direct_bytes(n))
     assert fem.solver_options(n, linear=True, reused=True)["pc_type"] == "gamg"
     assert fem.solver_options(n, {"pc_type": "lu"}, linear=True, reused=True) == {"pc_type": "lu"}
+
+
+def test_a_heartbeat_speaks_through_a_call_that_holds_pythons_lock_and_stops_with_its_block(capfd):
+    """PETSc's and dolfinx's bindings hold Python's lock while they factorise (a thread's lines came only
+    after the 19 s factorisation of a stiff beam's refined level). The heartbeat's watcher is a process
+    of its own: it writes while this one is busy in a call that never releases the lock, and writes
+    nothing once the block has ended."""
+    import re
+    import sys
+    import time
+
+    from reference.progress import Heartbeat
+
+    def busy(seconds):  # under the lock the whole time, as a binding's call is: no thread switch
+        interval = sys.getswitchinterval()
+        sys.setswitchinterval(100.0)
+        try:
+            end = time.perf_counter() + seconds
+            while time.perf_counter() < end:
+                pass
+        finally:
+            sys.setswitchinterval(interval)
+
+    with Heartbeat("reference: factorising", every=1.0):
+        busy(3.5)
+    during = capfd.readouterr().err
+    time.sleep(1.5)
+    after = capfd.readouterr().err
+    beats = re.findall(r"^reference: factorising \((\d+) s\)$", during, flags=re.M)
+    assert len(beats) >= 2 and [int(b) for b in beats] == sorted(int(b) for b in beats), during
+    assert after == ""
