@@ -102,21 +102,22 @@ def clear_if_stale(cache_dir: Path, sources: list[Path]) -> bool:
     cache_dir = Path(cache_dir)
     digest = sources_digest(sources)
     stamp = cache_dir / STAMP
-    try:
-        if stamp.read_text() == digest:
+
+    def current() -> bool:
+        try:
+            return stamp.read_text() == digest
+        except OSError:
             return False
-    except OSError:
-        pass
+
+    if current():
+        return False
     try:
         cache_dir.mkdir(parents=True, exist_ok=True)
     except OSError:
         return False
-    with cache_lock(cache_dir):  # another process may have cleared and saved since the stamp was read
-        try:
-            if stamp.read_text() == digest:
-                return False
-        except OSError:
-            pass
+    with cache_lock(cache_dir):
+        if current():  # another process cleared and stamped it since the stamp was read
+            return False
         try:
             stale = [p for p in cache_dir.iterdir() if p.suffix in (".nbi", ".nbc")]
             for p in stale:

@@ -385,12 +385,12 @@ GEOMETRIC = ("ffd",)
 
 #: The material terms beyond E, nu and rho that each model represents: "fibres" (a transversely
 #: isotropic law) and "penalty" (Material.volume_penalty, the incompressibility term of Picinbono et al.
-#: 2003). The linear models take fibres in their tensors and have no penalty (adaptive-tm is StVK on
-#: its mixed mesh, and has both); corotational-tm refuses
-#: fibres at build (its rotated-frame force would not be the gradient of an energy); hybrid-tm has the
-#: penalty on its StVK tetrahedra only; mass-spring has one stiffness per edge. ffd has no mechanics at
-#: all (GEOMETRIC) and claims none. A model runs without what it lacks; ``unrepresented`` names it, and
-#: the verification layer says so in every result, table row and report.
+#: 2003). The linear models take fibres in their tensors and have no penalty; adaptive-tm is StVK on its
+#: mixed mesh and has both; corotational-tm refuses fibres at build (its rotated-frame force would not
+#: be the gradient of an energy); hybrid-tm has the penalty on its StVK tetrahedra only; mass-spring has
+#: one stiffness per edge. ffd has no mechanics at all (GEOMETRIC) and claims none. A model runs without
+#: what it lacks; ``unrepresented`` names it, and the verification layer says so in every result, table
+#: row and report.
 REPRESENTS = {
     "linear-tm": ("fibres",),
     "corotational-tm": (),

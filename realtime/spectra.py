@@ -85,8 +85,9 @@ def zero_energy_modes(model: Model, tol: float = 1e-10, most: int = 6) -> tuple[
     free components lie below ``tol`` times the largest (counted up to ``most``), and the smallest such
     ratio. A static problem with one has no unique equilibrium: a part held at too few vertices (free to
     turn about them), or tetrahedra joined only at a vertex or an edge (a ball joint, a hinge). Round-off
-    leaves such a mode near 1e-16 of the largest; a slender beam's first bending mode lies far above
-    ``tol``. K is the model's rest stiffness (Model.rest_stiffness); the largest eigenvalue is taken from
+    leaves such a mode near 1e-16 of the largest; but a slender, finely meshed body's soft bending modes
+    can fall below ``tol`` too (SOFA's 16 m raptor: 3e-12), so a count is a reason to look for a cause,
+    not a cause (verification.loading.check_held asks for one). K is the model's rest stiffness (Model.rest_stiffness); the largest eigenvalue is taken from
     the element bound (an upper bound, Model.element_eigenvalue_bound). Dense below a few hundred free
     components, else shift-invert Lanczos about a small negative shift (K + s M is then never singular)."""
     fidx = np.flatnonzero(model.loading.free.reshape(-1) != 0.0)

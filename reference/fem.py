@@ -966,8 +966,7 @@ class ElasticityProblem:
         if before_loop is not None:
             before_loop()
         iterations = 0
-        what = "reference: Newmark step" + ("" if linear else "s")
-        progress = Progress(what, n_steps, self.comm.rank)
+        progress = Progress("reference: Newmark step", n_steps, self.comm.rank)
         for step in range(1, n_steps + 1):
             t = step * dt
             self.set_tool_fraction_at(t)
