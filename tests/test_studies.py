@@ -639,3 +639,20 @@ def _alive(pid: int) -> bool:
             return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
     except OSError:
         return False
+
+
+def test_a_dynamic_run_reports_its_output_times_as_it_goes(monkeypatch, capfd):
+    """An advisor's candidates on a stiff dynamic beam ran about 100 000 explicit steps each and said
+    nothing for minutes after the reference's last line. A run now reports its output times like every
+    other long loop (progress.EVERY, set to 0 here so that each output time reports)."""
+    from reference import progress
+    from verification.runner import run_model
+    from verification.scene import load_scene
+
+    monkeypatch.setattr(progress, "EVERY", 0.0)
+    scene = load_scene("cantilever-dynamic")
+    run_model(scene, "linear-tm", dt_fraction=0.5)
+    lines = [ln for ln in capfd.readouterr().err.splitlines() if ln.startswith("run: linear-tm (symplectic-euler")]
+    n_out = round(scene.time.end / scene.time.output_every) + 1
+    assert len(lines) >= n_out - 1 and lines[-1].startswith("run: linear-tm (symplectic-euler, dt = "), lines[-3:]
+    assert f"of {n_out}, t = " in lines[-1]

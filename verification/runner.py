@@ -563,7 +563,11 @@ def trajectory(model, integ, dt: float, times: np.ndarray, dt_crit: float | None
         for k, t_out in enumerate(times):
             out_u[k], out_r[k] = integ.equilibrium(model, t_out)
         return out_u, out_r
+    from . import _RANK
+
+    ticker = Progress(f"run: {model.name} ({integ.name}, dt = {dt:.3g} s), output", len(times), int(_RANK or 0))
     for k, t_out in enumerate(times):
+        ticker.tick(k, f", t = {t_out:.4g} s")
         n = int(np.ceil((t_out - state.t) / dt - 1e-9))
         if n > 1:
             integ.step(model, state, dt, n - 1, dt_crit=dt_crit)
