@@ -57,7 +57,7 @@ test: setup lint
 	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist worksteal
 
 bench: setup
-	$(VENV)/bin/tissuebench bench
+	$(VENV)/bin/tissuebench bench --out reports/bench.json --markdown docs/benchmarks.md
 
 # Optional, never part of `make test`: the engines users pick (NVIDIA newton, pbatoolkit) timed beside ours
 # in one run, in a venv of their own so that the project's never depends on them (numpy stays Debian's).

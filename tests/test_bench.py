@@ -101,6 +101,38 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     assert "FMA peak" in table and f"({roof['vector_bits']}-bit vectors" in table and "triad GB/s by data size" in table
     assert len(re.findall(r"roofline [\d.]+ us \((compute|memory)\): \d+% of it", table)) == len(placed)
     assert len(re.findall(r"\d\.\d\dx its float64 row", table)) == len(FLOAT32_MODELS)
+    # what the hot loops compile to on this target: counted, printed, never asserted (verification.codegen)
+    assert "compiled code (numba target" in table and out["compiled_code"]["stvk"]["general_packed"] >= 0
+    _the_benchmarks_page_keeps_one_section_per_machine(out)
+
+
+def _the_benchmarks_page_keeps_one_section_per_machine(out):
+    """make bench writes docs/benchmarks.md: this machine's section (date, commit, a row per model)
+    replaces its previous one, another machine's stays."""
+    import copy
+    import tempfile
+    from pathlib import Path
+
+    from verification.bench import write_markdown
+
+    other = copy.deepcopy(out)
+    other["machine"]["cpu"] = "Another CPU"
+    with tempfile.TemporaryDirectory() as tmp:
+        page = Path(tmp) / "benchmarks.md"
+        write_markdown(page, out)
+        write_markdown(page, other)
+        again = copy.deepcopy(out)
+        again["machine"]["date"] = "2099-01-01T00:00:00Z"
+        write_markdown(page, again)
+        text = page.read_text()
+    assert text.startswith("# tissuebench: benchmarks")
+    headings = re.findall(r"^## (.*)$", text, flags=re.M)
+    assert headings == [
+        f"Another CPU, {out['machine']['cores']} cores",
+        f"{out['machine']['cpu']}, {out['machine']['cores']} cores",
+    ]
+    assert "Measured 2099-01-01T00:00:00Z" in text and text.count(f"at commit {out['machine']['commit']}") == 2
+    assert text.count("| beam | linear-tm |") == 2
 
 
 @pytest.mark.parametrize("threads", [1, 2])

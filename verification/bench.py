@@ -486,3 +486,58 @@ def format_table(out: dict) -> str:
     if "compiled_code" in out:
         lines.append("\n" + codegen.format_report(out["compiled_code"]))
     return "\n".join(lines)
+
+
+def markdown_section(out: dict) -> str:
+    """This run as a section of docs/benchmarks.md: a heading naming the machine, where and when it was
+    measured, and one row per mesh and model (median microseconds per step, the spread, the ratio to
+    linear-tm and to scipy's BSR product measured in the same rounds)."""
+    m = out["machine"]
+    lines = [
+        f"## {m['cpu']}, {m['cores']} cores",
+        "",
+        f"Measured {m['date']} at commit {m['commit']} (numba {m.get('numba', '?')}) by `make bench`.",
+        "",
+        "| mesh | row | us per step | min - max | x linear-tm | x scipy BSR |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for mesh in dict.fromkeys(r["mesh"] for r in out["results"]):
+        rows = [r for r in out["results"] if r["mesh"] == mesh]
+        lin = next(r["step_us"] for r in rows if r["name"] == "linear-tm")
+        bsr = next(r["step_us"] for r in rows if r["name"] == "scipy-bsr-matvec")
+        for r in rows:
+            if r.get("step_us") is None:
+                lines.append(f"| {mesh} | {r['name']} | skipped: {r['skipped']} | | | |")
+                continue
+            lines.append(
+                f"| {mesh} | {r['name']} | {r['step_us']:.1f} | {r['step_us_min']:.1f} - {r['step_us_max']:.1f} "
+                f"| {r['step_us'] / lin:.2f} | {r['step_us'] / bsr:.2f} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+#: The head of docs/benchmarks.md, above one section per machine.
+MARKDOWN_HEAD = (
+    "# tissuebench: benchmarks\n\n"
+    "Written by `make bench` (`tissuebench bench --markdown docs/benchmarks.md`): one section per machine, "
+    "each replaced when that machine measures again. Speed is a property of a machine; compare rows "
+    "within a section, measured in the same rounds.\n"
+)
+
+
+def write_markdown(path, out: dict) -> None:
+    """Put this run's section into the markdown file at ``path``: the section of the same machine (its
+    heading) is replaced, the other machines' are kept, in order. Written through a temporary file."""
+    from pathlib import Path
+
+    from .results import atomic_write_text
+
+    section = markdown_section(out)
+    heading = section.split("\n", 1)[0]
+    try:
+        text = Path(path).read_text()
+    except FileNotFoundError:
+        text = MARKDOWN_HEAD
+    head, *sections = text.split("\n## ")
+    kept = ["## " + s.rstrip() + "\n" for s in sections if ("## " + s).split("\n", 1)[0] != heading]
+    atomic_write_text(path, "\n".join([head.rstrip() + "\n", *kept, section]))

@@ -444,6 +444,10 @@ def cmd_bench(args) -> int:
         from .bench import format_table, run
 
         out = run(meshes=args.meshes, repeats=args.repeats)
+        if args.markdown:
+            from .bench import write_markdown
+
+            write_markdown(args.markdown, out)
     if args.out:
         from .results import atomic_write_text
 
@@ -678,6 +682,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --reference: classic refactorises at every Newton iteration with MUMPS at every size (the solver before)",
     )
     s.add_argument("--out", help="also write the JSON to this file")
+    s.add_argument("--markdown", help="also put this machine's section into this markdown page (docs/benchmarks.md)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_bench)
     return p
