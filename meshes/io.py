@@ -61,6 +61,19 @@ def _msh_header(path: Path) -> bytes | None:
     return None
 
 
+def _vtk_content(path: Path) -> str | None:
+    """What a .vtk file holds, by its first bytes: "xml" for VTK's XML format under the legacy suffix
+    (SOFA's Bunny.vtk is an UnstructuredGrid .vtu so named, which meshio's legacy reader refuses),
+    "polydata" for a legacy file of a surface, None otherwise or for another suffix."""
+    if path.suffix.lower() != ".vtk":
+        return None
+    with open(path, "rb") as fh:
+        head = fh.read(1024)
+    if head.lstrip().startswith((b"<VTKFile", b"<?xml")):
+        return "xml"
+    return "polydata" if b"DATASET POLYDATA" in head else None
+
+
 def _cat(blocks: list, width: int) -> np.ndarray:
     """The int64 blocks (K_i, width) (or (K_i,) for width 0) one after the other; empty if none."""
     return np.concatenate(blocks) if blocks else np.zeros((0, width) if width else 0, np.int64)
@@ -173,7 +186,7 @@ def _unfolded():
             os.environ["COLUMNS"] = before
 
 
-def _quiet_meshio_read(path: Path):
+def _quiet_meshio_read(path: Path, file_format: str | None = None):
     """meshio.read, with what it prints (and warns) kept from the terminal: for a .msh it tries the
     ANSYS reader first and prints that reader's (empty) error on stdout, a blank line in the middle of
     ``tissuebench check``; for a file no reader takes it prints an "Error:" line and calls
@@ -190,7 +203,7 @@ def _quiet_meshio_read(path: Path):
             _unfolded(),
         ):
             warnings.simplefilter("ignore")  # numpy's, from meshio's parsing of a broken file
-            return meshio.read(path)
+            return meshio.read(path, file_format=file_format)
     except (Exception, SystemExit) as exc:
         said = " ".join(chatter.getvalue().split())
         text = str(exc).strip() if not isinstance(exc, SystemExit) or "Error:" not in said else ""
@@ -198,8 +211,8 @@ def _quiet_meshio_read(path: Path):
         raise _MeshioError(reason or type(exc).__name__) from None
 
 
-def _read_meshio(path: Path) -> _Cells:
-    m = _quiet_meshio_read(path)
+def _read_meshio(path: Path, file_format: str | None = None) -> _Cells:
+    m = _quiet_meshio_read(path, file_format)
     tets, tet_tags, tris, tri_tags = [], [], [], []
     phys = m.cell_data.get("gmsh:physical") or m.cell_data.get("medit:ref")
     for i, cells in enumerate(m.cells):
@@ -303,8 +316,13 @@ def _read_cells(path: Path) -> _Cells:
     header = _msh_header(path)
     if header == b"$NOD":
         return _read_gmsh1(path)
+    vtk = _vtk_content(path)
+    if vtk == "polydata":
+        raise InvalidMeshError(
+            f"{path}: a surface (VTK POLYDATA), not a volume mesh: tetrahedralise it first (gmsh, TetGen, fTetWild)"
+        )
     try:
-        return _read_meshio(path)
+        return _read_meshio(path, "vtu" if vtk == "xml" else None)
     except InvalidMeshError:
         raise
     except (Exception, SystemExit) as exc:  # meshio raises many types, SystemExit among them

@@ -423,3 +423,22 @@ def test_a_renumbered_mesh_is_the_same_mesh_numbered_along_the_body():
     assert first.max() < second.min()
     first, second = split(TetMesh(mesh.points, mesh.tets[tet_order]))  # the same order, the file's numbers
     assert first.max() > second.min()
+
+
+def test_a_vtk_file_is_read_by_what_it_holds_not_by_its_suffix(tmp_path):
+    """SOFA ships a tetrahedral UnstructuredGrid in VTK's XML format under a .vtk name (Bunny.vtk), which
+    meshio's legacy reader refused ("Couldn't read file as vtk"); it is read as the .vtu it is. A legacy
+    file holding a surface (SOFA's liver.vtk, POLYDATA) is named as one, with what to do."""
+    import meshio
+
+    box = structured_box([0.01, 0.01, 0.01], 2)
+    meshio.write(tmp_path / "box.vtu", meshio.Mesh(box.points, [("tetra", box.tets)]))
+    (tmp_path / "box.vtk").write_bytes((tmp_path / "box.vtu").read_bytes())
+    m = read_mesh(tmp_path / "box.vtk")
+    assert np.array_equal(m.points, box.points) and np.array_equal(m.tets, box.tets)
+    (tmp_path / "surface.vtk").write_text(
+        "# vtk DataFile Version 3.0\nsurface\nASCII\nDATASET POLYDATA\nPOINTS 3 float\n0 0 0 1 0 0 0 1 0\n"
+        "POLYGONS 1 4\n3 0 1 2\n"
+    )
+    with pytest.raises(InvalidMeshError, match=r"surface\.vtk: a surface \(VTK POLYDATA\), not a volume mesh"):
+        read_mesh(tmp_path / "surface.vtk")
