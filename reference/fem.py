@@ -139,6 +139,22 @@ def solver_options(n_dofs: int, user: dict | None = None, linear: bool = False, 
     return {**base, **user}
 
 
+#: Unknowns above which a solve that factorises or sets up a preconditioner is watched by a heartbeat
+#: (reference.progress.Heartbeat): such a call can take minutes (the raptor's MUMPS fallback, 370 000
+#: dofs), and starting the watcher costs tens of milliseconds, nothing beside it.
+HEARTBEAT_DOFS = 20_000
+
+
+def _watched(first: bool, n_dofs: int, what: str, rank: int):
+    """A heartbeat around a solve when it is the first with its operator and the operator is large,
+    else nothing."""
+    import contextlib
+
+    if first and n_dofs > HEARTBEAT_DOFS:
+        return Heartbeat(f"reference: {what} ({n_dofs} dofs)", rank)
+    return contextlib.nullcontext()
+
+
 #: Modified Newton keeps a factorised tangent while each step cuts the residual at least this much.
 SLOW = 10.0
 #: The same in a Newmark step, where the tangent moves little from one step to the next and a
@@ -296,9 +312,12 @@ class Newton:
         return self._norms(self.raw)
 
     def _linear_solve(self) -> None:
-        """du = J^-1 b with the current operator (factorised or preconditioned on first use)."""
+        """du = J^-1 b with the current operator (factorised or preconditioned on first use; that first
+        solve of a large operator is watched by a heartbeat, since it can take minutes in one call)."""
+        fresh, self._fresh = getattr(self, "_fresh", False), False
         try:
-            self.ksp.solve(self.b, self.du)
+            with _watched(fresh, self.A.getSize()[0], "factorising the tangent", self.comm.rank):
+                self.ksp.solve(self.b, self.du)
         except PETSc.Error as exc:  # a preconditioner that cannot be built (GAMG on a tiny mesh)
             raise ReferenceSolveError(
                 f"reference: the linear solver failed (PETSc error {exc.ierr} in its setup, options "
@@ -322,6 +341,7 @@ class Newton:
             configure(self.ksp, self.options)
         self.factorisations += 1
         self.at = "current"
+        self._fresh = True
 
     def _tangent(self, rebuild: bool) -> None:
         """Iterative solves: assemble the tangent at the current u as the operator, and rebuild the
@@ -701,7 +721,8 @@ class ElasticityProblem:
         problem = LinearProblem(a, L, bcs=self.bcs, u=self.u, petsc_options=opts)
         if opts.get("pc_type") == "gamg":
             problem.A.setNearNullSpace(self.rigid_body_modes())
-        problem.solve()
+        with _watched(True, self.n_dofs, "the linear solve", self.comm.rank):
+            problem.solve()
         reason = problem.solver.getConvergedReason()
         while reason < 0 and grow_ksp_workspace(problem.solver, self._log):
             problem.solve()  # assembles the matrix again, so the preconditioner factorises it again
@@ -713,7 +734,8 @@ class ElasticityProblem:
             problem = LinearProblem(a, L, bcs=self.bcs, u=self.u, petsc_options=opts)
             if opts.get("pc_type") == "gamg":
                 problem.A.setNearNullSpace(self.rigid_body_modes())
-            problem.solve()
+            with _watched(True, self.n_dofs, what.split(" (")[0], self.comm.rank):
+                problem.solve()
             reason = problem.solver.getConvergedReason()
             tried.append(f"{what.split(' (')[0]} (PETSc reason {reason})")
         if reason < 0:
