@@ -420,15 +420,19 @@ def settled(
             from . import _RANK
 
             ticker = Progress(f"settling: {scene.name} / {model.name}, step", rank=int(_RANK or 0))
-            static = solve_static(
-                model,
-                dt=dt,
-                rtol=rtol,
-                max_steps=max_steps,
-                progress=lambda taken, residual: ticker.tick(
-                    taken, f": residual {residual:.2e} of the load (asked {rtol:.0e})"
-                ),
-            )
+            try:
+                static = solve_static(
+                    model,
+                    dt=dt,
+                    rtol=rtol,
+                    max_steps=max_steps,
+                    progress=lambda taken, residual: ticker.tick(
+                        taken, f": residual {residual:.2e} of the load (asked {rtol:.0e})"
+                    ),
+                )
+            except DivergenceError:
+                _refuse_unbounded(scene)
+                raise
     out = Settled(static.state, static.steps, static.residual, dt, dt_crit, omega2, time.perf_counter() - t1, cg)
     numbers = {k: getattr(out, k) for k in _SETTLED_NUMBERS}
     atomic_savez(path, u=out.state.u, v=out.state.v, t=out.state.t, state_steps=out.state.steps, **numbers)
@@ -549,6 +553,36 @@ def observed(model, u: np.ndarray) -> np.ndarray:
     """The displacements (..., N, 3) of the scene's N vertices in a model's u (..., V, 3): all of them,
     but for a model with vertices of its own after the scene's (adaptive-tm's midpoints)."""
     return u[..., : model.extra.get("observed", model.n_vertices), :]
+
+
+def _refuse_unbounded(scene: Scene) -> None:
+    """After a static settle blew up: SceneError when the scene's own answer lies beyond the blow-up
+    guard, so that no time step is blamed for it. The answer's size is the P1 linear equilibrium on
+    the scene's mesh (a sparse solve where it fits, as the quasi-static models do); a load far too
+    large for the stiffness (a unit slip, a soft body under its own weight) puts it past 10 times the
+    body, where the guard stops every run at any step. Otherwise nothing: the divergence is the run's."""
+    import scipy.sparse.linalg as spla
+
+    from realtime.integrators import blowup_bound
+    from realtime.linsolve import FACTOR_LIMIT
+
+    from .scene import SceneError
+
+    mesh = scene.mesh
+    loading = build_loading(mesh, scene.densities(), scene.problem)
+    linear = build_model("linear-tm", mesh.points, mesh.tets, scene.body_material(), loading)
+    free = np.flatnonzero(loading.free.reshape(-1) != 0.0)
+    if not len(free) or len(free) > FACTOR_LIMIT or len(scene.problem.tools):
+        return
+    K = linear.rest_stiffness()[free][:, free].tocsc()
+    u = spla.spsolve(K, loading.external_force.reshape(-1)[free])
+    reach, bound = float(np.abs(u).max()), blowup_bound(linear)
+    if np.isfinite(reach) and reach > bound:
+        raise SceneError(
+            f"{scene.path}: load: the scene's own static answer reaches {reach:.3g} m (P1, linear), beyond 10 times "
+            f"the body ({bound:.3g} m), where every run stops at any time step: the load is far too large for "
+            "this stiffness; lower the load, raise young, or check the units (scale, Pa, kg/m^3)"
+        )
 
 
 def trajectory(model, integ, dt: float, times: np.ndarray, dt_crit: float | None = None):
