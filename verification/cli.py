@@ -19,6 +19,7 @@ from realtime import INTEGRATORS, MODELS, DivergenceError, InputError, NotConver
 from reference.errors import ReferenceSolveError
 
 from .loading import check_held
+from .runner import UnboundedAnswerError
 from .scene import builtin_scenes, implausible, load_scene
 
 
@@ -266,6 +267,8 @@ def cmd_compare(args) -> int:
         from .advise import frame_budget
 
         out["frame"] = frame_budget(out, args.rate, scene.time.mode == "dynamic")
+    if out.get("unbounded"):  # the scene's own answer is past the blow-up guard: its input, not a step
+        return _fail(f"tissuebench: {_one_line(out['message'])}", 2)
     if args.json:
         _print_json(out)
     elif out["status"] != "ok":
@@ -699,6 +702,8 @@ def main(argv=None) -> int:
         return _fail(f"tissuebench: {exc.filename or ''}: {exc.strerror or _one_line(exc)}", 2)
     except (ReferenceSolveError, NotConvergedError) as exc:  # the problem as stated has no equilibrium we reach
         return _fail(f"tissuebench: {where}{_one_line(exc)}", 2)
+    except UnboundedAnswerError as exc:  # a divergence caused by the scene's input: named, exit 2
+        return _fail(f"tissuebench: {_one_line(exc)}", 2)
     except DivergenceError as exc:
         return _fail(f"tissuebench: {where}{_one_line(exc)}", 1)
     except KeyboardInterrupt:  # Ctrl-C: what had finished is in the cache, written whole (atomic_write)

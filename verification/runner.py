@@ -430,8 +430,8 @@ def settled(
                         taken, f": residual {residual:.2e} of the load (asked {rtol:.0e})"
                     ),
                 )
-            except DivergenceError:
-                _refuse_unbounded(scene)
+            except DivergenceError as exc:
+                _refuse_unbounded(scene, exc)
                 raise
     out = Settled(static.state, static.steps, static.residual, dt, dt_crit, omega2, time.perf_counter() - t1, cg)
     numbers = {k: getattr(out, k) for k in _SETTLED_NUMBERS}
@@ -555,9 +555,19 @@ def observed(model, u: np.ndarray) -> np.ndarray:
     return u[..., : model.extra.get("observed", model.n_vertices), :]
 
 
-def _refuse_unbounded(scene: Scene) -> None:
-    """After a static settle blew up: SceneError when the scene's own answer lies beyond the blow-up
-    guard, so that no time step is blamed for it. The answer's size is the P1 linear equilibrium on
+class UnboundedAnswerError(DivergenceError):
+    """A static settle blew up because the scene's own answer lies beyond the blow-up guard. To a study
+    it is a divergence like any other (the stability study's extremes record it as one), with the
+    cause named; to the command line it is the scene's input (exit 2)."""
+
+    def __init__(self, exc: DivergenceError, message: str):
+        self.step, self.dt, self.dt_crit, self.reason = exc.step, exc.dt, exc.dt_crit, exc.reason
+        RuntimeError.__init__(self, message)
+
+
+def _refuse_unbounded(scene: Scene, exc: DivergenceError) -> None:
+    """After a static settle blew up (``exc``): UnboundedAnswerError when the scene's own answer lies
+    beyond the blow-up guard, so that no time step is blamed for it. The answer's size is the P1 linear equilibrium on
     the scene's mesh (a sparse solve where it fits, as the quasi-static models do); a load far too
     large for the stiffness (a unit slip, a soft body under its own weight) puts it past 10 times the
     body, where the guard stops every run at any step. Otherwise nothing: the divergence is the run's."""
@@ -565,8 +575,6 @@ def _refuse_unbounded(scene: Scene) -> None:
 
     from realtime.integrators import blowup_bound
     from realtime.linsolve import FACTOR_LIMIT
-
-    from .scene import SceneError
 
     mesh = scene.mesh
     loading = build_loading(mesh, scene.densities(), scene.problem)
@@ -578,11 +586,12 @@ def _refuse_unbounded(scene: Scene) -> None:
     u = spla.spsolve(K, loading.external_force.reshape(-1)[free])
     reach, bound = float(np.abs(u).max()), blowup_bound(linear)
     if np.isfinite(reach) and reach > bound:
-        raise SceneError(
+        raise UnboundedAnswerError(
+            exc,
             f"{scene.path}: load: the scene's own static answer reaches {reach:.3g} m (P1, linear), beyond 10 times "
             f"the body ({bound:.3g} m), where every run stops at any time step: the load is far too large for "
-            "this stiffness; lower the load, raise young, or check the units (scale, Pa, kg/m^3)"
-        )
+            "this stiffness; lower the load, raise young, or check the units (scale, Pa, kg/m^3)",
+        ) from None
 
 
 def trajectory(model, integ, dt: float, times: np.ndarray, dt_crit: float | None = None):
@@ -862,6 +871,7 @@ def compare(
             "dt_crit": exc.dt_crit,
             "step": exc.step,
             "message": str(exc),
+            "unbounded": isinstance(exc, UnboundedAnswerError),
         }
     mesh = scene.mesh
     has_tools = bool(scene.problem.tools)
