@@ -59,10 +59,10 @@ while not select.select([sys.stdin], [], [], every)[0]:
 
 class Heartbeat:
     """A line every ``every`` seconds (EVERY, at least 1) while a block that reports nothing of its own
-    runs (``stop`` may end it before the block does): a factorisation, the set-up of a refined level. PETSc's and dolfinx's bindings hold Python's
-    lock while they work, so a thread could not speak then: a small watcher process writes the lines
-    and ends when the block ends (or this process dies, which closes its stdin). Rank 0 only; a context
-    manager."""
+    runs: a factorisation, the set-up of a refined level (``stop`` may end it before the block does).
+    PETSc's and dolfinx's bindings hold Python's lock while they work, so a thread could not speak
+    then: a small watcher process writes the lines and ends when the block ends (or this process dies,
+    which closes its stdin). Rank 0 only; a context manager."""
 
     def __init__(self, what: str, rank: int = 0, every: float | None = None):
         self.what, self.rank = what, rank

@@ -43,13 +43,17 @@ REFERENCE_DEFAULTS = {"degree": 2, "refine": 0, "estimate": True}
 P1_OWN_MESH = {"degree": 1, "refine": 0, "estimate": False, "own_mesh": True}
 
 
+def _rank() -> int:
+    """This process's MPI rank as mpirun set it (0 outside mpirun)."""
+    from . import _RANK
+
+    return int(_RANK or 0)
+
+
 def log(msg: str) -> None:
     """Progress to stderr (stdout is kept for --json), from the first MPI rank only (under mpirun every
     rank runs the same driver, and each line came once per rank), in one write (reference.progress)."""
-    from . import _RANK
-
-    if _RANK in (None, "0"):
-        line(msg)
+    line(msg, _rank())
 
 
 def cache_dir() -> Path:
@@ -417,9 +421,7 @@ def settled(
         if dt is None:
             dt = (0.9 if dt_fraction is None else dt_fraction) * dt_crit
         if static is None or static.dt != dt:
-            from . import _RANK
-
-            ticker = Progress(f"settling: {scene.name} / {model.name}, step", rank=int(_RANK or 0))
+            ticker = Progress(f"settling: {scene.name} / {model.name}, step", rank=_rank())
             try:
                 static = solve_static(
                     model,
@@ -576,12 +578,14 @@ def _refuse_unbounded(scene: Scene, exc: DivergenceError) -> None:
     from realtime.integrators import blowup_bound
     from realtime.linsolve import FACTOR_LIMIT
 
+    if scene.problem.tools:
+        return
     mesh = scene.mesh
     loading = build_loading(mesh, scene.densities(), scene.problem)
-    linear = build_model("linear-tm", mesh.points, mesh.tets, scene.body_material(), loading)
     free = np.flatnonzero(loading.free.reshape(-1) != 0.0)
-    if not len(free) or len(free) > FACTOR_LIMIT or len(scene.problem.tools):
+    if not len(free) or len(free) > FACTOR_LIMIT:
         return
+    linear = build_model("linear-tm", mesh.points, mesh.tets, scene.body_material(), loading)
     K = linear.rest_stiffness()[free][:, free].tocsc()
     u = spla.spsolve(K, loading.external_force.reshape(-1)[free])
     reach, bound = float(np.abs(u).max()), blowup_bound(linear)
@@ -606,9 +610,7 @@ def trajectory(model, integ, dt: float, times: np.ndarray, dt_crit: float | None
         for k, t_out in enumerate(times):
             out_u[k], out_r[k] = integ.equilibrium(model, t_out)
         return out_u, out_r
-    from . import _RANK
-
-    ticker = Progress(f"run: {model.name} ({integ.name}, dt = {dt:.3g} s), output", len(times), int(_RANK or 0))
+    ticker = Progress(f"run: {model.name} ({integ.name}, dt = {dt:.3g} s), output", len(times), _rank())
     for k, t_out in enumerate(times):
         ticker.tick(k, f", t = {t_out:.4g} s")
         n = int(np.ceil((t_out - state.t) / dt - 1e-9))
