@@ -65,8 +65,8 @@ PEERS_VENV := .venv-peers
 bench-peers: setup
 	[ -x $(PEERS_VENV)/bin/python ] || /usr/bin/python3 -m venv --system-site-packages $(PEERS_VENV)
 	$(PEERS_VENV)/bin/python -m pip install -q -c $(VENV)/constraints.txt -e . \
-	  $$($(PY) -c 'from verification.bench_peers import PEERS; print(*(f"{k}=={v}" for k, v in PEERS.items()))')
-	$(PEERS_VENV)/bin/python -m verification.bench_peers --out reports/bench-peers.json
+	  $$($(PY) -c 'from verification.bench.peers import PEERS; print(*(f"{k}=={v}" for k, v in PEERS.items()))')
+	$(PEERS_VENV)/bin/python -m verification.bench.peers --out reports/bench-peers.json
 
 clean-cache:
 	rm -rf $${TISSUEBENCH_CACHE:-$$HOME/.cache/tissuebench}

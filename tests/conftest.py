@@ -138,9 +138,9 @@ def references_ahead(private_cache, run_dir):
     takes every core), then each reads which ones failed from the file the solver left."""
     if not _SESSION["slow"]:
         return
-    from verification.prefetch import scene_jobs, solve_references
     from verification.scene import load_scene
-    from verification.stability import FAILED_REFERENCES, reference_jobs
+    from verification.studies.prefetch import scene_jobs, solve_references
+    from verification.studies.stability import FAILED_REFERENCES, reference_jobs
 
     done = run_dir / "references-ahead.json"
     with open(run_dir / "references-ahead.lock", "w") as lock:

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from realtime import MODELS
-from verification.advise import FRAME_SHARE, frame_budget, merge_same_answers
 from verification.cli import main
-from verification.runner import reference_result
+from verification.runs.reference import reference_result
 from verification.scene import SceneError, load_scene, parse
+from verification.studies.advise import FRAME_SHARE, frame_budget, merge_same_answers
 
 
 def _row(model="linear-tm", dt=1e-5, step_us=10.0, settle=1000, err=0.1, integrator="symplectic-euler"):
@@ -130,7 +130,7 @@ def test_a_refined_truth_asked_in_another_process_reuses_the_kept_base_solve(mon
     base solve keeps its fields beside its result, so the main process rebuilds it (its spaces, checked
     to number their dofs at the same points) instead of solving again: the same values and estimate as
     the solve itself (1e-12: the same dofs evaluated at the same points), and no Newton iteration."""
-    from verification import runner
+    from verification.runs import reference as runner
 
     base = load_scene("block-press")
     fine = base.refined(1)

@@ -8,10 +8,10 @@ import pytest
 
 
 def test_the_compiled_code_report_counts_what_it_names():
-    """make bench reports what the hot loops compile to (verification.codegen), since the counts differ
+    """make bench reports what the hot loops compile to (verification.bench.codegen), since the counts differ
     by target. Its patterns must count packed double instructions on 256- and 512-bit registers and
     nothing scalar or single-precision: lines as LLVM prints them for AVX2 and AVX-512."""
-    from verification import codegen
+    from verification.bench import codegen
 
     asm = """
         vfmadd231pd	%zmm1, %zmm2, %zmm3
@@ -37,7 +37,7 @@ def test_the_threaded_ceiling_loops_do_all_of_the_one_thread_loops_work(parts):
     """thread_loops times the ceilings' loops on one thread and on several: the threaded triad must
     write every element (a slice left out or run twice would show: n is not a multiple of the parts)
     and the threaded FMA loop must run every thread's chains (its sum is T times one thread's)."""
-    from verification import roofline
+    from verification.bench import roofline
 
     n = 1001
     b, c = np.arange(n, dtype=float), np.full(n, 3.0)
@@ -53,7 +53,7 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     mass-spring, scipy's product) carry their flops, bytes, bound and achieved fraction, and the table
     prints them beside the measured ceilings; the others carry none."""
     from realtime.models import FLOAT32_MODELS
-    from verification.bench import CALL_ROW, CALLS, format_table, run
+    from verification.bench.suite import CALL_ROW, CALLS, format_table, run
 
     out = run(meshes=("beam",), repeats=1, steps=2)
     roof = out["machine"]["roofline"]
@@ -101,7 +101,7 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     assert "FMA peak" in table and f"({roof['vector_bits']}-bit vectors" in table and "triad GB/s by data size" in table
     assert len(re.findall(r"roofline [\d.]+ us \((compute|memory)\): \d+% of it", table)) == len(placed)
     assert len(re.findall(r"\d\.\d\dx its float64 row", table)) == len(FLOAT32_MODELS)
-    # what the hot loops compile to on this target: counted, printed, never asserted (verification.codegen)
+    # what the hot loops compile to on this target: counted, printed, never asserted (verification.bench.codegen)
     assert "compiled code (numba target" in table and out["compiled_code"]["stvk"]["general_packed"] >= 0
     _the_benchmarks_page_keeps_one_section_per_machine(out)
 
@@ -113,7 +113,7 @@ def _the_benchmarks_page_keeps_one_section_per_machine(out):
     import tempfile
     from pathlib import Path
 
-    from verification.bench import write_markdown
+    from verification.bench.suite import write_markdown
 
     other = copy.deepcopy(out)
     other["machine"]["cpu"] = "Another CPU"
@@ -141,7 +141,7 @@ def test_the_force_alone_rows_compute_the_models_force(threads):
     must be the model's internal force (a loop that called nothing would time nothing)."""
     from meshes import stored_mesh
     from realtime import Material, build_model
-    from verification.bench import _force_loop
+    from verification.bench.suite import _force_loop
 
     mesh = stored_mesh("beam")
     model = build_model("stvk-tm", mesh.points, mesh.tets, Material(1e5, 0.3, 1000.0, law="stvk"), threads=threads)
@@ -162,7 +162,7 @@ def test_the_phase_rows_do_the_phases_of_stvk_tms_force():
     from meshes import structured_box
     from realtime import Material, build_model
     from realtime.blocks import BLOCK, gather, scatter_block
-    from verification.bench import _gather_scatter_loop, _stvk_arithmetic_loop
+    from verification.bench.suite import _gather_scatter_loop, _stvk_arithmetic_loop
 
     mesh = structured_box((0.02, 0.02, 0.02), (2, 2, 2))
     model = build_model("stvk-tm", mesh.points, mesh.tets, Material(1e5, 0.3, 1000.0, law="stvk"))
@@ -192,7 +192,7 @@ def test_bench_peers_without_the_peers_says_how_to_get_them(capsys):
 
     if importlib.util.find_spec("newton") and importlib.util.find_spec("pbatoolkit"):
         pytest.skip("both peers are installed here")
-    from verification.bench_peers import main
+    from verification.bench.peers import main
 
     assert main([]) == 2
     err = capsys.readouterr().err.strip().splitlines()

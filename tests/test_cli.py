@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from verification.cli import main
-from verification.results import Result
+from verification.runs.results import Result
 from verification.scene import SCENES_DIR
 
 METRICS = [
@@ -44,7 +44,7 @@ def test_error_budget_of_a_dynamic_run_has_a_time_part(capsys):
     assert main(["compare", "cantilever-dynamic", "--model", "linear-tm", "--degree", "1", "--json"]) == 0
     b = json.loads(capsys.readouterr().out)["error_budget"]
     # the P1 reference returns its refined solution, so the mesh part is exactly its spatial difference
-    from verification.runner import reference_result
+    from verification.runs.reference import reference_result
     from verification.scene import load_scene
 
     ref = reference_result(load_scene("cantilever-dynamic"), degree=1, refine=0, estimate=True)
@@ -92,7 +92,7 @@ def test_scenes_lists_builtins(capsys):
 
 @pytest.mark.slow
 def test_report_has_plots_and_data(tmp_path):
-    from verification.report import write_report
+    from verification.report.page import write_report
 
     path = write_report(["cantilever-pull"], out=tmp_path / "r", fractions=(0.9, 1.1))  # 0.9: the advisor's too
     text = path.read_text()
@@ -191,8 +191,9 @@ def test_a_damaged_cache_entry_is_computed_again(tmp_path, capsys, monkeypatch):
     """A cache file cut short (a full disk, an interrupted copy) or not what it should be was a
     BadZipFile or JSON traceback: each kind of entry (the reference, a settled state, a compared run)
     is computed again, with a line on stderr, and the answer is the one computed the first time."""
-    from verification.runner import cache_dir, reference_result
-    from verification.runs import cached_compare
+    from verification.cache import cache_dir
+    from verification.runs.reference import reference_result
+    from verification.runs.store import cached_compare
     from verification.scene import load_scene
 
     monkeypatch.setenv("TISSUEBENCH_CACHE", str(tmp_path))
@@ -220,7 +221,7 @@ def test_a_damaged_cache_entry_is_computed_again(tmp_path, capsys, monkeypatch):
 def test_a_model_run_without_a_term_of_the_material_says_so(tmp_path, capsys):
     """block-press with the volume penalty: linear-tm runs without it (its error measures what that
     costs) and its row, its text and the sweep's table say so; stvk-tm represents it and says nothing."""
-    from verification.sweep import format_sweep
+    from verification.studies.sweep import format_sweep
 
     text = (SCENES_DIR / "block-press.toml").read_text().replace("poisson = ", "volume_penalty = 5.0e5\npoisson = ", 1)
     path = tmp_path / "penalty.toml"

@@ -4,7 +4,11 @@ import numpy as np
 import pytest
 
 from realtime import State, SymplecticEuler
-from verification.runner import compare, model_for, output_times, reference_result, run_model, trajectory
+from verification.engines.builtin import BUILTIN, scene_model
+from verification.inputs import scene_inputs
+from verification.runs.compare import compare
+from verification.runs.reference import reference_result
+from verification.runs.simulate import output_times, run_model, trajectory
 from verification.scene import load_scene
 
 
@@ -16,11 +20,13 @@ def scene():
 def test_trajectory_interpolates_between_steps(scene):
     """Sampling at output times equals stepping exactly onto them when dt divides the interval, and is
     a linear interpolation otherwise (checked against a run that lands on the instant)."""
-    model = model_for(scene, "linear-tm")
-    integ = SymplecticEuler()
+    model = scene_model(scene, "linear-tm")
+    integ = SymplecticEuler(scene.time.damping_mass, scene.time.damping_stiffness)  # as the run steps
     dt = 0.5 * integ.critical_dt(model)
     times = np.array([0.0, 7.3 * dt, 12.0 * dt])
-    u, _ = trajectory(model, integ, dt, times)
+    sim = BUILTIN.build(scene_inputs(scene), "linear-tm", "symplectic-euler", {})
+    sim.start(dt)
+    u, _ = trajectory(sim, times)
     st = State.at_rest(model.n_vertices)
     integ.step(model, st, dt, 7)
     u7 = st.u.copy()

@@ -24,7 +24,7 @@ from realtime import (
 )
 from realtime.models import cut
 from realtime.spectra import min_eigenvalue
-from verification.runner import model_for
+from verification.engines.builtin import scene_model
 from verification.scene import load_scene
 
 MAT = Material(5e5, 0.45, 1000.0, law="stvk")
@@ -91,7 +91,7 @@ def test_the_settled_tool_force_equals_the_references_reaction_on_cantilever_pul
     from reference.fem import ElasticityProblem
 
     scene = load_scene("cantilever-pull")
-    model = model_for(scene, "stvk-tm")
+    model = scene_model(scene, "stvk-tm")
     ep = ElasticityProblem(scene.mesh, scene.material, scene.problem, degree=1)
     ep.solve_newton()
     reaction = ep.reaction()

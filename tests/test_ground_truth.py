@@ -66,7 +66,7 @@ def test_refined_faces_load_what_the_scene_faces_load():
     from realtime.geometry import face_areas
     from reference.fem import ElasticityProblem
     from reference.problem import Force, Problem
-    from verification.loading import region_faces
+    from verification.inputs import region_faces
 
     scene = load_scene("sofa-liver")
     mesh = scene.mesh
@@ -87,7 +87,8 @@ def test_p1_reference_and_settled_linear_tm_are_one_system():
     import dataclasses
 
     from reference.problem import Problem, Traction
-    from verification.runner import reference_result, run_model
+    from verification.runs.reference import reference_result
+    from verification.runs.simulate import run_model
 
     base = load_scene("sofa-liver")
     traction = Traction(SphereRegion((0.06, 0.0, 0.03), 0.03), (0.0, 50.0, -100.0))

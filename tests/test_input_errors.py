@@ -135,7 +135,7 @@ def test_dynamic_scene_whose_end_is_not_a_multiple_of_output_every(tmp_path, cap
 
 
 def test_report_of_a_scene_path_goes_under_its_scene_name(tmp_path, monkeypatch):
-    import verification.report as report
+    import verification.report.page as report
 
     monkeypatch.setattr(report, "REPORTS", tmp_path / "reports")
     scene = tmp_path / "elsewhere" / "pull.toml"
@@ -498,7 +498,7 @@ def test_a_static_scene_whose_own_answer_is_beyond_the_blow_up_guard_is_refused_
         assert_one_line(err, "soft.toml: load: the scene's own static answer reaches", "lower the load, raise young")
     # a study records it as the divergence it is, with its cause (the stability study varies E down to
     # where this happens, and goes on)
-    from verification.runner import compare
+    from verification.runs.compare import compare
     from verification.scene import load_scene
 
     row = compare(load_scene(path), "linear-tm")

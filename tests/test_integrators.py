@@ -423,13 +423,13 @@ def test_a_settling_below_its_round_off_floor_stops_there_whatever_the_order_of_
     whose sums differ only in order. The stall rule alone, the only way out before, waited for 50 chunks
     without progress (21 200 and 22 200 steps measured, one thread against two: round-off decided)."""
     from realtime import statics
-    from verification.runner import model_for
+    from verification.engines.builtin import scene_model
     from verification.scene import load_scene
 
     scene = load_scene("cantilever")
     runs = []
     for threads in (1, 2):
-        model = model_for(scene, "linear-tm", threads=threads)
+        model = scene_model(scene, "linear-tm", threads=threads)
         dt = 0.9 * SymplecticEuler().critical_dt(model)
         res = statics.solve_static(model, dt=dt, rtol=1e-12)
         lo = model.loading

@@ -171,7 +171,8 @@ def layered_closed_form(scene):
 
 def test_layered_slab_is_exact_in_the_p1_reference_and_the_settled_linear_tensor_mass():
     from realtime import solve_static
-    from verification.runner import model_for, reference_result
+    from verification.engines.builtin import scene_model
+    from verification.runs.reference import reference_result
     from verification.scene import load_scene
 
     scene = load_scene("layered-slab")
@@ -182,13 +183,13 @@ def test_layered_slab_is_exact_in_the_p1_reference_and_the_settled_linear_tensor
     ref = reference_result(scene, degree=1, refine=0, estimate=False)
     # a direct LDL^T solve of a 525-dof system: round-off, amplified by a condition number near 1e3
     assert np.abs(ref.displacement[-1] - exact).max() <= 1e-12 * scale
-    settled = solve_static(model_for(scene, "linear-tm"), rtol=1e-12)
+    settled = solve_static(scene_model(scene, "linear-tm"), rtol=1e-12)
     # dynamic relaxation stops at a residual of 1e-12 of the load; the error follows by the same factor
     assert np.abs(settled.state.u - exact).max() <= 1e-10 * scale
     # and the slab tells the layers apart: one material everywhere is far off
     one = load_scene("layered-slab").with_material()
     one.zones = None
-    wrong = solve_static(model_for(one, "linear-tm"), rtol=1e-8)
+    wrong = solve_static(scene_model(one, "linear-tm"), rtol=1e-8)
     assert np.abs(wrong.state.u - exact).max() > 0.5 * scale
 
 
@@ -197,13 +198,14 @@ def test_p1_reference_and_linear_tensor_mass_solve_one_system_around_an_inclusio
     scene tetrahedron holding their midpoints, the engine takes the tetrahedra's materials; on the scene's
     mesh both solve one linear system."""
     from realtime import solve_static
-    from verification.runner import model_for, reference_result
+    from verification.engines.builtin import scene_model
+    from verification.runs.reference import reference_result
     from verification.scene import load_scene
 
     scene = load_scene("stiff-inclusion").with_material(law="linear")
     assert len(np.unique(scene.body_material().index)) == 2
     ref = reference_result(scene, degree=1, refine=0, estimate=False)
-    model = model_for(scene, "linear-tm")
+    model = scene_model(scene, "linear-tm")
     settled = solve_static(model, rtol=1e-12)
     d = ref.displacement[-1]
     # dynamic relaxation to 1e-12 of the load against a direct solve: 1e-9 allows the condition number
@@ -321,7 +323,7 @@ def test_a_mesh_file_whose_tags_alone_change_is_not_served_its_old_reference(tmp
     import meshio
 
     from meshes import structured_box
-    from verification.runner import reference_key
+    from verification.runs.reference import reference_key
     from verification.scene import load_scene
 
     box = structured_box((0.02, 0.01, 0.01), (4, 2, 2))

@@ -298,7 +298,7 @@ def test_quasi_static_models_equal_the_static_linear_solution(name):
     import scipy.sparse.linalg as spla
 
     from realtime.quasistatic import QuasiStatic
-    from verification.loading import build_loading
+    from verification.inputs import build_loading
     from verification.scene import load_scene
 
     scene = load_scene("cantilever-pull").with_material(law="linear")
@@ -367,13 +367,13 @@ def test_the_indexed_loops_do_not_wrap_signed_indices(model_name, kernel):
     loops, on every x86-64 target tried (NUMBA_CPU_NAME haswell, znver1, znver3, skylake-avx512,
     icelake-server, sapphirerapids and the host). The bound 2 sits between the two. How many other
     instructions the loops take (packed arithmetic, stride multiplications) varies by target and is
-    reported by make bench (verification.codegen). corotational-tm and hybrid-tm share stvk-tm's gather
+    reported by make bench (verification.bench.codegen). corotational-tm and hybrid-tm share stvk-tm's gather
     and scatter. Compiled afresh: numba shows no assembly for cached code."""
     import importlib
     import platform
 
     from realtime import blocks
-    from verification import codegen
+    from verification.bench import codegen
 
     if platform.machine() not in ("x86_64", "AMD64"):
         pytest.skip("the assembly checked is x86-64's")

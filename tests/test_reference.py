@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from reference.driver import solve_static as reference_static
-from verification.runner import ROOT, compare, reference_result
+from verification.cache import ROOT
+from verification.runs.compare import compare
+from verification.runs.reference import reference_result
 from verification.scene import load_scene
 
 from .conftest import SWING
@@ -484,7 +486,7 @@ def test_the_studies_workers_print_whole_progress_lines_and_no_compiler_calls(tm
 
     (tmp_path / "swing.toml").write_text(SWING)
     code = (
-        "from verification.prefetch import solve_references\n"
+        "from verification.studies.prefetch import solve_references\n"
         "from verification.scene import load_scene\n"
         f"s = load_scene({str(tmp_path / 'swing.toml')!r})\n"
         "print(solve_references([(s, dict(degree=2, estimate=True)), (s, dict(degree=1, estimate=False))], 2))\n"

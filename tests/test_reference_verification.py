@@ -16,7 +16,7 @@ from realtime import Material
 from reference.driver import solve_static as reference_static
 from reference.fem import ElasticityProblem, ReferenceSolveError, manufactured_errors
 from reference.problem import Displacement, Fixed, Gravity, Problem
-from verification.results import Result
+from verification.runs.results import Result
 from verification.scene import load_scene
 
 from .conftest import SWING
@@ -228,7 +228,7 @@ def test_a_diverging_newton_is_cut_early_and_fails_at_the_same_load(monkeypatch)
     above its best within a few steps. Giving up then (DIVERGED) must not move where the solve fails,
     only what it costs: measured at P1, 106 factorisations against 210 when each attempt runs its 25."""
     from reference import fem
-    from verification.stability import _far_face_tool
+    from verification.studies.stability import _far_face_tool
 
     scene = _far_face_tool(load_scene("cantilever"), "compression")
     count = [0]
@@ -325,9 +325,9 @@ def _engine_linear_solution(scene):
     its rest stiffness (N, 3) m: the settled model without the settling."""
     import scipy.sparse.linalg as spla
 
-    from verification.runner import model_for
+    from verification.engines.builtin import scene_model
 
-    model = model_for(scene, "linear-tm")
+    model = scene_model(scene, "linear-tm")
     free = model.loading.free.ravel() > 0
     k = model.rest_stiffness().tocsc()[free][:, free]
     u = np.zeros(3 * model.n_vertices)
@@ -340,7 +340,7 @@ def test_fibres_around_an_axis_engine_and_reference_converge_together():
     """The reference evaluates circumferential fibres at its quadrature points, the engine at each
     tetrahedron's centroid: one problem, two samplings of its coefficient, whose difference must vanish
     as the mesh is refined (with fibres along one direction they solve one linear system)."""
-    from verification.seeds import seed_scene
+    from verification.studies.seeds import seed_scene
 
     def edit(around):
         def change(data):
@@ -359,7 +359,7 @@ def test_fibres_around_an_axis_engine_and_reference_converge_together():
         p1 = reference_result(scene, degree=1, estimate=False, own_mesh=True).displacement[0]
         return float(np.linalg.norm(_engine_linear_solution(scene) - p1) / np.linalg.norm(p1))
 
-    from verification.runner import reference_result
+    from verification.runs.reference import reference_result
 
     axial = seed_scene("tube", "-axial", edit(False))
     # one linear system, LU against a sparse direct solve: round-off times a conditioning of about 1e6

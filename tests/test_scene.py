@@ -117,7 +117,7 @@ def test_smooth_ramp_reaches_both_ends_at_rest(tmp_path):
     """ramp_shape = "smooth": the tool's fraction is the quintic 10 s^3 - 15 s^4 + 6 s^5, whose
     velocity and acceleration vanish at both ends; the scene passes it to the reference's tool and to
     the real-time models' alike (one function: realtime.model.ramp_fraction)."""
-    from verification.runner import model_for
+    from verification.engines.builtin import scene_model
 
     scene = load_scene(write(tmp_path, TOOL))
     tool = scene.problem.tools[0]
@@ -129,7 +129,7 @@ def test_smooth_ramp_reaches_both_ends_at_rest(tmp_path):
     np.testing.assert_allclose(
         s, [0.0, 1e-8 - 1.5e-11 + 6e-15, 0.5, 1 - 1e-8 + 1.5e-11 - 6e-15, 1.0, 1.0], rtol=1e-13, atol=1e-24
     )
-    model = model_for(scene, "linear-tm")
+    model = scene_model(scene, "linear-tm")
     assert model.loading.tool_ramp_shape.tolist() == [1]
     np.testing.assert_allclose(model.tool_displacement(0.025)[:, 2], -0.0025, rtol=1e-12)
     with pytest.raises(SceneError, match=r"load\[0\]\.ramp_shape.*'cubic' is not one of linear, smooth"):

@@ -12,9 +12,10 @@ import subprocess
 import numpy as np
 import pytest
 
-from verification import seeds
+from verification.engines.builtin import scene_model
 from verification.metrics import rel_l2
-from verification.runner import model_for, reference_result
+from verification.runs.reference import reference_result
+from verification.studies import seeds
 
 pytestmark = pytest.mark.slow
 
@@ -131,7 +132,7 @@ def test_critical_step_is_the_measured_stability_limit():
         scene = seeds.seed_scene(
             "spring-block", f"-E{r['young_pa']:g}", lambda d, e=r["young_pa"]: d["material"].update(young=e)
         )
-        model = model_for(scene, "mass-spring")
+        model = scene_model(scene, "mass-spring")
         free = model.loading.free.ravel() > 0
         k = model.rest_stiffness().toarray()[np.ix_(free, free)]
         minv = 1.0 / np.sqrt(np.repeat(model.mass, 3)[free])
@@ -196,7 +197,7 @@ def test_report_seeds_fails_on_a_bad_directory_before_running(tmp_path, capsys):
 
 
 def test_seeds_page_images_load_in_a_headless_browser(tmp_path):
-    from verification.report import write_seeds_report
+    from verification.report.page import write_seeds_report
 
     browser = shutil.which("chromium") or shutil.which("chromium-browser")
     assert browser, "chromium is not installed: `make setup` installs it (Debian package chromium)"

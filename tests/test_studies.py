@@ -10,12 +10,13 @@ import time
 import numpy as np
 import pytest
 
-from verification.advise import LINEAR_MODELS, deformation_summary
+from verification.cache import cache_dir
 from verification.cli import main
-from verification.runner import cache_dir, reference_result
-from verification.runs import largest_stable_fraction
+from verification.runs.reference import reference_result
+from verification.runs.store import largest_stable_fraction
 from verification.scene import load_scene
-from verification.sweep import pareto_front
+from verification.studies.advise import LINEAR_MODELS, deformation_summary
+from verification.studies.sweep import pareto_front
 
 
 def brute_force_front(points):
@@ -197,9 +198,9 @@ def test_references_solved_ahead_on_two_processes_are_the_ones_a_study_finds(tmp
     and reports the one that has no equilibrium with its reason instead of caching it. What a study then
     reads from the cache is what it would have solved itself (1e-12: one code, one machine; only the
     process differs)."""
-    from verification.prefetch import solve_references
-    from verification.runner import P1_OWN_MESH, reference_path
-    from verification.stability import _far_face_tool
+    from verification.runs.reference import P1_OWN_MESH, reference_path
+    from verification.studies.prefetch import solve_references
+    from verification.studies.stability import _far_face_tool
 
     monkeypatch.setenv("TISSUEBENCH_CACHE", str(tmp_path))  # the workers inherit it
 
@@ -223,27 +224,31 @@ def test_settlings_made_ahead_on_two_processes_are_the_ones_a_run_makes(tmp_path
     for bit (one code, one machine; only the process differs), and a diverging fraction is left to the
     run, which reports it."""
     from realtime import DivergenceError
-    from verification.prefetch import settle_ahead
-    from verification.runner import model_for, run_model, settled, settled_path
+    from verification.engines.builtin import scene_model, settled, settled_path
+    from verification.inputs import scene_inputs
+    from verification.runs.simulate import run_model
+    from verification.studies.prefetch import settle_ahead
 
     monkeypatch.setenv("TISSUEBENCH_CACHE", str(tmp_path))  # the workers inherit it
     scene = load_scene("cantilever")
     models = ("linear-tm", "adaptive-tm")  # linear, and non-linear with vertices of its own
     settle_ahead([(scene, (0.9, 1.1)), (load_scene("cantilever-dynamic"), (0.9,))], workers=2, models=models)
     for model in models:
-        path = settled_path(scene, model, "symplectic-euler", None, 0.9, 1e-10, 2_000_000, None)
+        path = settled_path(scene_inputs(scene), model, "symplectic-euler", None, 0.9, 1e-10, 2_000_000, None)
         assert path.exists(), model
-        assert not settled_path(scene, model, "symplectic-euler", None, 1.1, 1e-10, 2_000_000, None).exists()
+        assert not settled_path(
+            scene_inputs(scene), model, "symplectic-euler", None, 1.1, 1e-10, 2_000_000, None
+        ).exists()
         ahead = run_model(scene, model, dt_fraction=0.9)
         path.unlink()
-        here = settled(scene, model_for(scene, model), dt_fraction=0.9)
+        here = settled(scene_inputs(scene), scene_model(scene, model), dt_fraction=0.9)
         assert np.array_equal(ahead.displacement[0], here.state.u[: scene.mesh.n_vertices])
         assert ahead.meta["static"]["steps"] == here.steps and ahead.meta["dt"] == here.dt
-    implicit = settled_path(scene, "linear-tm", "implicit-euler", None, None, 1e-10, 2_000_000, None)
+    implicit = settled_path(scene_inputs(scene), "linear-tm", "implicit-euler", None, None, 1e-10, 2_000_000, None)
     assert implicit.exists()  # the advisor's implicit Euler row, settled ahead too
     ahead = run_model(scene, "linear-tm", integrator="implicit-euler")
     implicit.unlink()
-    here = settled(scene, model_for(scene, "linear-tm"), "implicit-euler")
+    here = settled(scene_inputs(scene), scene_model(scene, "linear-tm"), "implicit-euler")
     assert np.array_equal(ahead.displacement[0], here.state.u) and ahead.meta["static"]["steps"] == here.steps
     with pytest.raises(DivergenceError):
         run_model(scene, "linear-tm", dt_fraction=1.1)
@@ -256,9 +261,10 @@ def test_the_stability_studys_settlings_made_ahead_are_the_ones_its_cells_read(t
     finds its equilibrium cached: the step count it reports is the one settled ahead, the explicit and
     the implicit cell alike (a mark put in the cached file comes out in the cell). A cell tried ahead is
     not queued again, whatever came of it."""
-    from verification import prefetch
-    from verification.runner import settled_path
-    from verification.stability import STABILITY_BUDGET, _cell, _far_face_tool, settle_cells
+    from verification.engines.builtin import settled_path
+    from verification.inputs import scene_inputs
+    from verification.studies import prefetch
+    from verification.studies.stability import STABILITY_BUDGET, _cell, _far_face_tool, settle_cells
 
     monkeypatch.setenv("TISSUEBENCH_CACHE", str(tmp_path))  # the workers inherit it
     monkeypatch.setattr(prefetch, "SETTLED_AHEAD", set())
@@ -273,7 +279,7 @@ def test_the_stability_studys_settlings_made_ahead_are_the_ones_its_cells_read(t
         ("cantilever-rotation", "linear-tm", "symplectic-euler"),
     ]  # the quasi-static model settles nothing
     prefetch.settle_ahead([], workers=2, cells=cells)
-    paths = [settled_path(s, m, i, None, None, 1e-10, STABILITY_BUDGET, None) for s, m, i, _ in cells]
+    paths = [settled_path(scene_inputs(s), m, i, None, None, 1e-10, STABILITY_BUDGET, None) for s, m, i, _ in cells]
     assert all(p.exists() for p in paths) and prefetch.SETTLED_AHEAD == set(paths)
     for integrator, path in zip(("symplectic-euler", "implicit-euler"), paths[1:3], strict=True):
         ahead = dict(np.load(path))
@@ -335,7 +341,7 @@ def test_advise_large_rotation_recommends_a_rotation_invariant_model(capsys):
 
 
 def test_gate_passes_the_shipped_quick_gates_and_fails_a_tightened_bound(tmp_path, capsys):
-    from verification.gates import DEFAULT_CONFIG
+    from verification.studies.gates import DEFAULT_CONFIG
 
     assert main(["gate", "--quick"]) == 0
     text = DEFAULT_CONFIG.read_text()
@@ -351,7 +357,7 @@ def test_gate_fails_on_drift_from_its_baseline_and_on_a_changed_mesh(tmp_path, c
     so does a baseline measured on another mesh; each says which."""
     import re
 
-    from verification.gates import DEFAULT_CONFIG
+    from verification.studies.gates import DEFAULT_CONFIG
 
     text = DEFAULT_CONFIG.read_text()
     first = text.index("[[gate]]")
@@ -377,7 +383,7 @@ def test_gate_fails_on_drift_from_its_baseline_and_on_a_changed_mesh(tmp_path, c
 
 
 def test_gate_baselines_carry_provenance():
-    from verification.gates import DEFAULT_CONFIG, load_gates
+    from verification.studies.gates import DEFAULT_CONFIG, load_gates
 
     for g in load_gates(DEFAULT_CONFIG):
         b = g["baseline"]
@@ -390,7 +396,7 @@ def test_a_number_from_changed_code_does_not_carry_the_bare_commit(tmp_path):
     whose tracked files differ from that commit is marked "-dirty": the bench table of this fix's own
     session, run before its commit, said "993d03f", a commit that did not hold the code it timed.
     Untracked files do not mark it (a new module only runs once a tracked one imports it)."""
-    from verification.runner import git_commit
+    from verification.cache import git_commit
 
     def git(*args):
         subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
@@ -418,7 +424,9 @@ def test_cache_keys_change_with_every_input_they_cover(monkeypatch):
     code), the machine for timings, and every parameter of a variant built in code."""
     import dataclasses
 
-    from verification import runner, runs
+    from verification import cache
+    from verification.runs import reference as runner
+    from verification.runs import store as runs
 
     scene = load_scene("cantilever-pull")
     args = dict(scene=scene, model="linear-tm", integrator="symplectic-euler", dt=None, fraction=0.9, ref_opts={})
@@ -448,7 +456,7 @@ def test_cache_keys_change_with_every_input_they_cover(monkeypatch):
     assert fine.sha256() != scene.sha256() and fine.refined(1).sha256() != fine.sha256()
     assert runner.reference_key(fine, 1, 0, False) != runner.reference_key(fine, 1, 0, False, own_mesh=True)
     # the code and the machine
-    real = runner.code_digest
+    real = cache.code_digest
     monkeypatch.setattr(runner, "code_digest", lambda patterns: "other " + real(patterns))
     assert runner.reference_key(scene, 2, 0, True) != rkey
     monkeypatch.setattr(runs, "code_digest", lambda patterns: "other code")
@@ -456,9 +464,12 @@ def test_cache_keys_change_with_every_input_they_cover(monkeypatch):
     monkeypatch.undo()
     monkeypatch.setattr(runs, "machine_id", lambda: {"cpu": "another machine"})
     assert runs.run_key(**args) != key
-    assert {"reference/fem.py", "meshes/regions.py", "verification/runs.py"} <= {
-        str(f.relative_to(runner.ROOT)) for p in runner.RUN_CODE for f in runner.ROOT.glob(p)
-    }
+    assert {
+        "reference/fem.py",
+        "meshes/regions.py",
+        "verification/runs/store.py",
+        "verification/engines/builtin.py",
+    } <= {str(f.relative_to(cache.ROOT)) for p in cache.RUN_CODE for f in cache.ROOT.glob(p)}
 
 
 def test_reference_cache_is_keyed_and_reused():
@@ -541,7 +552,7 @@ def test_spawned_jobs_still_queued_do_not_run_once_the_caller_stops(tmp_path):
     """Interrupted after its first result (Ctrl-C, or a job that failed), the process pool starts none
     of the jobs still queued: the executor's own exit ran every one of them first, minutes of reference
     solves after the user had pressed Ctrl-C."""
-    from verification.prefetch import _spawned
+    from verification.studies.prefetch import _spawned
 
     jobs = [(str(tmp_path), k) for k in range(8)]
     results = _spawned(_mark, jobs, 1)
@@ -560,7 +571,7 @@ def test_a_gate_whose_baseline_no_longer_describes_its_measurement_says_so(tmp_p
     recorded fails, each saying why; the shipped file passes."""
     import re
 
-    from verification.gates import DEFAULT_CONFIG
+    from verification.studies.gates import DEFAULT_CONFIG
 
     text = DEFAULT_CONFIG.read_text()
     first = text.index("[[gate]]")
@@ -587,7 +598,7 @@ def test_a_settling_run_reports_its_steps_as_it_goes(monkeypatch, capfd):
     worker) reports like the reference's loops: a line at most every progress.EVERY seconds, set to 0
     here so that every chunk of steps reports, with the residual against the tolerance asked."""
     from reference import progress
-    from verification.runner import run_model
+    from verification.runs.simulate import run_model
     from verification.scene import load_scene
 
     monkeypatch.setattr(progress, "EVERY", 0.0)
@@ -605,11 +616,11 @@ def test_a_studys_workers_end_with_the_process_that_spawned_them(tmp_path):
     import sys
     import time
 
-    from verification.runner import ROOT
+    from verification.cache import ROOT
 
     code = (
         "import os, time\n"
-        "from verification.prefetch import _spawned\n"
+        "from verification.studies.prefetch import _spawned\n"
         "for k, r in _spawned(time.sleep, [(0,), (300,)], 1):\n"
         "    print(k, flush=True)\n"
     )
@@ -646,7 +657,7 @@ def test_a_dynamic_run_reports_its_output_times_as_it_goes(monkeypatch, capfd):
     nothing for minutes after the reference's last line. A run now reports its output times like every
     other long loop (progress.EVERY, set to 0 here so that each output time reports)."""
     from reference import progress
-    from verification.runner import run_model
+    from verification.runs.simulate import run_model
     from verification.scene import load_scene
 
     monkeypatch.setattr(progress, "EVERY", 0.0)

@@ -40,7 +40,7 @@ def test_the_256_bit_preference_is_lifted_on_cores_with_avx512_and_only_there(mo
     46 GFLOP/s at 256 bits on the Xeon where this was written, 76 at 512). A core without AVX-512 keeps
     LLVM's choice. Both cores are posed here (LLVM's feature map of a host with and without avx512f),
     so the rule is checked on every machine; which width a kernel then compiles to is reported by
-    make bench (verification.codegen)."""
+    make bench (verification.bench.codegen)."""
     import llvmlite.binding as ll
     from numba.core import config
 

@@ -268,7 +268,7 @@ def test_each_thread_writes_forces_inside_its_span_alone(model_name, rng):
 def test_the_threads_forces_are_summed_piece_by_piece():
     """The sum of two threads' forces (threaded.sum_range, each piece between the spans' ends a plain
     loop: one span alone, both, the other alone) adds each component once per span that holds it. How
-    many packed additions it compiles to is reported by make bench (verification.codegen)."""
+    many packed additions it compiles to is reported by make bench (verification.bench.codegen)."""
     from realtime import threaded
 
     F, f = np.ones((2, 900)), np.zeros(900)

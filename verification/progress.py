@@ -5,6 +5,8 @@ from __future__ import annotations
 import sys
 import time
 
+from reference.progress import line
+
 
 class Progress:
     """A one-line progress bar on a terminal (stderr); silent when stderr is not a TTY (CI, pipes)."""
@@ -27,3 +29,16 @@ class Progress:
         if self.done >= self.total:
             sys.stderr.write("\n")
         sys.stderr.flush()
+
+
+def _rank() -> int:
+    """This process's MPI rank as mpirun set it (0 outside mpirun)."""
+    from verification import _RANK
+
+    return int(_RANK or 0)
+
+
+def log(msg: str) -> None:
+    """Progress to stderr (stdout is kept for --json), from the first MPI rank only (under mpirun every
+    rank runs the same driver, and each line came once per rank), in one write (reference.progress)."""
+    line(msg, _rank())

@@ -13,13 +13,12 @@ import json
 
 import numpy as np
 
-from .results import atomic_write_text, read_cached
-from .runner import REFERENCE_DEFAULTS, RUN_CODE, cache_dir, code_digest, compare, digest, machine_id, reference_result
-from .scene import Scene
-
-#: Bisection of the largest stable step: the span searched and the steps each trial runs.
-STABLE_SEARCH = (0.5, 3.0)
-STABLE_STEPS = 2000
+from verification.cache import RUN_CODE, cache_dir, code_digest, digest, machine_id, read_cached
+from verification.engines.builtin import STABLE_STEPS
+from verification.runs.compare import compare
+from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
+from verification.runs.results import atomic_write_text
+from verification.scene import Scene
 
 
 def run_key(
@@ -108,9 +107,8 @@ def largest_stable_fraction(
     small perturbation of rest (1e-6 of the mesh size) without blowing up, with the scene's loading and
     damping. Returns the stable and unstable fractions bracketing the limit, dt_crit and the ratio
     observed / predicted (1 when the prediction is exact)."""
-    from realtime import DivergenceError, State, make_integrator
-
-    from .runner import _omega2_rest, model_for
+    from verification.engines.builtin import stable_fraction
+    from verification.inputs import scene_inputs
 
     key = digest(
         {
@@ -126,31 +124,7 @@ def largest_stable_fraction(
     kept = read_cached(path, _read_json) if use_cache else None
     if kept is not None:
         return kept
-    model = model_for(scene, model_name)
-    integ = make_integrator(integrator, scene.time.damping_mass, scene.time.damping_stiffness)
-    dt_crit = integ.critical_dt(model, _omega2_rest(scene, model))
-    size = float(np.ptp(model.points, axis=0).max())
-    rng = np.random.default_rng(0)
-    u0 = 1e-6 * size * rng.standard_normal(model.points.shape) * model.loading.free
-
-    def stable(frac):
-        st = State(u=u0.copy(), v=np.zeros_like(u0))
-        try:
-            integ.step(model, st, frac * dt_crit, steps, dt_crit=dt_crit)
-            return True
-        except DivergenceError:
-            return False
-
-    lo, hi = STABLE_SEARCH
-    if not stable(lo):
-        out = {"stable": None, "unstable": lo, "dt_crit": dt_crit, "ratio": None}
-    elif stable(hi):
-        out = {"stable": hi, "unstable": None, "dt_crit": dt_crit, "ratio": hi}
-    else:
-        for _ in range(iterations):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if stable(mid) else (lo, mid)
-        out = {"stable": lo, "unstable": hi, "dt_crit": dt_crit, "ratio": lo, "steps": steps}
+    out = stable_fraction(scene_inputs(scene), model_name, integrator, steps, iterations)
     if use_cache:
         atomic_write_text(path, json.dumps(out))
     return out

@@ -44,7 +44,7 @@ def _asm(dispatcher) -> str:
 
 def fma_peak_loop() -> dict:
     """The roofline's peak loop: packed FMAs against the chains x degree it must issue to be a peak."""
-    from . import roofline
+    from verification.bench import roofline
 
     kernel = _fresh(roofline._polynomials, roofline._FAST)
     kernel(np.full((roofline._CHAINS, 64), 0.5), 1)

@@ -1,4 +1,7 @@
-"""A scene's constraints and loads as the real-time engine's ``Loading`` (consistent with the P1 FEM).
+"""A scene becomes each solver's inputs here: the engines' SceneInputs (``scene_inputs``), whose
+constraints and loads are a ``Loading`` consistent with the P1 FEM (``build_loading``), and the check
+that a static scene's held body has an equilibrium (``check_held``). The reference takes the scene's
+``Problem`` (``Scene.problem``, ``Scene.problem_on``) and meshes.
 
 Gravity becomes m_i g with the lumped masses rho V / 4, exactly the P1 load vector of a constant body
 force; a traction t on boundary triangles inside the region becomes t A / 3 on each of their
@@ -16,6 +19,7 @@ from realtime.errors import InputError
 from realtime.geometry import face_areas
 from realtime.model import RAMP_SHAPES, TOOL_ROTATION, TOOL_TRANSLATION, Loading, lumped_masses
 from reference.problem import Displacement, Fixed, Force, Gravity, Problem, Traction, component_mask
+from verification.engines.protocol import SceneInputs, TimeMode
 
 
 def region_faces(mesh: TetMesh, region) -> np.ndarray:
@@ -99,8 +103,7 @@ def check_held(scene) -> None:
     (SOFA's 16 m raptor, finely meshed at its tips: 3e-12), and are physics, not a mechanism."""
     from realtime import build_model
     from realtime.spectra import zero_energy_modes
-
-    from .scene import SceneError
+    from verification.scene import SceneError
 
     if scene.time.mode != "static" or scene.manufactured:
         return
@@ -133,3 +136,31 @@ def check_held(scene) -> None:
         f"stiffness eigenvalue {ratio:.1e} of the largest): {'; '.join(causes)}; a static scene has no "
         "equilibrium, so hold more of the body with [[fixed]] regions"
     )
+
+
+def scene_inputs(scene) -> SceneInputs:
+    """The scene as what every engine builds from (``engines.protocol.SceneInputs``): its mesh's arrays,
+    its materials, its loading (``build_loading``) and its time mode; and, for an engine in this process
+    that runs on a mesh of its own, the loading on that mesh."""
+    mesh, ts = scene.mesh, scene.time
+    return SceneInputs(
+        name=scene.name,
+        source=str(scene.path),
+        sha256=scene.sha256(),
+        points=mesh.points,
+        tets=mesh.tets,
+        material=scene.body_material(),
+        loading=build_loading(mesh, scene.densities(), scene.problem),
+        time=TimeMode(ts.mode, ts.end, ts.output_every, ts.damping_mass, ts.damping_stiffness),
+        loading_on=_loading_on(scene),
+    )
+
+
+def _loading_on(scene):
+    """For ``SceneInputs.loading_on``: the scene's loading on a mesh whose vertices lie on its own."""
+
+    def on(points, tets, parent):
+        mixed = TetMesh(points, tets, source=f"{scene.mesh.source} adaptive")
+        return build_loading(mixed, scene.densities()[parent], scene.problem_on(mixed))
+
+    return on

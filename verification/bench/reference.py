@@ -13,12 +13,12 @@ import time
 from pathlib import Path
 
 from reference import fem
+from verification.bench.suite import machine
+from verification.progress import log
+from verification.runs.reference import reference_result
+from verification.scene import load_scene
 
-from .bench import machine
-from .runner import log, reference_result
-from .scene import load_scene
-
-BENCH_SCENES = Path(__file__).parent / "scenes" / "bench"
+BENCH_SCENES = Path(__file__).parents[1] / "scenes" / "bench"
 #: (label, scene, with the estimate): the slender P2 beam with and without its estimate, the
 #: 90-degree twisted cylinder, the liver, and a dynamic case of about 40 000 dofs and 1600 steps.
 CASES = (

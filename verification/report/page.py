@@ -25,16 +25,19 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
-from .advise import advise, refined_times  # noqa: E402
-from .converge import converge_manufactured, converge_time  # noqa: E402
-from .plots import img as _img  # noqa: E402
-from .plots import png as _png  # noqa: E402
-from .prefetch import advice_jobs, settle_ahead, solve_references  # noqa: E402
-from .results import atomic_write_text  # noqa: E402
-from .runner import REFERENCE_DEFAULTS, git_commit, log, reference_result, run_model, versions  # noqa: E402
-from .scene import SceneError, load_scene  # noqa: E402
-from .stability import FAILED_REFERENCES, reference_jobs, settle_cells, stability  # noqa: E402
-from .sweep import default_fractions, sweep, sweep_csv  # noqa: E402
+from verification.cache import git_commit, versions
+from verification.progress import log
+from verification.report.plots import img as _img  # noqa: E402
+from verification.report.plots import png as _png  # noqa: E402
+from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
+from verification.runs.results import atomic_write_text  # noqa: E402
+from verification.runs.simulate import run_model  # noqa: E402
+from verification.scene import SceneError, load_scene  # noqa: E402
+from verification.studies.advise import advise, refined_times  # noqa: E402
+from verification.studies.converge import converge_manufactured, converge_time  # noqa: E402
+from verification.studies.prefetch import advice_jobs, settle_ahead, solve_references  # noqa: E402
+from verification.studies.stability import FAILED_REFERENCES, reference_jobs, settle_cells, stability  # noqa: E402
+from verification.studies.sweep import default_fractions, sweep, sweep_csv  # noqa: E402
 
 DEFAULT_SCENES = ["cantilever", "cantilever-pull", "cantilever-dynamic", "stiff-inclusion"]
 #: A step beyond the critical one, run beside the sweep's so that the report shows each model's limit.
@@ -550,7 +553,7 @@ def _rows_html(rows: list[dict]) -> str:
 
 
 def seeds_html(res: dict) -> str:
-    """The seeds study (``verification.seeds.run_seeds``) as a section: the table of verdicts, then each
+    """The seeds study (``verification.studies.seeds.run_seeds``) as a section: the table of verdicts, then each
     experiment with its claim, the rule that decided, the numbers and the plots."""
     verdicts = "".join(
         f"<tr class='{html.escape(f['verdict'])}'><td>{f['number']}</td><td><a href='#seed-{html.escape(f['key'])}'>"
@@ -593,7 +596,7 @@ def seeds_report_dir(out: str | None = None) -> Path:
 
 def write_seeds_report(res: dict, out: str | None = None) -> Path:
     """The seeds study as its own page, ``reports/seeds/index.html`` (or ``out``), with its data."""
-    from .seeds import without_pictures
+    from verification.studies.seeds import without_pictures
 
     outdir = seeds_report_dir(out)
     meta = {

@@ -35,14 +35,16 @@ from meshes.store import get_mesh
 from realtime import Loading, Material, NotConvergedError, State, SymplecticEuler, build_model
 from realtime.geometry import signed_volumes
 from realtime.models import QUASI_STATIC, nonlinear_fraction
-
-from .advise import FRAME_SHARE, _available_memory, _memory_bytes, frame_budget
-from .metrics import rel_l2
-from .plots import png, projected_shapes
-from .results import atomic_savez, atomic_write_text, read_cached
-from .runner import P1_OWN_MESH, REFERENCE_DEFAULTS, cache_dir, log, reference_result, run_model
-from .runs import largest_stable_fraction, run_key
-from .scene import SCENES_DIR, Scene, parse, resolve
+from verification.cache import cache_dir, read_cached
+from verification.metrics import rel_l2
+from verification.progress import log
+from verification.report.plots import png, projected_shapes
+from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
+from verification.runs.results import atomic_savez, atomic_write_text
+from verification.runs.simulate import run_model
+from verification.runs.store import largest_stable_fraction, run_key
+from verification.scene import SCENES_DIR, Scene, parse, resolve
+from verification.studies.advise import FRAME_SHARE, _available_memory, _memory_bytes, frame_budget
 
 SEEDS_SCENES = SCENES_DIR / "seeds"
 #: An error this many times the reference's estimate is a measured difference, not reference noise.
@@ -179,12 +181,14 @@ def _read_settled(path: Path) -> tuple[np.ndarray, dict]:
 def _step_time(scene: Scene, model: str, options: dict | None) -> dict:
     """The step time of a run that did not settle: symplectic Euler at 0.9 of the rest critical step,
     timed from rest like every run (``runner.time_steps``)."""
-    from .runner import model_for, time_steps
+    from verification.engines import engine_for
+    from verification.inputs import scene_inputs
+    from verification.runs.simulate import EXPLICIT_FRACTION, time_steps
 
-    built = model_for(scene, model, **(options or {}))
-    integ = SymplecticEuler(scene.time.damping_mass, scene.time.damping_stiffness)
-    dt = 0.9 * integ.critical_dt(built)
-    return {"dt": dt, **time_steps(built, integ, dt, State.at_rest(built.n_vertices))}
+    sim = engine_for(model).build(scene_inputs(scene), model, "symplectic-euler", dict(options or {}))
+    dt = EXPLICIT_FRACTION * sim.critical_dt()
+    sim.start(dt)
+    return {"dt": dt, **time_steps(sim)}
 
 
 def _ref(scene: Scene, size: Size):
@@ -873,7 +877,7 @@ def _slope(x, y) -> float:
 
 
 def critical_stiffness(size: Size) -> dict:
-    from .runner import model_for
+    from verification.engines.builtin import scene_model
 
     out = _finding(
         7,
@@ -894,7 +898,7 @@ def critical_stiffness(size: Size) -> dict:
                 data["material"]["young"] = float(young)
 
             scene = seed_scene("spring-block", f"-E{young:g}", edit, refine=level)
-            model = model_for(scene, "mass-spring")
+            model = scene_model(scene, "mass-spring")
             stable = largest_stable_fraction(scene, "mass-spring")
             dt_f, valence = formula_dt(model)
             measured = stable["stable"] * stable["dt_crit"]
@@ -1209,7 +1213,7 @@ def run_seeds(only=None, size: Size = FULL) -> dict:
     """Run the experiments (all, or the keys in ``only``) and return {"experiments": [...], "meta"}.
     Their references are solved first, one process per core (``prefetch.solve_references``); the
     experiments then find them in the cache, and nothing runs beside the model runs they time."""
-    from .prefetch import solve_references
+    from verification.studies.prefetch import solve_references
 
     keys = list(EXPERIMENTS) if not only else list(only)
     t0 = time.perf_counter()

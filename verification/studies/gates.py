@@ -21,11 +21,10 @@ import tomllib
 from pathlib import Path
 
 from realtime import INTEGRATORS, MODELS
-
-from .results import atomic_write_text
-from .runner import git_commit
-from .runs import cached_compare
-from .scene import SceneError, load_scene
+from verification.cache import git_commit
+from verification.runs.results import atomic_write_text
+from verification.runs.store import cached_compare
+from verification.scene import SceneError, load_scene
 
 DEFAULT_CONFIG = Path(__file__).parent / "gates.toml"
 METRICS = ("rel_l2", "surface_rel_l2", "max_err", "reaction_rel_err", "volume_err")

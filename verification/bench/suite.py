@@ -11,19 +11,19 @@ numba's dispatch included; the row CALL_ROW is a call that takes no step (n = 0)
 The rows "M, 2 threads" run the threaded kernels (realtime.threaded) on every core, up to THREADS, in
 the same rounds as their one-thread rows, and report the speed-up over them (the step, and the rows
 "M, force alone": the force kernel without the update, on one thread and on all), beside what the
-machine itself gains from the same threads, timed in the same rounds (verification.roofline.thread_loops:
+machine itself gains from the same threads, timed in the same rounds (verification.bench.roofline.thread_loops:
 its FMA loop, and its triad on as many bytes as stvk-tm's step streams, on one thread and on all): a
 speed-up near those is the machine's limit, not the code's. "liver-x10-renumbered" is liver-x10 numbered
 along the body (realtime.renumber), which a simulator can do to its own mesh once. Speed is never
 asserted in the tests: this command reports it.
 
 Each row with a fixed amount of work (linear-tm, stvk-tm, mass-spring, scipy's product) also gets its
-roofline (verification.roofline): the least time its flops and bytes allow at this core's measured FMA
+roofline (verification.bench.roofline): the least time its flops and bytes allow at this core's measured FMA
 peak and at the triad bandwidth for data of its size, and the fraction of that bound the row achieves.
 The rows "stvk-tm, element arithmetic alone" and "stvk-tm, gather and scatter alone" split stvk-tm's
 force in its two phases, each with its roofline (roofline.stvk_phase_work) and its share of the row
 "stvk-tm, force alone": where the kernel's time goes. Last, what the hot loops compile to on this
-target (verification.codegen: packed instructions, signed-index shifts): the counts that explain the
+target (verification.bench.codegen: packed instructions, signed-index shifts): the counts that explain the
 timings, measured here because they differ from one machine to the next.
 """
 
@@ -44,10 +44,10 @@ from realtime.geometry import unique_edges
 from realtime.models import FLOAT32_MODELS, nonlinear_fraction
 from realtime.quasistatic import QuasiStatic
 from realtime.stvk import stvk_block
-
-from . import codegen
-from .roofline import Roofline, bsr_work, step_work, stvk_phase_work, thread_loops, thread_scaling
-from .runner import git_commit, log, versions
+from verification.bench import codegen
+from verification.bench.roofline import Roofline, bsr_work, step_work, stvk_phase_work, thread_loops, thread_scaling
+from verification.cache import git_commit, versions
+from verification.progress import log
 
 MESHES = ("liver", "liver-x10", "liver-x10-renumbered")
 #: The most threads a threaded row uses (it uses every core up to this).
@@ -436,7 +436,7 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
             whole = next((r for r in rows if r["mesh"] == name and r["name"] == c.get("part_of")), None)
             if c["mesh"] == name and whole is not None:  # "force alone" is timed on a machine with threads
                 c["share"] = c["step_us"] / whole["step_us"]
-    log("bench: what the hot loops compile to on this target (verification.codegen)")
+    log("bench: what the hot loops compile to on this target (verification.bench.codegen)")
     return {
         "machine": {**machine(), "roofline": roof.summary(), "thread_scaling": thread_ceilings},
         "compiled_code": codegen.report(),
@@ -530,7 +530,7 @@ def write_markdown(path, out: dict) -> None:
     heading) is replaced, the other machines' are kept, in order. Written through a temporary file."""
     from pathlib import Path
 
-    from .results import atomic_write_text
+    from verification.runs.results import atomic_write_text
 
     section = markdown_section(out)
     heading = section.split("\n", 1)[0]

@@ -10,11 +10,10 @@ import math
 from realtime import MODELS
 from realtime.models import QUASI_STATIC
 from reference.errors import ReferenceSolveError
-
-from .progress import Progress
-from .runner import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
-from .runs import cached_compare, largest_stable_fraction
-from .scene import Scene, SceneError
+from verification.progress import Progress
+from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
+from verification.runs.store import cached_compare, largest_stable_fraction
+from verification.scene import Scene, SceneError
 
 #: Time steps a sweep tries by default on a dynamic scene, as fractions of each model's critical step.
 DEFAULT_FRACTIONS = (0.25, 0.5, 0.9)

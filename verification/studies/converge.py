@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .progress import Progress
-from .scene import Scene, SceneError
+from verification.progress import Progress
+from verification.scene import Scene, SceneError
 
 
 def converge_manufactured(scene: Scene) -> dict:
@@ -41,8 +41,8 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
     and P2 at each level against it). The geometry never changes, curved or not: refinement splits the
     coarse mesh's own tetrahedra. Orders are fitted against h. The reference solves come first, one
     process per core (``prefetch.static_displacements``), then the model runs."""
-    from .prefetch import static_displacements
-    from .runner import run_model
+    from verification.runs.simulate import run_model
+    from verification.studies.prefetch import static_displacements
 
     if scene.time.mode != "static":
         raise SceneError(f"{scene.path}: converge --in space studies static scenes")
@@ -95,7 +95,7 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
 def converge_time(scene: Scene, models=("linear-tm",), integrators=("symplectic-euler", "central-difference")) -> dict:
     """dt halving on a dynamic scene: each (model, integrator)'s trajectory at 0.4, 0.2, 0.1 x dt_crit
     against its own run at 0.025 x dt_crit; the observed order of the integrator."""
-    from .runner import run_model
+    from verification.runs.simulate import run_model
 
     if scene.time.mode != "dynamic":
         raise SceneError(f"{scene.path}: converge --in time needs a dynamic scene (time.mode = dynamic)")

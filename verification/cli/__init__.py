@@ -17,10 +17,9 @@ from pathlib import Path
 from meshes.store import stored_names
 from realtime import INTEGRATORS, MODELS, DivergenceError, InputError, NotConvergedError
 from reference.errors import ReferenceSolveError
-
-from .loading import check_held
-from .runner import UnboundedAnswerError
-from .scene import builtin_scenes, implausible, load_scene
+from verification.engines.builtin import UnboundedAnswerError
+from verification.inputs import check_held
+from verification.scene import builtin_scenes, implausible, load_scene
 
 
 def _print_json(obj) -> None:
@@ -73,7 +72,7 @@ def _scene(args, warn: bool = True):
     scene = load_scene(args.scene, refine=getattr(args, "mesh_refine", 0))
     check_held(scene)
     if warn:
-        from .runner import log
+        from verification.progress import log
 
         for line in implausible(scene):
             log(f"tissuebench: warning: {scene.path}: {line}")
@@ -82,7 +81,7 @@ def _scene(args, warn: bool = True):
 
 def _write_vtk(target: str, name: str, res) -> None:
     """A result's displacements at every output time as a ParaView series (--vtk)."""
-    from .vtk import write_series
+    from verification.report.vtk import write_series
 
     write_series(target, name, res.points, res.tets, res.times, {"displacement": res.displacement})
 
@@ -112,8 +111,7 @@ def cmd_check(args) -> int:
     """Read a scene as every command does (mesh, regions, loading, a model) and describe it, solving
     nothing: the check to run before a long study."""
     import realtime
-
-    from .loading import build_loading
+    from verification.inputs import build_loading
 
     scene = _scene(args, warn=False)  # check prints them with the rest
     mesh = scene.mesh
@@ -174,7 +172,7 @@ def cmd_check(args) -> int:
 
 
 def cmd_reference(args) -> int:
-    from .runner import reference_result
+    from verification.runs.reference import reference_result
 
     scene = _scene(args)
     res = reference_result(
@@ -214,7 +212,7 @@ def cmd_reference(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from .runner import run_model
+    from verification.runs.simulate import run_model
 
     scene = _scene(args)
     res = run_model(scene, args.model, dt=args.dt, integrator=args.integrator, max_steps=args.max_steps)
@@ -249,7 +247,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_compare(args) -> int:
-    from .runner import compare
+    from verification.runs.compare import compare
 
     scene = _scene(args)
     out = compare(
@@ -264,7 +262,7 @@ def cmd_compare(args) -> int:
         vtk=args.vtk,
     )
     if args.rate and out["status"] == "ok":
-        from .advise import frame_budget
+        from verification.studies.advise import frame_budget
 
         out["frame"] = frame_budget(out, args.rate, scene.time.mode == "dynamic")
     if out.get("unbounded"):  # the scene's own answer is past the blow-up guard: its input, not a step
@@ -303,12 +301,12 @@ def cmd_compare(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from .report import seeds_report_dir, write_report, write_seeds_report
+    from verification.report.page import seeds_report_dir, write_report, write_seeds_report
 
     if args.seeds:
         if args.scenes:
             return _fail("tissuebench: report --seeds takes no scenes (it is the page of the seeds experiments)", 2)
-        from .seeds import run_seeds
+        from verification.studies.seeds import run_seeds
 
         seeds_report_dir(args.out)  # a directory that cannot be made fails before half an hour of runs
         path = write_seeds_report(run_seeds(), out=args.out)
@@ -319,7 +317,7 @@ def cmd_report(args) -> int:
 
 
 def cmd_seeds(args) -> int:
-    from .seeds import EXPERIMENTS, format_seeds, run_seeds, without_pictures
+    from verification.studies.seeds import EXPERIMENTS, format_seeds, run_seeds, without_pictures
 
     unknown = [k for k in args.only or () if k not in EXPERIMENTS]
     if unknown:
@@ -346,7 +344,7 @@ def _rank0(comm) -> bool:
 
 
 def cmd_sweep(args) -> int:
-    from .sweep import format_sweep, sweep, sweep_csv
+    from verification.studies.sweep import format_sweep, sweep, sweep_csv
 
     scene = _scene(args)
     comm = _mpi_comm()
@@ -364,7 +362,7 @@ def cmd_sweep(args) -> int:
     if not _rank0(comm):
         return 0
     if args.csv:
-        from .results import atomic_write_text
+        from verification.runs.results import atomic_write_text
 
         atomic_write_text(args.csv, sweep_csv(out))
     _emit(args, out, format_sweep)
@@ -372,7 +370,7 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_converge(args) -> int:
-    from .converge import converge_manufactured, converge_space, converge_time, format_converge
+    from verification.studies.converge import converge_manufactured, converge_space, converge_time, format_converge
 
     scene = _scene(args)
     if scene.manufactured:
@@ -386,7 +384,7 @@ def cmd_converge(args) -> int:
 
 
 def cmd_stability(args) -> int:
-    from .stability import format_stability, stability
+    from verification.studies.stability import format_stability, stability
 
     out = stability(_scene(args), models=args.models, tol=args.tol, use_cache=not args.no_cache)
     _emit(args, out, format_stability)
@@ -394,12 +392,12 @@ def cmd_stability(args) -> int:
 
 
 def cmd_advise(args) -> int:
-    from .advise import advise, format_advice
+    from verification.studies.advise import advise, format_advice
 
     comm = _mpi_comm()
     scene = _scene(args)
     if not args.no_cache:  # its three independent references on all the cores first (not under mpirun)
-        from .prefetch import advice_jobs, solve_references
+        from verification.studies.prefetch import advice_jobs, solve_references
 
         solve_references(advice_jobs([scene]))
     out = advise(
@@ -417,7 +415,7 @@ def cmd_advise(args) -> int:
 
 
 def cmd_gate(args) -> int:
-    from .gates import DEFAULT_CONFIG, format_gates, run_gates, update_baselines
+    from verification.studies.gates import DEFAULT_CONFIG, format_gates, run_gates, update_baselines
 
     path = Path(args.config) if args.config else DEFAULT_CONFIG
     # a baseline names the commit that measured it: never a run cached by older code
@@ -438,21 +436,21 @@ def cmd_bench(args) -> int:
     if args.reference:
         from mpi4py import MPI
 
-        from .bench_reference import format_table, run
+        from verification.bench.reference import format_table, run
 
         out = run(cases=args.cases, newton=args.newton)
         if MPI.COMM_WORLD.rank:  # under mpirun every rank solved; the first reports
             return 0
     else:
-        from .bench import format_table, run
+        from verification.bench.suite import format_table, run
 
         out = run(meshes=args.meshes, repeats=args.repeats)
         if args.markdown:
-            from .bench import write_markdown
+            from verification.bench.suite import write_markdown
 
             write_markdown(args.markdown, out)
     if args.out:
-        from .results import atomic_write_text
+        from verification.runs.results import atomic_write_text
 
         atomic_write_text(args.out, json.dumps(out, indent=1, default=_default))
     _emit(args, out, format_table)

@@ -25,12 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from realtime import MODELS, NotConvergedError
-
-from .progress import Progress
-from .runner import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
-from .runs import cached_compare
-from .scene import Scene, SceneError, builtin_scenes
-from .sweep import sweep
+from verification.progress import Progress
+from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
+from verification.runs.store import cached_compare
+from verification.scene import Scene, SceneError, builtin_scenes
+from verification.studies.sweep import sweep
 
 LINEAR_MODELS = ("linear-tm", "precomputed", "condensed")
 #: Models that refine the scene's mesh themselves: their error's mesh part is not P1's on the scene's

@@ -11,11 +11,10 @@ import numpy as np
 
 from realtime import MODELS
 from realtime.models import QUASI_STATIC
-
-from .prefetch import settle_ahead, solve_references
-from .progress import Progress
-from .runs import cached_compare, largest_stable_fraction
-from .scene import Scene, SceneError
+from verification.progress import Progress
+from verification.runs.store import cached_compare, largest_stable_fraction
+from verification.scene import Scene, SceneError
+from verification.studies.prefetch import settle_ahead, solve_references
 
 EXTREME_POISSON = (0.3, 0.45, 0.49, 0.4999)
 #: Steps a static relaxation may take in the stability study before the cell is "not settled".
@@ -141,8 +140,7 @@ def _alone(scene: Scene, model: str, integrator: str, why: str) -> dict:
     its elements ended inverted."""
     from realtime import DivergenceError, NotConvergedError
     from realtime.geometry import signed_volumes
-
-    from .runner import run_model
+    from verification.runs.simulate import run_model
 
     try:
         res = run_model(scene, model, integrator=integrator, max_steps=STABILITY_BUDGET)

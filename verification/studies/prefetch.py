@@ -15,15 +15,15 @@ import concurrent.futures
 import multiprocessing
 import os
 
-from .runner import P1_OWN_MESH, REFERENCE_DEFAULTS, log, reference_path
-from .scene import Scene
+from verification.progress import log
+from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_path
+from verification.scene import Scene
 
 
 def _solve(scene: Scene, options: dict) -> str | None:
     """One reference into the cache (in a worker process); the one-line reason if it cannot be solved."""
     from reference.fem import ReferenceSolveError
-
-    from .runner import reference_result
+    from verification.runs.reference import reference_result
 
     try:
         reference_result(scene, **options)
@@ -166,12 +166,13 @@ def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...], r
     stability study's cells, ``stability.settle_cells``). Returns how many settled (a run that diverges
     or does not settle is left to the study, which reports it)."""
     from realtime import DivergenceError, NotConvergedError
+    from verification.engines.builtin import model_for, settled
+    from verification.inputs import scene_inputs
+    from verification.runs.store import largest_stable_fraction
+    from verification.studies.advise import IMPLICIT_MODELS
 
-    from .advise import IMPLICIT_MODELS
-    from .runner import model_for, settled
-    from .runs import largest_stable_fraction
-
-    model = model_for(scene, model_name)
+    inputs = scene_inputs(scene)
+    model = model_for(inputs, model_name)
     todo = []
     if fractions:
         stable = largest_stable_fraction(scene, model_name)["stable"]
@@ -181,7 +182,7 @@ def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...], r
     done = 0
     for integrator, fraction, max_steps in todo:
         try:
-            settled(scene, model, integrator, None, fraction, **({"max_steps": max_steps} if max_steps else {}))
+            settled(inputs, model, integrator, None, fraction, **({"max_steps": max_steps} if max_steps else {}))
             done += 1
         except (DivergenceError, NotConvergedError):
             pass
@@ -200,8 +201,8 @@ def settle_ahead(
     mpirun nothing is settled here and each settles as it goes."""
     from realtime import MODELS
     from realtime.models import QUASI_STATIC
-
-    from .runner import settled_path
+    from verification.engines.builtin import settled_path
+    from verification.inputs import scene_inputs
 
     order = _SETTLE_ORDER + tuple(sorted(MODELS))
     models = sorted((m for m in models or MODELS if m not in QUASI_STATIC), key=order.index)
@@ -214,7 +215,7 @@ def settle_ahead(
     runs: dict[tuple, list] = {}  # the cells by (scene, model), in their order
     paths = []
     for scene, m, integrator, max_steps in cells:
-        path = settled_path(scene, m, integrator, None, None, 1e-10, max_steps, None)
+        path = settled_path(scene_inputs(scene), m, integrator, None, None, 1e-10, max_steps, None)
         if m not in QUASI_STATIC and path not in SETTLED_AHEAD and not path.exists():
             paths.append(path)
             runs.setdefault((scene.sha256(), m), [scene, m, ()])[2] += ((integrator, max_steps),)

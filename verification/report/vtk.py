@@ -17,8 +17,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from meshes.io import atomic_write
-
-from .scene import SceneError
+from verification.scene import SceneError
 
 
 def series_path(target: str | os.PathLike, name: str) -> Path:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -62,22 +61,6 @@ def _jsonable(x):
     if isinstance(x, Path):
         return str(x)
     raise TypeError(f"not JSON serialisable: {type(x).__name__}")
-
-
-def read_cached(path: Path, read):
-    """``read(path)`` for a cache entry, or None if there is none or it is damaged (truncated by a full
-    disk or a copy, not a zip or JSON file, a key missing): the caller computes it again and writes it
-    over, so a damaged entry costs a recomputation, never a traceback. Says so on stderr."""
-    if not path.exists():
-        return None
-    try:
-        return read(path)
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-        from .runner import log  # (runner imports this module)
-
-        why = " ".join(str(exc).split()) or type(exc).__name__
-        log(f"cache: {path}: damaged ({why}); computing it again")
-        return None
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:

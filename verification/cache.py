@@ -1,0 +1,113 @@
+"""What a cached result is keyed by and stamped with: the cache's folder, digests of fields and of the
+code, the commit, the machine and the library versions, and how an entry is read (a damaged one is
+absent) (docs/architecture.md section 4)."""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import os
+import platform
+import subprocess
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from .progress import log
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("TISSUEBENCH_CACHE", Path.home() / ".cache" / "tissuebench"))
+
+
+def git_commit(root: Path | None = None) -> str:
+    """The short hash of the commit the code in ``root`` (this project's, by default) ran at, with
+    "-dirty" when a tracked file differs from that commit: a number from changed code is not that
+    commit's, and a baseline or a report that named only the commit would say it was. "unknown"
+    outside a git checkout."""
+
+    def git(*args) -> str:
+        out = subprocess.run(
+            ["git", *args], capture_output=True, text=True, cwd=root or Path(__file__).parent, timeout=5
+        )
+        return out.stdout.strip() if out.returncode == 0 else ""
+
+    try:
+        head = git("rev-parse", "--short", "HEAD")
+        if not head:
+            return "unknown"
+        return head + ("-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def digest(fields: dict) -> str:
+    """A cache key: 24 hex digits of the SHA-256 of ``fields`` as sorted JSON."""
+    return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:24]
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: The code a reference result depends on: its solvers, the region rule both sides share, the constants.
+REFERENCE_CODE = ("reference/*.py", "meshes/regions.py", "realtime/material.py")
+
+#: The code a run's row depends on: the engine, the runner, loading, metrics and studies, and the
+#: reference it is compared with.
+RUN_CODE = (
+    "realtime/*.py",
+    "verification/inputs.py",
+    "verification/metrics.py",
+    "verification/engines/*.py",
+    "verification/runs/*.py",
+    *REFERENCE_CODE,
+)
+
+
+@functools.cache
+def code_digest(patterns: tuple[str, ...]) -> str:
+    """Digest of the source files matching ``patterns`` (relative to the project root): part of every
+    cache key, so that a cached result is never one that other code made."""
+    files = sorted({f for pattern in patterns for f in ROOT.glob(pattern)})
+    return digest({str(f.relative_to(ROOT)): hashlib.sha256(f.read_bytes()).hexdigest() for f in files})
+
+
+@functools.cache
+def machine_id() -> dict:
+    """What a timing depends on: the architecture, the processor's name and the number of cores."""
+    model = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"arch": platform.machine(), "cpu": model, "cores": os.cpu_count()}
+
+
+def versions() -> dict:
+    import numba
+    import scipy
+
+    return {
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "numba": numba.__version__,
+    }
+
+
+def read_cached(path: Path, read):
+    """``read(path)`` for a cache entry, or None if there is none or it is damaged (truncated by a full
+    disk or a copy, not a zip or JSON file, a key missing): the caller computes it again and writes it
+    over, so a damaged entry costs a recomputation, never a traceback. Says so on stderr."""
+    if not path.exists():
+        return None
+    try:
+        return read(path)
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        why = " ".join(str(exc).split()) or type(exc).__name__
+        log(f"cache: {path}: damaged ({why}); computing it again")
+        return None

@@ -1,0 +1,398 @@
+"""The built-in engine: ``realtime``'s models behind the seam (``verification.engines.protocol``).
+
+Everything the harness knows of ``realtime`` is here: which model a name builds (``model_for``), how a
+time-stepping model settles a static scene (damped dynamics, or implicit Euler steps) and the cache of
+those settlings, the critical step behind a default time step, and how a trajectory is sampled between
+two steps. A study asks for runs (``verification.runs.simulate``), never for a Model.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+import realtime
+from meshes.io import atomic_savez
+from realtime import DivergenceError, ImplicitEuler, State, SymplecticEuler, build_model, make_integrator, solve_static
+from realtime.models import MODELS, QUASI_STATIC
+from realtime.quasistatic import QuasiStatic
+from realtime.spectra import max_eigenvalue, min_eigenvalue
+from realtime.statics import solve_static_implicit
+from reference.progress import Progress
+
+from ..cache import RUN_CODE, cache_dir, code_digest, digest, read_cached
+from ..progress import _rank
+from .protocol import SceneInputs, Settling
+
+#: omega_max^2 (1/s^2) of M^-1 K for each (scene hash, model, options, at) computed in this process, at
+#: "rest" or at the "settled" state (with the relaxation's rtol): a sweep asks for the same model's
+#: critical step at every step fraction, and the eigenvalue and, for a non-linear model, the first
+#: settling behind it are what its critical step costs.
+_OMEGA2: dict[tuple, float] = {}
+
+#: The most implicit Euler steps a static settling takes (it settles in tens where it settles at all).
+IMPLICIT_MAX_STEPS = 20_000
+
+
+def model_for(inputs: SceneInputs, model: str, **options):
+    """The real-time Model of a scene (its SceneInputs), with its loading. adaptive-tm's mixed mesh gets
+    the scene's loads as exactly as the scene's mesh (``SceneInputs.loading_on``)."""
+    if model == "adaptive-tm" and inputs.loading_on is not None:
+        from realtime.adaptive import adaptive_plan
+
+        plan = adaptive_plan(inputs.points, inputs.tets, inputs.material, inputs.loading, **options)
+        options = {**options, "plan": plan, "mixed_loading": inputs.loading_on(plan.points, plan.tets, plan.parent)}
+    return build_model(model, inputs.points, inputs.tets, inputs.material, inputs.loading, **options)
+
+
+def _omega2_key(inputs: SceneInputs, model_name: str, options: dict | None, *at) -> tuple:
+    return (inputs.sha256, model_name, json.dumps(options or {}, sort_keys=True, default=str), *at)
+
+
+def omega2_rest(inputs: SceneInputs, model, options: dict | None = None) -> float:
+    """omega_max^2 (1/s^2) of ``model`` at rest, computed once per scene, model and options."""
+    key = _omega2_key(inputs, model.name, options, "rest")
+    if key not in _OMEGA2:
+        _OMEGA2[key] = max_eigenvalue(model)
+    return _OMEGA2[key]
+
+
+@dataclass
+class Settled:
+    """A static scene settled by a time-stepping model (``settled``): the state at equilibrium, the
+    steps it took from rest and the final relative residual, the step dt and the explicit critical step
+    dt_crit (s) (the one dt was chosen from, or, for implicit Euler, the limit it steps over), omega_max^2
+    (1/s^2) behind dt_crit, the settling's wall time (s) when it ran, and implicit Euler's CG iterations
+    in its last step (-1 for an explicit integrator)."""
+
+    state: State
+    steps: int
+    residual: float
+    dt: float
+    dt_crit: float
+    omega2: float
+    wall_s: float
+    cg_iterations: int = -1
+
+
+def settled_path(
+    inputs: SceneInputs, model_name: str, integrator: str, dt, dt_fraction, rtol, max_steps, options
+) -> Path:
+    """Where ``settled`` keeps a settling (it holds no timing, so no machine in its key)."""
+    fields = {
+        "code": code_digest(RUN_CODE),
+        "scene": inputs.sha256,
+        "model": model_name,
+        "integrator": integrator,
+        "dt": dt,
+        "fraction": dt_fraction,
+        "rtol": rtol,
+        "max_steps": max_steps,
+        "options": json.dumps(options or {}, sort_keys=True, default=str),
+    }
+    return cache_dir() / "settled" / f"{inputs.name}-{digest(fields)}.npz"
+
+
+#: Settled's fields after the state, as the cache file stores them.
+_SETTLED_NUMBERS = ("steps", "residual", "dt", "dt_crit", "omega2", "wall_s", "cg_iterations")
+
+
+def settled(
+    inputs: SceneInputs,
+    model,
+    integrator: str = "symplectic-euler",
+    dt: float | None = None,
+    dt_fraction: float | None = None,
+    rtol: float = 1e-10,
+    max_steps: int = 2_000_000,
+    options: dict | None = None,
+) -> Settled:
+    """A static scene settled from rest by ``model`` (a Model) with ``integrator``, through a cache of
+    settlings: the report settles its static scenes ahead on every core (``prefetch.settle_ahead``) and
+    times the steps afterwards on a quiet machine. Raises DivergenceError or NotConvergedError as the
+    solvers do (nothing is cached then).
+
+    - Explicit: damped dynamics (``solve_static``) at dt, default ``dt_fraction`` (default 0.9) of the
+      critical step; a non-linear model's is the smaller of rest's and equilibrium's (it moves as the
+      body deforms).
+    - Implicit Euler: steps of dt (default 2 / omega_1, the slowest mode's time scale, which it damps by
+      1/sqrt(5) a step; or ``dt_fraction`` of the explicit critical step), at most IMPLICIT_MAX_STEPS.
+    """
+    path = settled_path(inputs, model.name, integrator, dt, dt_fraction, rtol, max_steps, options)
+    kept = read_cached(path, _read_settled)
+    if kept is not None:
+        return kept
+    ts = inputs.time
+    integ = make_integrator(integrator, ts.damping_mass, ts.damping_stiffness)
+    omega2 = omega2_rest(inputs, model, options)
+    t1 = time.perf_counter()
+    if isinstance(integ, ImplicitEuler):
+        dt_crit = SymplecticEuler().critical_dt(model, omega2)
+        if dt is None:
+            dt = 2.0 / math.sqrt(min_eigenvalue(model)) if dt_fraction is None else dt_fraction * dt_crit
+        static = solve_static_implicit(
+            model, dt, rtol=rtol, integrator=integ, max_steps=min(max_steps, IMPLICIT_MAX_STEPS)
+        )
+        cg = integ.iterations
+    else:
+        static, dt, dt_crit, omega2 = _settle_explicit(
+            inputs, model, integ, omega2, dt, dt_fraction, rtol, max_steps, options
+        )
+        cg = -1
+    out = Settled(static.state, static.steps, static.residual, dt, dt_crit, omega2, time.perf_counter() - t1, cg)
+    numbers = {k: getattr(out, k) for k in _SETTLED_NUMBERS}
+    atomic_savez(path, u=out.state.u, v=out.state.v, t=out.state.t, state_steps=out.state.steps, **numbers)
+    return out
+
+
+def _settle_explicit(inputs, model, integ, omega2, dt, dt_fraction, rtol, max_steps, options):
+    """Damped dynamics at dt (default a fraction of the critical step, a non-linear model's taken at
+    equilibrium too); returns the solve, dt, dt_crit and omega_max^2."""
+    dt_crit = integ.critical_dt(model, omega2)
+    static = None
+    if not model.linear:
+        key = _omega2_key(inputs, model.name, options, "settled", rtol)
+        if key not in _OMEGA2:
+            static = solve_static(model, dt=None, rtol=rtol, max_steps=max_steps)
+            _OMEGA2[key] = max_eigenvalue(model, static.state.u)
+        omega2 = max(omega2, _OMEGA2[key])
+        dt_crit = min(dt_crit, integ.critical_dt(model, omega2))
+    if dt is None:
+        dt = (0.9 if dt_fraction is None else dt_fraction) * dt_crit
+    if static is None or static.dt != dt:
+        ticker = Progress(f"settling: {inputs.name} / {model.name}, step", rank=_rank())
+        try:
+            static = solve_static(
+                model,
+                dt=dt,
+                rtol=rtol,
+                max_steps=max_steps,
+                progress=lambda taken, residual: ticker.tick(
+                    taken, f": residual {residual:.2e} of the load (asked {rtol:.0e})"
+                ),
+            )
+        except DivergenceError as exc:
+            refuse_unbounded(inputs, exc)
+            raise
+    return static, dt, dt_crit, omega2
+
+
+def _read_settled(path: Path) -> Settled:
+    """A Settled as ``settled`` keeps it (an .npz of the state and _SETTLED_NUMBERS)."""
+    with np.load(path) as z:
+        state = State(u=z["u"], v=z["v"], t=float(z["t"]), steps=int(z["state_steps"]))
+        return Settled(state, *(z[k].item() for k in _SETTLED_NUMBERS))
+
+
+class UnboundedAnswerError(DivergenceError):
+    """A static settle blew up because the scene's own answer lies beyond the blow-up guard. To a study
+    it is a divergence like any other (the stability study's extremes record it as one), with the
+    cause named; to the command line it is the scene's input (exit 2)."""
+
+    def __init__(self, exc: DivergenceError, message: str):
+        self.step, self.dt, self.dt_crit, self.reason = exc.step, exc.dt, exc.dt_crit, exc.reason
+        RuntimeError.__init__(self, message)
+
+
+def refuse_unbounded(inputs: SceneInputs, exc: DivergenceError) -> None:
+    """After a static settle blew up (``exc``): UnboundedAnswerError when the scene's own answer lies
+    beyond the blow-up guard, so that no time step is blamed for it. The answer's size is the P1 linear
+    equilibrium on the scene's mesh (a sparse solve where it fits, as the quasi-static models do); a load
+    far too large for the stiffness (a unit slip, a soft body under its own weight) puts it past 10 times
+    the body, where the guard stops every run at any step. Otherwise nothing: the divergence is the run's."""
+    import scipy.sparse.linalg as spla
+
+    from realtime.integrators import blowup_bound
+    from realtime.linsolve import FACTOR_LIMIT
+
+    if inputs.has_tools:
+        return
+    loading = inputs.loading
+    free = np.flatnonzero(loading.free.reshape(-1) != 0.0)
+    if not len(free) or len(free) > FACTOR_LIMIT:
+        return
+    linear = build_model("linear-tm", inputs.points, inputs.tets, inputs.material, loading)
+    K = linear.rest_stiffness()[free][:, free].tocsc()
+    u = spla.spsolve(K, loading.external_force.reshape(-1)[free])
+    reach, bound = float(np.abs(u).max()), blowup_bound(linear)
+    if np.isfinite(reach) and reach > bound:
+        raise UnboundedAnswerError(
+            exc,
+            f"{inputs.source}: load: the scene's own static answer reaches {reach:.3g} m (P1, linear), beyond 10 "
+            f"times the body ({bound:.3g} m), where every run stops at any time step: the load is far too large for "
+            "this stiffness; lower the load, raise young, or check the units (scale, Pa, kg/m^3)",
+        ) from None
+
+
+def observed(model, u: np.ndarray) -> np.ndarray:
+    """The displacements (..., N, 3) of the scene's N vertices in a model's u (..., V, 3): all of them,
+    but for a model with vertices of its own after the scene's (adaptive-tm's midpoints)."""
+    return u[..., : model.extra.get("observed", model.n_vertices), :]
+
+
+class BuiltinSimulation:
+    """A ``realtime`` Model on a scene with its integrator and State (the protocol's Simulation)."""
+
+    def __init__(self, inputs: SceneInputs, model, integrator: str, options: dict):
+        ts = inputs.time
+        self.inputs, self.options, self.model_obj = inputs, options, model
+        self.model = model.name
+        self.quasi_static = model.name in QUASI_STATIC
+        self.integ = (
+            QuasiStatic() if self.quasi_static else make_integrator(integrator, ts.damping_mass, ts.damping_stiffness)
+        )
+        self.integrator = self.integ.name
+        slow = isinstance(self.integ, (ImplicitEuler, QuasiStatic))
+        self.timing = (5, 7) if slow else (100, 9)
+        self.state = model.rest_state()
+        self.dt, self.dt_step_crit = None, None
+        self._sample = None  # (u (V, 3), reaction (3,)) held at an instant, or None: the state's
+
+    def critical_dt(self) -> float | None:
+        """The explicit (symplectic Euler) critical step at rest, s; None for a quasi-static update."""
+        if self.quasi_static:
+            return None
+        ts = self.inputs.time
+        return SymplecticEuler(ts.damping_mass, ts.damping_stiffness).critical_dt(
+            self.model_obj, omega2_rest(self.inputs, self.model_obj, self.options)
+        )
+
+    def start(self, dt: float | None, dt_crit: float | None = None) -> None:
+        """Rest, stepping with dt (s); ``dt_crit`` (s) arms the integrator's blow-up guard with it."""
+        self.state = self.model_obj.rest_state()
+        self.dt, self.dt_step_crit, self._sample = dt, dt_crit, None
+
+    def advance_to(self, t: float) -> None:
+        """Step until the step that passes t, holding the state at t by linear interpolation between the
+        two steps around it (quasi-static: the equilibrium with the tools where they are at t)."""
+        model, state = self.model_obj, self.state
+        if self.quasi_static:
+            self._sample = self.integ.equilibrium(model, t)
+            return
+        n = int(np.ceil((t - state.t) / self.dt - 1e-9))
+        if n > 1:
+            self.integ.step(model, state, self.dt, n - 1, dt_crit=self.dt_step_crit)
+        if n >= 1:
+            before, t_before = state.u.copy(), state.t
+            self.integ.step(model, state, self.dt, 1, dt_crit=self.dt_step_crit)
+            w = (t - t_before) / (state.t - t_before)
+            u = (1.0 - w) * before + w * state.u
+        else:
+            u = state.u
+        self._sample = (u, model.reaction(u))
+
+    def settle(self, rtol: float, max_steps: int, dt: float | None, dt_fraction: float | None) -> Settling:
+        """Equilibrium from rest (``settled``, cached; quasi-static: one update)."""
+        model = self.model_obj
+        if self.quasi_static:
+            t1 = time.perf_counter()
+            self._sample = self.integ.equilibrium(model)
+            self.dt = 1e-3
+            self.state = State.at_rest(model.n_vertices)
+            static = {
+                "method": "quasi-static update (precomputed responses / condensed surface system)",
+                "steps": 1,
+                "residual": None,
+                "rtol": None,
+                "wall_s": time.perf_counter() - t1,
+            }
+            meta = {"dt_crit_element": None, "omega_max": None}
+            return Settling(1, None, None, None, static["wall_s"], static, meta)
+        s = settled(self.inputs, model, self.integrator, dt, dt_fraction, rtol, max_steps, self.options)
+        self.state, self.dt, self._sample = s.state.copy(), s.dt, (s.state.u, model.reaction(s.state.u))
+        implicit = isinstance(self.integ, ImplicitEuler)
+        static = {
+            "method": "implicit Euler steps" if implicit else "damped dynamics (adaptive dynamic relaxation)",
+            "steps": s.steps,
+            "residual": s.residual,
+            "rtol": rtol,
+            "wall_s": s.wall_s,
+        }
+        if implicit:
+            static["cg_iterations_last_step"] = s.cg_iterations
+        meta = {"dt_crit_element": realtime.element_critical_dt(model), "omega_max": math.sqrt(s.omega2)}
+        if implicit:
+            meta = {"dt_crit_rest": s.dt_crit, **meta}
+        return Settling(s.steps, s.residual, s.dt, s.dt_crit, s.wall_s, static, meta)
+
+    def settle_steps(self, dt: float, steps: int) -> None:
+        """Damped dynamics from rest for exactly ``steps`` steps of dt (s): a float32 twin's settling,
+        whose residual cannot say when to stop, takes as many steps as its float64 run did."""
+        static = solve_static(self.model_obj, dt=dt, steps=steps)
+        self.state, self.dt, self._sample = static.state, dt, None
+
+    def step(self, n: int) -> None:
+        self.integ.step(self.model_obj, self.state, self.dt, n)
+        self._sample = None
+
+    def displacement(self) -> np.ndarray:
+        u = self.state.u if self._sample is None else self._sample[0]
+        return observed(self.model_obj, u)
+
+    def tool_force(self) -> np.ndarray:
+        return self.model_obj.reaction(self.state.u) if self._sample is None else self._sample[1]
+
+
+class BuiltinEngine:
+    """``realtime``'s models (docs/models.md) as an Engine."""
+
+    name = "tissuebench"
+    models = tuple(MODELS)
+
+    def build(self, inputs: SceneInputs, model: str, integrator: str = "symplectic-euler", options: dict | None = None):
+        options = dict(options or {})
+        return BuiltinSimulation(inputs, model_for(inputs, model, **options), integrator, options)
+
+
+BUILTIN = BuiltinEngine()
+
+
+def scene_model(scene, model: str, **options):
+    """The Model of a Scene, for what studies the built-in engine itself (its critical steps, its seeds
+    experiments, its tests); a study of any engine runs through ``runs.simulate``."""
+    from ..inputs import scene_inputs
+
+    return model_for(scene_inputs(scene), model, **options)
+
+
+#: Bisection of the largest stable step: the span searched and the steps each trial runs.
+STABLE_SEARCH = (0.5, 3.0)
+STABLE_STEPS = 2000
+
+
+def stable_fraction(inputs: SceneInputs, model_name: str, integrator: str, steps: int, iterations: int) -> dict:
+    """Bisection on dt / dt_crit in STABLE_SEARCH for the largest step that runs ``steps`` steps from a
+    small perturbation of rest (1e-6 of the mesh size) without blowing up, with the scene's loading and
+    damping. Returns the stable and unstable fractions bracketing the limit, dt_crit and the ratio
+    observed / predicted (1 when the prediction is exact)."""
+    model = model_for(inputs, model_name)
+    integ = make_integrator(integrator, inputs.time.damping_mass, inputs.time.damping_stiffness)
+    dt_crit = integ.critical_dt(model, omega2_rest(inputs, model))
+    size = float(np.ptp(model.points, axis=0).max())
+    rng = np.random.default_rng(0)
+    u0 = 1e-6 * size * rng.standard_normal(model.points.shape) * model.loading.free
+
+    def stable(frac):
+        st = State(u=u0.copy(), v=np.zeros_like(u0))
+        try:
+            integ.step(model, st, frac * dt_crit, steps, dt_crit=dt_crit)
+            return True
+        except DivergenceError:
+            return False
+
+    lo, hi = STABLE_SEARCH
+    if not stable(lo):
+        out = {"stable": None, "unstable": lo, "dt_crit": dt_crit, "ratio": None}
+    elif stable(hi):
+        out = {"stable": hi, "unstable": None, "dt_crit": dt_crit, "ratio": hi}
+    else:
+        for _ in range(iterations):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if stable(mid) else (lo, mid)
+        out = {"stable": lo, "unstable": hi, "dt_crit": dt_crit, "ratio": lo, "steps": steps}
+    return out

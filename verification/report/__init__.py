@@ -1,0 +1,1 @@
+"""The HTML report: its page (``page``), plots (``plots``) and the ParaView series (``vtk``)."""

@@ -1,0 +1,199 @@
+"""A model's run against the scene's reference: the metrics, the error budget and the float32 twin
+(docs/architecture.md section 6)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from realtime import DivergenceError
+from realtime.models import FLOAT32_MODELS, QUASI_STATIC, unrepresented
+from verification.engines.builtin import BUILTIN, UnboundedAnswerError
+from verification.inputs import scene_inputs
+from verification.metrics import compute, rel_l2
+from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
+from verification.runs.results import Result
+from verification.runs.simulate import _run_dynamic, run_model, time_steps
+from verification.scene import Scene
+
+
+def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integrator: str, max_steps: int) -> dict:
+    """Which part of a model's error is whose (docs/architecture.md section 6), each an L2 distance over
+    the scene's vertices and output times relative to the converged reference's norm, like ``rel_l2``:
+
+    - ``mesh``: the P1 finite-element solution of the scene's law on the scene's mesh against the
+      converged reference: what any P1 model on this mesh pays (locking, a coarse mesh), whatever it is;
+    - ``model``: the model against that P1 solution: what the model's own shortcuts cost (linearity,
+      lumping, springs, condensation, an unsettled run);
+    - ``time`` (dynamic scenes, time-stepping models): the model at its step against the same model at
+      an eighth of it; the model part is then taken at the eighth, so the parts do not overlap.
+
+    ``dominant`` names the largest. The parts are distances between solutions over one norm, so by the
+    triangle inequality |mesh - model| - time <= total <= mesh + model + time; a total far below the sum
+    is errors cancelling (mass-spring's missing Poisson effect against P1's locking). A P1 reference that
+    cannot solve leaves ``mesh`` None with the reason.
+    """
+    from reference.errors import ReferenceSolveError
+
+    out = {"mesh": None, "model": None, "time": None}
+    try:
+        p1 = reference_result(scene, **P1_OWN_MESH)
+    except ReferenceSolveError as exc:
+        out["why"] = f"no P1 solution on this mesh: {exc}"
+        return out
+    scale = max(float(np.linalg.norm(ref.displacement)), 1e-300)
+
+    def distance(a, b):
+        return float(np.linalg.norm(a - b)) / scale
+
+    out["mesh"] = distance(p1.displacement, ref.displacement)
+    model_u = res.displacement
+    dt = res.meta.get("dt")
+    if scene.time.mode == "dynamic" and dt is not None and model_name not in QUASI_STATIC:
+        fine = run_model(scene, model_name, dt=dt / 8.0, integrator=integrator, max_steps=max_steps)
+        out["time"] = distance(res.displacement, fine.displacement)
+        model_u = fine.displacement
+    out["model"] = distance(model_u, p1.displacement)
+    out["dominant"] = max((k for k in ("mesh", "model", "time") if out[k] is not None), key=lambda k: out[k])
+    return out
+
+
+def float32_twin(scene: Scene, res: Result) -> dict:
+    """The run of ``res`` (a float64 explicit run of a model in FLOAT32_MODELS) again with its model
+    built in float32, at the same dt: on a dynamic scene the same trajectory, on a static one the same
+    number of settling steps (``BuiltinSimulation.settle_steps``: a float32 residual cannot say when to
+    stop). Returns the float32 run's displacement (T, N, 3) m and its meta: dt, settle_steps and the
+    step timing (``time_steps``)."""
+    m = res.meta
+    t0 = time.perf_counter()
+    sim = BUILTIN.build(scene_inputs(scene), m["model"], m["integrator"], {"precision": "float32"})
+    build_s = time.perf_counter() - t0
+    if scene.time.mode == "dynamic":
+        twin = _run_dynamic(scene, sim, m["dt"], None, build_s)
+        return {"displacement": twin.displacement, "dt": m["dt"], "settle_steps": None, **_timing(twin.meta)}
+    sim.settle_steps(m["dt"], m["static"]["steps"])
+    u = sim.displacement().astype(np.float64)[None]
+    timing = time_steps(sim)
+    return {"displacement": u, "dt": m["dt"], "settle_steps": m["static"]["steps"], **_timing(timing)}
+
+
+def _timing(meta: dict) -> dict:
+    return {k: meta[k] for k in ("step_us", "step_us_min", "step_us_max")}
+
+
+def compare(
+    scene: Scene,
+    model_name: str,
+    dt: float | None = None,
+    dt_fraction: float | None = None,
+    integrator: str = "symplectic-euler",
+    reference: Result | None = None,
+    max_steps: int = 2_000_000,
+    vtk: str | None = None,
+    budget: bool = True,
+    float32: bool = False,
+    **ref_options,
+) -> dict:
+    """Metrics of one model run against the scene's reference (docs/architecture.md section 6).
+
+    A diverging run gives {"status": "diverged", ...} with the step, dt and dt_crit instead of errors.
+    ``unrepresented`` lists what the material asks that the model does not represent (fibres, the
+    volume penalty: realtime.models.unrepresented): it ran without it, and its errors measure the cost.
+    ``vtk`` (a directory or a .pvd path) also writes both displacements and the pointwise error at every
+    output time as one ParaView series. ``budget`` adds ``error_budget`` (see ``error_budget``).
+    ``float32``: for a model of FLOAT32_MODELS under an explicit integrator, the row's ``float32`` holds
+    its float32 twin (``float32_twin``): rel_l2_vs_float64, its distance from this run by the row's own
+    metric, beside its rel_l2 against the reference, and its step times; None for the other models.
+    """
+    # a quasi-static model has its own update whatever integrator was asked for
+    base = {
+        "scene": scene.name,
+        "model": model_name,
+        "integrator": "quasi-static" if model_name in QUASI_STATIC else integrator,
+    }
+    base["unrepresented"] = unrepresented(model_name, scene.body_material())
+    ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
+    try:
+        res = run_model(scene, model_name, dt=dt, dt_fraction=dt_fraction, integrator=integrator, max_steps=max_steps)
+    except DivergenceError as exc:
+        return {
+            **base,
+            "status": "diverged",
+            "dt": exc.dt,
+            "dt_crit": exc.dt_crit,
+            "step": exc.step,
+            "message": str(exc),
+            "unbounded": isinstance(exc, UnboundedAnswerError),
+        }
+    mesh = scene.mesh
+    has_tools = bool(scene.problem.tools)
+    metrics = compute(
+        mesh.points,
+        mesh.tets,
+        mesh.surface_vertices,
+        res.displacement,
+        ref.displacement,
+        res.reaction if has_tools else None,
+        ref.reaction if has_tools else None,
+        ref.meta.get("ref_err_estimate"),
+    )
+    if vtk is not None:
+        from verification.report.vtk import write_series
+
+        write_series(
+            vtk,
+            f"{scene.name}-{model_name}",
+            mesh.points,
+            mesh.tets,
+            ref.times,
+            {
+                "reference_displacement": ref.displacement,
+                "model_displacement": res.displacement,
+                "error": res.displacement - ref.displacement,
+                "error_magnitude": np.linalg.norm(res.displacement - ref.displacement, axis=2),
+            },
+        )
+    m = res.meta
+    parts = error_budget(scene, model_name, res, ref, integrator, max_steps) if budget else None
+    single = None
+    if float32 and model_name in FLOAT32_MODELS and integrator != "implicit-euler":
+        twin = float32_twin(scene, res)
+        u32 = twin.pop("displacement")
+        single = {
+            **twin,
+            "rel_l2_vs_float64": rel_l2(u32, res.displacement),
+            "rel_l2": rel_l2(u32, ref.displacement),
+        }
+    return {
+        **base,
+        "status": "ok",
+        "error_budget": parts,
+        "float32": single,
+        "dt": m["dt"],
+        "dt_crit": m["dt_crit"],
+        "dt_crit_element": m.get("dt_crit_element"),
+        **metrics,
+        "step_us": m["step_us"],
+        "step_us_min": m["step_us_min"],
+        "step_us_max": m["step_us_max"],
+        "realtime_factor": m["realtime_factor"],
+        "rate_hz": m["rate_hz"],
+        "settle_steps": m["static"]["steps"],
+        "settle_ms": m["settle_ms"],
+        "build_s": m.get("build_s"),
+        "reference": {
+            "degree": ref.meta["degree"],
+            "refine": ref.meta["refine"],
+            "law": ref.meta["law"],
+            "cache_key": ref.meta.get("cache_key"),
+            # what the reference's own error is known to be: its bar, or "unverified" without the estimate
+            "ref_err_estimate": ref.meta.get("ref_err_estimate"),
+            "verified": ref.meta.get("ref_err_estimate") is not None,
+            "min_det_F": ref.meta.get("min_det_F"),
+            "returned_level": ref.meta.get("returned_level"),
+            "petsc_options": ref.meta.get("petsc_options"),
+        },
+        "n_vertices": mesh.n_vertices,
+        "n_tets": mesh.n_tets,
+    }

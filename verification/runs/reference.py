@@ -1,0 +1,221 @@
+"""The reference of a scene, from the cache or solved now (docs/architecture.md sections 4 and 6).
+
+Reference results are cached under ``$TISSUEBENCH_CACHE`` (default ``~/.cache/tissuebench``), keyed by
+a hash of everything they depend on: the scene's content and mesh hash, degree, refinement, the
+estimate flag, the solver options and the reference code's version. A study interrupted half-way
+finds the solves it finished and goes on from there.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from meshes.io import atomic_savez
+
+from ..cache import REFERENCE_CODE, cache_dir, code_digest, digest, git_commit, read_cached
+from ..progress import log
+from ..scene import Scene
+from .results import Result
+
+#: Bumped whenever the reference's numbers can change for the same inputs, so old cache entries die.
+REFERENCE_VERSION = "2"  # 2: spanned regions, the finer solution returned, det F checked, exact tool kinematics
+
+REFERENCE_DEFAULTS = {"degree": 2, "refine": 0, "estimate": True}
+
+#: The P1 solution of a scene on its own mesh (the error budget's mesh part).
+P1_OWN_MESH = {"degree": 1, "refine": 0, "estimate": False, "own_mesh": True}
+
+
+def reference_key(
+    scene: Scene,
+    degree: int,
+    refine: int,
+    estimate: bool,
+    newton=(1, 1e-4),
+    own_mesh: bool = False,
+    petsc_options: dict | None = None,
+) -> str:
+    from reference.fem import DIRECT_LIMIT, DIRECT_OPTIONS, GAMG_OPTIONS
+
+    return digest(
+        {
+            "scene": scene.sha256(),
+            "solved_on": "own mesh" if own_mesh or not scene.level else "base mesh",
+            "degree": degree,
+            "refine": refine,
+            "estimate": estimate,
+            "newton": list(newton),
+            "solver": {
+                "direct": DIRECT_OPTIONS,
+                "gamg": GAMG_OPTIONS,
+                "direct_limit": DIRECT_LIMIT,
+                "user": petsc_options,
+            },
+            "version": REFERENCE_VERSION,
+            "code": code_digest(REFERENCE_CODE),
+        }
+    )
+
+
+#: The last static solves of this process (their problems and meta), by the solved scene's hash and the
+#: options: a refined scene's reference is the base scene's solve evaluated at its vertices, and the
+#: advisor asks for it at several levels (10 s each for the cantilever's P2 with its estimate).
+_SOLVED: dict[tuple, tuple[list, dict]] = {}
+
+SOLVED_KEPT = 2
+
+
+def _fields_path(reference: Path) -> Path:
+    """Beside a base reference with its estimate, its solved fields (``reference.driver.solved_fields``):
+    a refined scene's truth asked for in another process (the report's references are solved in
+    worker processes, the advice's refined truths in the main one) is then the base solve rebuilt and
+    evaluated at its vertices, 1 s where solving again took 10 s on the report's cantilever."""
+    return reference.with_name(reference.stem + "-fields.npz")
+
+
+def reference_path(
+    scene: Scene,
+    degree: int = 2,
+    refine: int = 0,
+    estimate: bool = True,
+    newton_steps: int = 1,
+    min_increment: float = 1e-4,
+    own_mesh: bool = False,
+    petsc_options: dict | None = None,
+) -> Path:
+    """Where ``reference_result`` with these arguments keeps its answer."""
+    key = reference_key(scene, degree, refine, estimate, (newton_steps, min_increment), own_mesh, petsc_options)
+    return cache_dir() / "reference" / f"{scene.name}-{key}.npz"
+
+
+def _save_solved(path: Path, problems: list, meta: dict) -> None:
+    from reference.driver import solved_fields
+
+    arrays = solved_fields(problems)
+    atomic_savez(path, meta=np.array(json.dumps(meta)), **arrays)
+
+
+def _restore_solved(memo: tuple, path: Path, solved: Scene, material, degree: int, refine: int) -> None:
+    """Into _SOLVED, the solve kept at ``path`` (_save_solved) rebuilt; nothing if it cannot be."""
+    from reference.driver import restore_static
+
+    def read(path):
+        with np.load(path) as data:
+            return {k: data[k] for k in data.files if k != "meta"}, json.loads(str(data["meta"]))
+
+    kept = read_cached(path, read)
+    if kept is None:  # a damaged file: solve again
+        return
+    arrays, meta = kept
+    problems = restore_static(solved.mesh, material, solved.problem, degree, refine, arrays)
+    if problems is not None:
+        _SOLVED[memo] = problems, meta
+        while len(_SOLVED) > SOLVED_KEPT:
+            _SOLVED.pop(next(iter(_SOLVED)))
+
+
+def reference_result(
+    scene: Scene,
+    degree: int = 2,
+    refine: int = 0,
+    estimate: bool = True,
+    use_cache: bool = True,
+    newton_steps: int = 1,
+    min_increment: float = 1e-4,
+    own_mesh: bool = False,
+    petsc_options: dict | None = None,
+) -> Result:
+    """The scene's reference, from the cache or solved now (and then cached). ``newton_steps`` and
+    ``min_increment`` set the non-linear static solve's first load increment (1 / newton_steps) and the
+    smallest increment it may halve to before it gives up.
+
+    On a refined scene (``Scene.refined``) the reference is solved on the base scene's mesh and
+    evaluated at the refined vertices: the truth does not depend on the mesh a model runs on, and the
+    base's solve (with its estimate) costs 8^level times less. ``own_mesh`` solves on the scene's own
+    mesh instead (the error budget's P1 solution on the model's mesh). ``petsc_options`` go over the
+    solver chosen by size (``reference.fem.solver_options``)."""
+    from mpi4py import MPI
+
+    from reference.driver import evaluate_static
+    from reference.driver import solve_dynamic as reference_dynamic
+    from reference.driver import solve_static as reference_static
+
+    path = reference_path(scene, degree, refine, estimate, newton_steps, min_increment, own_mesh, petsc_options)
+    cached = read_cached(path, Result.load) if use_cache else None
+    if cached is not None:
+        return cached
+    mesh = scene.mesh
+    solved = scene if own_mesh or not scene.level else scene.base
+    where = f" on the base mesh at the {mesh.n_vertices} vertices of level {scene.level}" if solved is not scene else ""
+    log(f"reference: {scene.name} P{degree} refine {refine}{' + estimate' if estimate else ''}{where} ...")
+    t0 = time.perf_counter()
+    if scene.time.mode == "dynamic":
+        ts = scene.time
+        sol = reference_dynamic(
+            solved.mesh,
+            solved.body_material(),
+            solved.problem,
+            ts.end,
+            ts.output_every,
+            rayleigh=(ts.damping_mass, ts.damping_stiffness),
+            degree=degree,
+            refine=refine,
+            estimate=estimate,
+            points=mesh.points,
+            petsc_options=petsc_options,
+        )
+        times, disp, reac = sol["times"], sol["displacement"], sol["reaction"]
+    else:
+        memo = (solved.sha256(), degree, refine, estimate, newton_steps, min_increment, json.dumps(petsc_options or {}))
+        serial = MPI.COMM_WORLD.size == 1
+        fields = _fields_path(
+            reference_path(solved, degree, refine, estimate, newton_steps, min_increment, False, petsc_options)
+        )
+        if use_cache and memo not in _SOLVED and serial and solved is not scene and fields.exists():
+            _restore_solved(memo, fields, solved, solved.body_material(), degree, refine)
+        if use_cache and memo in _SOLVED:  # use_cache=False asks for a solve (the benchmarks time it)
+            log("reference: the same problem was solved before: evaluated at these vertices")
+            sol = evaluate_static(*_SOLVED[memo], mesh.points)
+        else:
+            sol = reference_static(
+                solved.mesh,
+                solved.body_material(),
+                solved.problem,
+                degree=degree,
+                refine=refine,
+                estimate=estimate,
+                newton_steps=newton_steps,
+                min_increment=min_increment,
+                points=mesh.points,
+                petsc_options=petsc_options,
+            )
+            problems = sol.pop("problems")
+            if use_cache:
+                _SOLVED[memo] = problems, copy.deepcopy(sol["meta"])
+                if serial and estimate and solved is scene:
+                    _save_solved(fields, problems, sol["meta"])
+            while len(_SOLVED) > SOLVED_KEPT:
+                _SOLVED.pop(next(iter(_SOLVED)))
+        times, disp, reac = np.zeros(1), sol["displacement"][None], sol["reaction"][None]
+    meta = sol["meta"]
+    meta.update(
+        scene=scene.name,
+        scene_sha256=scene.sha256(),
+        mesh_sha256=mesh.sha256(),
+        scene_level=scene.level,
+        solved_on_mesh_sha256=solved.mesh.sha256(),
+        cache_key=path.stem.rsplit("-", 1)[1],
+        wall_s=time.perf_counter() - t0,
+        commit=git_commit(),
+        date=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    )
+    res = Result(mesh.points, mesh.tets, times, disp, reac, meta)
+    if use_cache and MPI.COMM_WORLD.rank == 0:
+        res.save(path)
+    log(f"reference: done in {meta['wall_s']:.1f} s")
+    return res

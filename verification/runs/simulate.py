@@ -1,0 +1,158 @@
+"""A model run on a scene, through the engine seam (``verification.engines.protocol``).
+
+The harness's side of every run: the time step (a fraction of the engine's critical one unless given),
+the output instants of a dynamic scene, the timing of the steps at the state the run reached, and the
+Result with its meta (docs/architecture.md section 4). The engine's side (its model, how it settles, how
+it samples between steps) is behind ``Engine.build``.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..cache import git_commit, versions
+from ..engines import engine_for
+from ..engines.protocol import Simulation
+from ..inputs import scene_inputs
+from ..progress import _rank
+from ..scene import Scene
+from .results import Result
+
+#: The default time step of an explicit integrator, and of implicit Euler on a dynamic scene, as
+#: fractions of the explicit critical step.
+EXPLICIT_FRACTION, IMPLICIT_FRACTION = 0.9, 10.0
+
+
+def time_steps(sim: Simulation, n: int = 100, repeats: int = 9) -> dict:
+    """Median and spread of the wall time of one of ``sim``'s steps across the seam, after a warm-up
+    step (compilation, caches), in microseconds. Each repeat times n steps in one call. The simulation's
+    state moves on."""
+    sim.step(1)
+    per_step = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        sim.step(n)
+        per_step.append((time.perf_counter() - t0) / n * 1e6)
+    per_step = np.sort(per_step)
+    return {
+        "step_us": float(np.median(per_step)),
+        "step_us_min": float(per_step[0]),
+        "step_us_max": float(per_step[-1]),
+        "timing_steps": n,
+        "timing_repeats": repeats,
+    }
+
+
+def output_times(scene: Scene) -> np.ndarray:
+    """0, output_every, 2 output_every, ... up to end (the reference's output instants), s."""
+    ts = scene.time
+    n = int(round(ts.end / ts.output_every))
+    return np.arange(n + 1) * ts.output_every
+
+
+def run_model(
+    scene: Scene,
+    model_name: str,
+    dt: float | None = None,
+    dt_fraction: float | None = None,
+    integrator: str = "symplectic-euler",
+    rtol: float = 1e-10,
+    max_steps: int = 2_000_000,
+    options: dict | None = None,
+    engine=None,
+) -> Result:
+    """Run a model on a scene: on a static scene to equilibrium (``Simulation.settle``: at most
+    ``max_steps``, else NotConvergedError), then timing; on a dynamic one the trajectory from rest.
+
+    dt defaults to ``dt_fraction`` (default 0.9, implicit Euler 10 on a dynamic scene) times the
+    engine's critical step. A diverging run raises DivergenceError. ``options`` go to the model's
+    builder (hybrid-tm's ``threshold``, m). ``engine`` defaults to the one offering ``model_name``."""
+    engine = engine if engine is not None else engine_for(model_name)
+    inputs = scene_inputs(scene)
+    t0 = time.perf_counter()
+    sim = engine.build(inputs, model_name, integrator, dict(options or {}))
+    build_s = time.perf_counter() - t0
+    if scene.time.mode == "dynamic":
+        return _run_dynamic(scene, sim, dt, dt_fraction, build_s)
+    return _run_static(scene, sim, dt, dt_fraction, rtol, max_steps, build_s)
+
+
+def _meta(scene: Scene, sim: Simulation, dt, dt_crit, build_s: float, timing: dict) -> dict:
+    """The meta every run carries (docs/architecture.md section 4)."""
+    return {
+        "solver": "realtime",
+        "model": sim.model,
+        "integrator": sim.integrator,
+        "dt": dt,
+        "dt_crit": dt_crit,
+        "scene": scene.name,
+        "scene_sha256": scene.sha256(),
+        "mesh_sha256": scene.mesh.sha256(),
+        "build_s": build_s,
+        **timing,
+        "realtime_factor": None if dt is None else dt / (timing["step_us"] * 1e-6),
+        "rate_hz": 1e6 / timing["step_us"],
+        "versions": versions(),
+        "commit": git_commit(),
+    }
+
+
+def _run_static(scene: Scene, sim: Simulation, dt, dt_fraction, rtol, max_steps, build_s: float) -> Result:
+    """Equilibrium, read, then the steps timed from it."""
+    s = sim.settle(rtol, max_steps, dt, dt_fraction)
+    u, reaction = sim.displacement().copy(), np.array(sim.tool_force(), dtype=float)
+    timing = time_steps(sim, *sim.timing)
+    meta = _meta(scene, sim, s.dt, s.dt_crit, build_s, timing)
+    meta.update(s.meta, static=s.static, settle_ms=s.steps * timing["step_us"] * 1e-3)
+    mesh = scene.mesh
+    return Result(mesh.points, mesh.tets, np.zeros(1), u[None], reaction[None], meta)
+
+
+def trajectory(sim: Simulation, times: np.ndarray, label: str = "") -> tuple[np.ndarray, np.ndarray]:
+    """From rest, the simulation sampled at ``times`` (T,) s: displacement (T, N, 3) m of the scene's
+    vertices and the tools' force (T, 3) N."""
+    out_u, out_r = [], []
+    from reference.progress import Progress
+
+    ticker = Progress(f"run: {sim.model}{label}, output", len(times), _rank())
+    for k, t_out in enumerate(times):
+        ticker.tick(k, f", t = {t_out:.4g} s")
+        sim.advance_to(float(t_out))
+        out_u.append(np.array(sim.displacement(), dtype=float))
+        out_r.append(np.array(sim.tool_force(), dtype=float))
+    return np.array(out_u), np.array(out_r)
+
+
+def _run_dynamic(scene: Scene, sim: Simulation, dt, dt_fraction, build_s: float) -> Result:
+    """A dynamic scene: the trajectory from rest at the scene's output times, then steps timed."""
+    ts = scene.time
+    times = output_times(scene)
+    dt_crit = sim.critical_dt()
+    if dt_crit is None:  # stepped by the output instants
+        dt = dt if dt is not None else ts.output_every
+    elif dt is None:
+        default = IMPLICIT_FRACTION if sim.integrator == "implicit-euler" else EXPLICIT_FRACTION
+        dt = (default if dt_fraction is None else dt_fraction) * dt_crit
+    sim.start(dt, dt_crit)
+    label = "" if dt_crit is None else f" ({sim.integrator}, dt = {dt:.3g} s)"
+    t1 = time.perf_counter()
+    u, reaction = trajectory(sim, times, label)
+    run_s = time.perf_counter() - t1
+    timing = time_steps(sim, sim.timing[0], 7)
+    meta = _meta(scene, sim, dt, dt_crit, build_s, timing)
+    meta.update(
+        dt_crit_rest=dt_crit,
+        mode="dynamic",
+        static={
+            "method": "trajectory",
+            "steps": int(np.ceil(ts.end / dt)),
+            "residual": None,
+            "rtol": None,
+            "wall_s": run_s,
+        },
+        settle_ms=None,
+    )
+    mesh = scene.mesh
+    return Result(mesh.points, mesh.tets, times, u, reaction, meta)
