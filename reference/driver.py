@@ -33,6 +33,18 @@ def _materials_of(material: Material | Materials) -> tuple:
     return material.materials if isinstance(material, Materials) else (material,)
 
 
+def _solve_level(ep, coarse, infos: list, newton: dict, petsc_options) -> dict:
+    """One level's static solve: the linear law's one solve, or Newton (from ``coarse``'s solution at
+    full load where there is one); a check level gives up sooner than the level it checks, after 10
+    times that level's time."""
+    if ep.linear:
+        return ep.solve(petsc_options=petsc_options)
+    if coarse is not None:
+        ep.start_from(coarse)
+    limit = {} if not infos else {"time_limit": max(120.0, 10.0 * infos[-1]["wall_s"])}
+    return ep.solve(**newton, start_at_full_load=coarse is not None, petsc_options=petsc_options, **limit)
+
+
 def solve_static(
     mesh: TetMesh,
     material: Material | Materials,
@@ -66,21 +78,8 @@ def solve_static(
         t0 = time.perf_counter()
         ep = ElasticityProblem(mesh, material, problem, degree=degree, refine=level, comm=comm)
         try:
-            if not ep.linear:
-                warm = nested and coarse is not None
-                if warm:
-                    ep.start_from(coarse)
-                # the check level gives up sooner than the level it checks: 10 times that level's time
-                limit = {} if coarse is None else {"time_limit": max(120.0, 10.0 * infos[-1]["wall_s"])}
-                info = ep.solve(
-                    steps=newton_steps,
-                    min_increment=min_increment,
-                    start_at_full_load=warm,
-                    petsc_options=petsc_options,
-                    **limit,
-                )
-            else:
-                info = ep.solve(petsc_options=petsc_options)
+            newton = {"steps": newton_steps, "min_increment": min_increment}
+            info = _solve_level(ep, coarse if nested else None, infos, newton, petsc_options)
         except ReferenceSolveError as exc:
             if coarse is None:  # nothing converged: nothing is known
                 raise
@@ -213,7 +212,7 @@ def solve_dynamic(
         # of their own: a heartbeat until the time loop, which reports itself
         with Heartbeat(f"reference: refine {level}, dt {step:.3g} s: building and setting up Newmark", comm.rank) as hb:
             ep = ElasticityProblem(mesh, material, problem, degree=degree, refine=level, comm=comm)
-            times, vals, reac, info = ep.solve_dynamic(
+            run = ep.solve_dynamic(
                 step,
                 end,
                 output_every,
@@ -222,8 +221,8 @@ def solve_dynamic(
                 petsc_options=petsc_options,
                 before_loop=hb.stop,
             )
-        info.update(level=level, n_dofs=ep.n_dofs, wall_s=time.perf_counter() - t0)
-        return times, vals, reac, info
+        run.info.update(level=level, n_dofs=ep.n_dofs, wall_s=time.perf_counter() - t0)
+        return run.times, run.values, run.reactions, run.info
 
     times, vals, reac, info = run(refine, dt)
     solves = [info]

@@ -1,6 +1,6 @@
 """Every derived elastic constant tested by the experiment that defines it, on both sides separately.
 
-The engine (``realtime.laws``, numba) and the reference (``reference.materials``, UFL) share only the
+The engine (``realtime.laws``, numba) and the reference (``reference.laws``, UFL) share only the
 ``Material`` that converts a scene's constants into Lame and fibre coefficients: a conversion wrong in
 that one place is wrong on both sides at once, and no comparison of the two could see it. So each side's
 stress response is probed here as a testing machine would probe a specimen, and compared with the
@@ -53,7 +53,7 @@ def reference_stress(law: str, m: Material):
     from dolfinx import mesh as dmesh
     from mpi4py import MPI
 
-    from reference.materials import LAWS
+    from reference.laws import LAWS
 
     domain = dmesh.create_unit_cube(MPI.COMM_SELF, 1, 1, 1, dmesh.CellType.tetrahedron)
     V = fem.VectorFunctionSpace(domain, ("Lagrange", 1))

@@ -129,12 +129,12 @@ def test_modified_newton_reuses_factorisations_and_finds_the_same_equilibrium(mo
     the path, not the answer: both solvers stop on the same residual test (1e-10 of the force scale),
     so the displacements agree far below any error the suite measures (1e-8 relative allows the
     conditioning of the stiffness, about 1e4 on this mesh, times that tolerance, with room to spare)."""
-    from reference import fem
+    from reference import solver
 
     scene = load_scene("block-twist")
     runs = {}
-    for mode, slow in (("classic", math.inf), ("modified", fem.SLOW)):
-        monkeypatch.setattr(fem, "SLOW", slow)
+    for mode, slow in (("classic", math.inf), ("modified", solver.SLOW)):
+        monkeypatch.setattr(solver, "SLOW", slow)
         runs[mode] = reference_static(scene.mesh, scene.material, scene.problem, degree=1, estimate=False)
     a, b = (runs[m]["displacement"] for m in ("classic", "modified"))
     assert np.linalg.norm(a - b) <= 1e-8 * np.linalg.norm(a)
@@ -170,11 +170,11 @@ def test_large_problems_switch_to_gamg_and_agree_with_mumps(monkeypatch):
     """Above DIRECT_LIMIT dofs the reference's solves use GMRES with GAMG and the rigid-body near null
     space; the metadata says so, and the equilibrium is MUMPS's to 1e-8 relative (both Newtons stop at
     1e-10 of the force scale; the stiffness's conditioning, about 1e4 here, scales that)."""
-    from reference import fem
+    from reference import solver
 
     scene = load_scene("block-twist")
     lu = reference_static(scene.mesh, scene.material, scene.problem, degree=1, estimate=False)
-    monkeypatch.setattr(fem, "DIRECT_LIMIT", 10)
+    monkeypatch.setattr(solver, "DIRECT_LIMIT", 10)
     gamg = reference_static(scene.mesh, scene.material, scene.problem, degree=1, estimate=False)
     opts = gamg["meta"]["petsc_options"]
     assert opts["pc_type"] == "gamg" and lu["meta"]["petsc_options"]["pc_type"] == "cholesky"
@@ -185,15 +185,15 @@ def test_large_problems_switch_to_gamg_and_agree_with_mumps(monkeypatch):
     lin = scene.with_material(law="linear")
     runs = []
     for limit in (10**9, 10):
-        monkeypatch.setattr(fem, "DIRECT_LIMIT", limit)
+        monkeypatch.setattr(solver, "DIRECT_LIMIT", limit)
         runs.append(reference_static(lin.mesh, lin.material, lin.problem, degree=1, estimate=False)["displacement"])
     assert np.linalg.norm(runs[0] - runs[1]) <= 1e-9 * np.linalg.norm(runs[0])
     # a user's pc_type replaces the choice whole; other options go over it
-    assert fem.solver_options(10**9, {"pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}) == {
+    assert solver.solver_options(10**9, {"pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}) == {
         "pc_type": "lu",
         "pc_factor_mat_solver_type": "mumps",
     }
-    assert fem.solver_options(1, {"ksp_view": ""})["pc_type"] == "cholesky"
+    assert solver.solver_options(1, {"ksp_view": ""})["pc_type"] == "cholesky"
 
 
 def test_every_tangent_the_reference_factorises_is_symmetric_so_ldlt_equals_lu(monkeypatch, tmp_path):
@@ -205,7 +205,7 @@ def test_every_tangent_the_reference_factorises_is_symmetric_so_ldlt_equals_lu(m
     LU's to 1e-10 (the conditioning, about 1e4, times round-off, with room)."""
     from petsc4py import PETSc
 
-    from reference import fem
+    from reference import fem, solver
 
     p = tmp_path / "terms.toml"
     p.write_text("""
@@ -239,7 +239,7 @@ ramp = 0.01
 """)
     scene = load_scene(p)
     asymmetry = []
-    factorise = fem.Newton._factorise
+    factorise = solver.Newton._factorise
 
     def checked(self):
         factorise(self)
@@ -248,7 +248,7 @@ ramp = 0.01
         At.axpy(-1.0, self.A)
         asymmetry.append(At.norm(PETSc.NormType.FROBENIUS) / self.A.norm(PETSc.NormType.FROBENIUS))
 
-    monkeypatch.setattr(fem.Newton, "_factorise", checked)
+    monkeypatch.setattr(solver.Newton, "_factorise", checked)
     ldlt = reference_static(scene.mesh, scene.material, scene.problem, degree=1, estimate=False)
     ep = fem.ElasticityProblem(scene.mesh, scene.material, scene.problem, degree=1)
     ep.solve_dynamic(1e-3, 5e-3, 1e-3, scene.mesh.points, rayleigh=(2.0, 1e-3))
@@ -264,13 +264,13 @@ def test_a_newmark_step_is_converged_against_its_forces_not_the_inertia_of_snapp
     to rest in one step: no load, and it grows with the displacement. Taken as the external load, it set
     the dynamic benchmark's test 300 times looser than 1e-10 of the step's forces. With no gravity or
     traction, a step's force scale is its first residual or its reaction, whatever the displacement."""
-    from reference import fem
+    from reference import fem, solver
 
     p = tmp_path / "swing.toml"
     p.write_text(SWING)
     scene = load_scene(p)
     steps = []
-    solve, assemble = fem.Newton.solve, fem.Newton._assemble_raw
+    solve, assemble = solver.Newton.solve, solver.Newton._assemble_raw
 
     def recorded(self, *args, **kwargs):
         norms = []
@@ -282,7 +282,7 @@ def test_a_newmark_step_is_converged_against_its_forces_not_the_inertia_of_snapp
         steps.append((res["scale"], load, norms[at][0], norms[-1][1]))  # the load's norms, the first
         return res  # iterate's free residual, the last one's reaction
 
-    monkeypatch.setattr(fem.Newton, "solve", recorded)
+    monkeypatch.setattr(solver.Newton, "solve", recorded)
     ep = fem.ElasticityProblem(scene.mesh, scene.material, scene.problem, degree=1)
     ep.solve_dynamic(5e-4, 0.02, 5e-3, scene.mesh.points)
     for scale, load, first, held in steps:
@@ -297,12 +297,12 @@ def test_iterative_newton_stops_where_direct_newton_does(monkeypatch):
     refined level instead of 8 and 3), for 40 s of a 55 s cantilever reference at P2. With the body's
     extent as the gap's floor, GAMG's Newton stops where MUMPS's does (one iteration of slack: the inexact
     solves may need one more), at the same estimate (1e-8: both stop at 1e-10 of the force scale)."""
-    from reference import fem
+    from reference import solver
 
     scene = load_scene("cantilever")
     runs = []
     for limit in (10**9, 10):
-        monkeypatch.setattr(fem, "DIRECT_LIMIT", limit)
+        monkeypatch.setattr(solver, "DIRECT_LIMIT", limit)
         runs.append(reference_static(scene.mesh, scene.material, scene.problem, degree=1, estimate=True)["meta"])
     lu, gamg = runs
     assert gamg["petsc_options"]["pc_type"] == "gamg" and lu["petsc_options"]["pc_type"] == "cholesky"
@@ -317,7 +317,7 @@ def test_solver_options_leave_petsc_s_table_empty():
     options 512 < max number of options 512". configure() takes them out once the solver has read them."""
     from petsc4py import PETSc
 
-    from reference.fem import GAMG_OPTIONS, configure
+    from reference.solver import GAMG_OPTIONS, configure
 
     for k in range(200):  # 200 solvers x 9 options: three times the table
         ksp = PETSc.KSP().create(PETSc.COMM_SELF)
@@ -411,7 +411,7 @@ def test_a_mumps_workspace_too_small_is_doubled_up_to_its_limit_and_nothing_else
     block-press's P2 solve on 2 ranks failed with INFOG(1) = -9 at every load increment in 6 of 126
     runs. Such a failure doubles ICNTL(14) (20, 40, ... 320 %) and is said on stderr; a singular matrix
     (-10) or an exhausted relaxation is the linear solver's failure, as before."""
-    from reference.fem import MUMPS_MAX_RELAXATION, grow_mumps_workspace
+    from reference.solver import MUMPS_MAX_RELAXATION, grow_mumps_workspace
 
     said = []
     factor = _Factor(-9)
@@ -436,7 +436,8 @@ def test_a_factor_keeps_the_workspace_set_on_it_when_newton_factorises_again():
     import ufl
     from mpi4py import MPI
 
-    from reference.fem import ElasticityProblem, Newton, solver_options
+    from reference.fem import ElasticityProblem
+    from reference.solver import Newton, solver_options
 
     scene = load_scene("block-press")
     ep = ElasticityProblem(scene.mesh, scene.material, scene.problem, degree=1)
@@ -540,14 +541,14 @@ def test_an_iterative_solve_that_fails_falls_back_and_says_so(monkeypatch, capfd
     by a direct factorisation where it is predicted to fit in half the available memory, else by a
     stronger multigrid, with one line on stderr; both give the direct answer. The failure is made here
     by GAMG allowed one iteration on a problem forced onto the iterative path."""
-    from reference import fem
+    from reference import solver
 
     lin = load_scene("block-twist").with_material(law="linear")
     direct = reference_static(lin.mesh, lin.material, lin.problem, degree=1, estimate=False)["displacement"]
-    monkeypatch.setattr(fem, "DIRECT_LIMIT", 10)
-    monkeypatch.setattr(fem, "GAMG_OPTIONS", {**fem.GAMG_OPTIONS, "ksp_max_it": 1})
+    monkeypatch.setattr(solver, "DIRECT_LIMIT", 10)
+    monkeypatch.setattr(solver, "GAMG_OPTIONS", {**solver.GAMG_OPTIONS, "ksp_max_it": 1})
     if memory == "none":
-        monkeypatch.setattr(fem, "available_bytes", lambda: 0.0)
+        monkeypatch.setattr(solver, "available_bytes", lambda: 0.0)
     capfd.readouterr()
     got = reference_static(lin.mesh, lin.material, lin.problem, degree=1, estimate=False)
     err = capfd.readouterr().err
@@ -555,7 +556,9 @@ def test_an_iterative_solve_that_fails_falls_back_and_says_so(monkeypatch, capfd
     assert ("trying a direct factorisation" if memory == "enough" else "trying stronger multigrid") in err
     assert np.linalg.norm(got["displacement"] - direct) <= 1e-9 * np.linalg.norm(direct)
     # a solver the user chose is the user's: no fallback
-    assert fem.fallback_options(fem.solver_options(10**6, {"pc_type": "gamg"}), 10**6, {"pc_type": "gamg"}) is None
+    assert (
+        solver.fallback_options(solver.solver_options(10**6, {"pc_type": "gamg"}), 10**6, {"pc_type": "gamg"}) is None
+    )
 
 
 def test_a_matrix_solved_at_every_step_is_factorised_once_where_the_factor_fits(monkeypatch):
@@ -563,15 +566,15 @@ def test_a_matrix_solved_at_every_step_is_factorised_once_where_the_factor_fits(
     iterations every step (a stiff beam's dynamic reference, 1081 s). It is factorised once wherever
     the factor is predicted to fit in half the available memory, and only one solve, or a factor that
     does not fit, takes the iterative path."""
-    from reference import fem
+    from reference import solver
 
-    n = 4 * fem.DIRECT_LIMIT
-    monkeypatch.setattr(fem, "available_bytes", lambda: 4.0 * fem.direct_bytes(n))
-    assert fem.solver_options(n, linear=True, reused=True)["pc_type"] == "cholesky"
-    assert fem.solver_options(n, linear=True)["pc_type"] == "gamg"
-    monkeypatch.setattr(fem, "available_bytes", lambda: 1.5 * fem.direct_bytes(n))
-    assert fem.solver_options(n, linear=True, reused=True)["pc_type"] == "gamg"
-    assert fem.solver_options(n, {"pc_type": "lu"}, linear=True, reused=True) == {"pc_type": "lu"}
+    n = 4 * solver.DIRECT_LIMIT
+    monkeypatch.setattr(solver, "available_bytes", lambda: 4.0 * solver.direct_bytes(n))
+    assert solver.solver_options(n, linear=True, reused=True)["pc_type"] == "cholesky"
+    assert solver.solver_options(n, linear=True)["pc_type"] == "gamg"
+    monkeypatch.setattr(solver, "available_bytes", lambda: 1.5 * solver.direct_bytes(n))
+    assert solver.solver_options(n, linear=True, reused=True)["pc_type"] == "gamg"
+    assert solver.solver_options(n, {"pc_type": "lu"}, linear=True, reused=True) == {"pc_type": "lu"}
 
 
 def test_a_heartbeat_speaks_through_a_call_that_holds_pythons_lock_and_stops_with_its_block(capfd):

@@ -14,7 +14,9 @@ from meshes import box, structured_box
 from meshes.regions import BoxRegion
 from realtime import Material
 from reference.driver import solve_static as reference_static
-from reference.fem import ElasticityProblem, ReferenceSolveError, manufactured_errors
+from reference.errors import ReferenceSolveError
+from reference.fem import ElasticityProblem
+from reference.manufactured import manufactured_errors
 from reference.problem import Displacement, Fixed, Gravity, Problem
 from verification.runs.results import Result
 from verification.scene import load_scene
@@ -143,7 +145,8 @@ def test_first_bending_frequency_matches_euler_bernoulli():
     first bending frequency (beta_1 L = 1.8751) within 2% (measured: 0.08%)."""
     mesh, mat, prob, T, tip = slender_beam()
     ep = ElasticityProblem(mesh, mat, prob, degree=2)
-    times, vals, _, _ = ep.solve_dynamic(T / 100, 3 * T, T / 100, tip)
+    run = ep.solve_dynamic(T / 100, 3 * T, T / 100, tip)
+    times, vals = run.times, run.values
     w = vals[:, 0, 2] - vals[:, 0, 2].mean()
     up = np.flatnonzero((w[:-1] < 0) & (w[1:] >= 0))
     crossings = times[up] - w[up] * (times[up + 1] - times[up]) / (w[up + 1] - w[up])
@@ -162,7 +165,7 @@ def test_newmark_is_second_order_in_time():
 
     def trajectory(dt):
         ep = ElasticityProblem(mesh, mat, prob, degree=1)
-        return ep.solve_dynamic(dt, T / 2, T / 20, pts, rayleigh=(0.0, 2e-3))[1]
+        return ep.solve_dynamic(dt, T / 2, T / 20, pts, rayleigh=(0.0, 2e-3)).values
 
     fine = trajectory(T / 2560)
     dts = [T / 80, T / 160, T / 320]
@@ -175,10 +178,10 @@ def test_stvk_dynamics_runs_newton_per_step():
     dynamics must part ways, and StVK takes Newton iterations at every step."""
     mesh, mat, prob, T, tip = slender_beam("stvk")
     ep = ElasticityProblem(mesh, mat, prob, degree=1)
-    times, vals, _, info = ep.solve_dynamic(T / 50, T / 5, T / 50, tip)
-    lin = ElasticityProblem(mesh, mat.replace(law="linear"), prob, degree=1).solve_dynamic(T / 50, T / 5, T / 50, tip)[
-        1
-    ]
+    run = ep.solve_dynamic(T / 50, T / 5, T / 50, tip)
+    vals, info = run.values, run.info
+    linear = ElasticityProblem(mesh, mat.replace(law="linear"), prob, degree=1)
+    lin = linear.solve_dynamic(T / 50, T / 5, T / 50, tip).values
     assert info["iterations"] >= 2 * info["steps"]  # Newton: at least one correction and one check per step
     assert np.all(np.isfinite(vals))
     assert np.linalg.norm(vals - lin) / np.linalg.norm(lin) > 0.01
@@ -190,14 +193,15 @@ def test_newmark_keeps_its_factorisation_and_its_answer(monkeypatch):
     (both stop at 1e-10 of the force scale; the effective stiffness's conditioning scales that), with
     fewer factorisations. This beam sags to half its length in ten steps, so the tangent moves a lot
     here: 27 factorisations against 39; on the bench's slender beam (1600 short steps) 4 in 100 steps."""
-    from reference import fem
+    from reference import solver
 
     mesh, mat, prob, T, tip = slender_beam("stvk")
     runs = {}
-    for mode, slow in (("classic", math.inf), ("modified", fem.SLOW_DYNAMIC)):
-        monkeypatch.setattr(fem, "SLOW_DYNAMIC", slow)
+    for mode, slow in (("classic", math.inf), ("modified", solver.SLOW_DYNAMIC)):
+        monkeypatch.setattr(solver, "SLOW_DYNAMIC", slow)
         ep = ElasticityProblem(mesh, mat, prob, degree=1)
-        _, vals, _, info = ep.solve_dynamic(T / 50, T / 5, T / 50, tip)
+        run = ep.solve_dynamic(T / 50, T / 5, T / 50, tip)
+        vals, info = run.values, run.info
         runs[mode] = vals, info
     (a, classic), (b, modified) = runs["classic"], runs["modified"]
     assert np.linalg.norm(a - b) <= 1e-8 * np.linalg.norm(a)
@@ -227,21 +231,21 @@ def test_a_diverging_newton_is_cut_early_and_fails_at_the_same_load(monkeypatch)
     equilibrium past a load fraction: Newton there is not slow but diverging, its residual a thousandfold
     above its best within a few steps. Giving up then (DIVERGED) must not move where the solve fails,
     only what it costs: measured at P1, 106 factorisations against 210 when each attempt runs its 25."""
-    from reference import fem
+    from reference import solver
     from verification.studies.stability import _far_face_tool
 
     scene = _far_face_tool(load_scene("cantilever"), "compression")
     count = [0]
-    factorise = fem.Newton._factorise
+    factorise = solver.Newton._factorise
 
     def counted(self):
         count[0] += 1
         factorise(self)
 
-    monkeypatch.setattr(fem.Newton, "_factorise", counted)
+    monkeypatch.setattr(solver.Newton, "_factorise", counted)
     outcomes = []
-    for diverged in (fem.DIVERGED, math.inf):
-        monkeypatch.setattr(fem, "DIVERGED", diverged)
+    for diverged in (solver.DIVERGED, math.inf):
+        monkeypatch.setattr(solver, "DIVERGED", diverged)
         count[0] = 0
         ep = ElasticityProblem(scene.mesh, scene.material, scene.problem, degree=1)
         with pytest.raises(ReferenceSolveError, match=r"beyond load fraction ([0-9.]+)") as exc:

@@ -502,7 +502,7 @@ MESH_REFINE_HELP = "cut the scene's mesh uniformly K more times (h / 2^K; the re
 
 PETSC_HELP = (
     "a PETSc option for the reference's linear solves, over the choice by size (MUMPS LDL^T up to "
-    "reference.fem.DIRECT_LIMIT dofs, GAMG above); a pc_type replaces the choice; repeatable"
+    "reference.solver.DIRECT_LIMIT dofs, GAMG above); a pc_type replaces the choice; repeatable"
 )
 
 

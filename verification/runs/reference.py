@@ -40,7 +40,7 @@ def reference_key(
     own_mesh: bool = False,
     petsc_options: dict | None = None,
 ) -> str:
-    from reference.fem import DIRECT_LIMIT, DIRECT_OPTIONS, GAMG_OPTIONS
+    from reference.solver import DIRECT_LIMIT, DIRECT_OPTIONS, GAMG_OPTIONS
 
     return digest(
         {
@@ -138,12 +138,8 @@ def reference_result(
     evaluated at the refined vertices: the truth does not depend on the mesh a model runs on, and the
     base's solve (with its estimate) costs 8^level times less. ``own_mesh`` solves on the scene's own
     mesh instead (the error budget's P1 solution on the model's mesh). ``petsc_options`` go over the
-    solver chosen by size (``reference.fem.solver_options``)."""
+    solver chosen by size (``reference.solver.solver_options``)."""
     from mpi4py import MPI
-
-    from reference.driver import evaluate_static
-    from reference.driver import solve_dynamic as reference_dynamic
-    from reference.driver import solve_static as reference_static
 
     path = reference_path(scene, degree, refine, estimate, newton_steps, min_increment, own_mesh, petsc_options)
     cached = read_cached(path, Result.load) if use_cache else None
@@ -155,52 +151,11 @@ def reference_result(
     log(f"reference: {scene.name} P{degree} refine {refine}{' + estimate' if estimate else ''}{where} ...")
     t0 = time.perf_counter()
     if scene.time.mode == "dynamic":
-        ts = scene.time
-        sol = reference_dynamic(
-            solved.mesh,
-            solved.body_material(),
-            solved.problem,
-            ts.end,
-            ts.output_every,
-            rayleigh=(ts.damping_mass, ts.damping_stiffness),
-            degree=degree,
-            refine=refine,
-            estimate=estimate,
-            points=mesh.points,
-            petsc_options=petsc_options,
-        )
+        sol = _solve_dynamic(scene, solved, degree, refine, estimate, petsc_options)
         times, disp, reac = sol["times"], sol["displacement"], sol["reaction"]
     else:
-        memo = (solved.sha256(), degree, refine, estimate, newton_steps, min_increment, json.dumps(petsc_options or {}))
-        serial = MPI.COMM_WORLD.size == 1
-        fields = _fields_path(
-            reference_path(solved, degree, refine, estimate, newton_steps, min_increment, False, petsc_options)
-        )
-        if use_cache and memo not in _SOLVED and serial and solved is not scene and fields.exists():
-            _restore_solved(memo, fields, solved, solved.body_material(), degree, refine)
-        if use_cache and memo in _SOLVED:  # use_cache=False asks for a solve (the benchmarks time it)
-            log("reference: the same problem was solved before: evaluated at these vertices")
-            sol = evaluate_static(*_SOLVED[memo], mesh.points)
-        else:
-            sol = reference_static(
-                solved.mesh,
-                solved.body_material(),
-                solved.problem,
-                degree=degree,
-                refine=refine,
-                estimate=estimate,
-                newton_steps=newton_steps,
-                min_increment=min_increment,
-                points=mesh.points,
-                petsc_options=petsc_options,
-            )
-            problems = sol.pop("problems")
-            if use_cache:
-                _SOLVED[memo] = problems, copy.deepcopy(sol["meta"])
-                if serial and estimate and solved is scene:
-                    _save_solved(fields, problems, sol["meta"])
-            while len(_SOLVED) > SOLVED_KEPT:
-                _SOLVED.pop(next(iter(_SOLVED)))
+        newton = (newton_steps, min_increment)
+        sol = _solve_static(scene, solved, degree, refine, estimate, newton, petsc_options, use_cache)
         times, disp, reac = np.zeros(1), sol["displacement"][None], sol["reaction"][None]
     meta = sol["meta"]
     meta.update(
@@ -219,3 +174,64 @@ def reference_result(
         res.save(path)
     log(f"reference: done in {meta['wall_s']:.1f} s")
     return res
+
+
+def _solve_dynamic(scene: Scene, solved: Scene, degree: int, refine: int, estimate: bool, petsc_options) -> dict:
+    """The dynamic reference of ``solved`` (the scene, or its base) at ``scene``'s vertices."""
+    from reference.driver import solve_dynamic
+
+    ts = scene.time
+    return solve_dynamic(
+        solved.mesh,
+        solved.body_material(),
+        solved.problem,
+        ts.end,
+        ts.output_every,
+        rayleigh=(ts.damping_mass, ts.damping_stiffness),
+        degree=degree,
+        refine=refine,
+        estimate=estimate,
+        points=scene.mesh.points,
+        petsc_options=petsc_options,
+    )
+
+
+def _solve_static(scene: Scene, solved: Scene, degree, refine, estimate, newton: tuple, petsc_options, use_cache):
+    """The static reference of ``solved`` (the scene, or its base) at ``scene``'s vertices: the same
+    problem solved before in this process (``_SOLVED``) or kept beside its cached result evaluated
+    there, else solved (and kept)."""
+    from mpi4py import MPI
+
+    from reference.driver import evaluate_static, solve_static
+
+    newton_steps, min_increment = newton
+    memo = (solved.sha256(), degree, refine, estimate, newton_steps, min_increment, json.dumps(petsc_options or {}))
+    serial = MPI.COMM_WORLD.size == 1
+    fields = _fields_path(
+        reference_path(solved, degree, refine, estimate, newton_steps, min_increment, False, petsc_options)
+    )
+    if use_cache and memo not in _SOLVED and serial and solved is not scene and fields.exists():
+        _restore_solved(memo, fields, solved, solved.body_material(), degree, refine)
+    if use_cache and memo in _SOLVED:  # use_cache=False asks for a solve (the benchmarks time it)
+        log("reference: the same problem was solved before: evaluated at these vertices")
+        return evaluate_static(*_SOLVED[memo], scene.mesh.points)
+    sol = solve_static(
+        solved.mesh,
+        solved.body_material(),
+        solved.problem,
+        degree=degree,
+        refine=refine,
+        estimate=estimate,
+        newton_steps=newton_steps,
+        min_increment=min_increment,
+        points=scene.mesh.points,
+        petsc_options=petsc_options,
+    )
+    problems = sol.pop("problems")
+    if use_cache:
+        _SOLVED[memo] = problems, copy.deepcopy(sol["meta"])
+        if serial and estimate and solved is scene:
+            _save_solved(fields, problems, sol["meta"])
+    while len(_SOLVED) > SOLVED_KEPT:
+        _SOLVED.pop(next(iter(_SOLVED)))
+    return sol

@@ -12,7 +12,7 @@ from verification.scene import Scene, SceneError
 
 def converge_manufactured(scene: Scene) -> dict:
     """Observed orders of the reference on the scene's manufactured solution, P1 and P2."""
-    from reference.fem import manufactured_errors
+    from reference.manufactured import manufactured_errors
 
     spec = scene.manufactured
     out = {"scene": scene.name, "kind": "manufactured", "law": scene.material.law, "series": []}

@@ -22,7 +22,7 @@ from verification.scene import Scene
 
 def _solve(scene: Scene, options: dict) -> str | None:
     """One reference into the cache (in a worker process); the one-line reason if it cannot be solved."""
-    from reference.fem import ReferenceSolveError
+    from reference.errors import ReferenceSolveError
     from verification.runs.reference import reference_result
 
     try:

@@ -86,7 +86,7 @@ def _sliver_variant(scene: Scene):
 
 def _cell(scene: Scene, model: str, integrator: str, tol: float, baseline: float | None, use_cache: bool) -> dict:
     from realtime import NotConvergedError
-    from reference.fem import ReferenceSolveError
+    from reference.errors import ReferenceSolveError
 
     if scene.sha256() in FAILED_REFERENCES:  # a reference that failed once fails again: do not re-solve it
         return _alone(scene, model, integrator, f"no reference ({FAILED_REFERENCES[scene.sha256()]})")

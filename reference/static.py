@@ -1,0 +1,186 @@
+"""Static solves of an elasticity problem (a mixin of ``reference.fem.ElasticityProblem``): one linear
+solve for the linear law without penalty, else Newton with load stepping and step halving.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import ufl
+from dolfinx import fem
+from dolfinx.fem.petsc import LinearProblem
+
+from .errors import ReferenceSolveError
+from .solver import DIVERGED, Newton, _mumps_info, _watched, fallback_options, grow_ksp_workspace, solver_options
+
+
+class StaticSolves:
+    """The static solves of a ``ProblemForms``."""
+
+    def solve_linear(self, petsc_options=None) -> dict:
+        """One linear solve (law = linear): K u = f with the Dirichlet conditions."""
+        if not self.linear:
+            raise ValueError("solve_linear needs law = linear and no volume penalty; use solve_newton")
+        opts = solver_options(self.n_dofs, petsc_options, linear=True)
+        du = ufl.TrialFunction(self.V)
+        zero = fem.Function(self.V)
+        a = ufl.replace(ufl.derivative(self.residual, self.u, du), {self.u: zero})
+        L = -ufl.replace(self.residual, {self.u: zero})
+        t0 = time.perf_counter()
+        problem = LinearProblem(a, L, bcs=self.bcs, u=self.u, petsc_options=opts)
+        if opts.get("pc_type") == "gamg":
+            problem.A.setNearNullSpace(self.rigid_body_modes())
+        with _watched(True, self.n_dofs, "the linear solve", self.comm.rank):
+            problem.solve()
+        reason = problem.solver.getConvergedReason()
+        while reason < 0 and grow_ksp_workspace(problem.solver, self._log):
+            problem.solve()  # assembles the matrix again, so the preconditioner factorises it again
+            reason = problem.solver.getConvergedReason()
+        tried = [f"{opts.get('pc_type')} (PETSc reason {reason})"]
+        while reason < 0 and (fallback := fallback_options(opts, self.n_dofs, petsc_options)) is not None:
+            opts, what = fallback
+            self._log(f"reference: the iterative solve failed (PETSc reason {reason}); trying {what}")
+            problem = LinearProblem(a, L, bcs=self.bcs, u=self.u, petsc_options=opts)
+            if opts.get("pc_type") == "gamg":
+                problem.A.setNearNullSpace(self.rigid_body_modes())
+            with _watched(True, self.n_dofs, what.split(" (")[0], self.comm.rank):
+                problem.solve()
+            reason = problem.solver.getConvergedReason()
+            tried.append(f"{what.split(' (')[0]} (PETSc reason {reason})")
+        if reason < 0:
+            raise ReferenceSolveError(
+                f"linear solve failed ({self.n_dofs} dofs): tried {', then '.join(tried)}; a coarser mesh, "
+                "--petsc-option pc_type=lu, or more memory for a direct solve may help"
+            )
+        self.timings["solve_s"] = time.perf_counter() - t0
+        # recorded, not enforced: linear elasticity has no notion of inversion, but a user should see
+        # when its answer means elements turned inside out
+        return {"solver": "linear", "petsc_options": opts, "iterations": 1, "min_det_F": self.min_det_F()}
+
+    def solve_newton(
+        self,
+        steps: int = 1,
+        rtol: float = 1e-10,
+        max_it: int = 25,
+        min_increment: float = 1e-4,
+        petsc_options=None,
+        time_limit: float = 600.0,
+        start_at_full_load: bool = False,
+    ) -> dict:
+        """Newton with load stepping and step halving on failure (the load fraction goes 0 -> 1).
+
+        ``start_at_full_load``: u already holds a good guess (a coarser level's solution): try the full
+        load from it first, and fall back to load stepping from rest if Newton fails there.
+
+        Convergence: ``Newton``'s residual test (free residual below rtol times the force scale).
+        Raises ReferenceSolveError naming the load fraction reached and what to change when the
+        increment became smaller than ``min_increment`` or the solve took more than ``time_limit``
+        seconds. Each load step's Newton iterations go to stderr.
+        """
+        opts = solver_options(self.n_dofs, petsc_options)
+        du = ufl.TrialFunction(self.V)
+        solver = Newton(
+            self.comm,
+            self.residual,
+            self.u,
+            self.bcs,
+            ufl.derivative(self.residual, self.u, du),
+            opts,
+            near_nullspace=self.rigid_body_modes() if opts.get("pc_type") == "gamg" else None,
+        )
+        t0 = time.perf_counter()
+        done, inc = 0.0, 1.0 / steps
+        history = []
+        if start_at_full_load:
+            done = self._full_load_from_coarse(solver, rtol, max_it, history)
+        while done < 1.0 - 1e-14:
+            target = min(1.0, done + inc)
+            saved = self.u.x.array.copy()
+            self.load_factor.value = target
+            self.set_tool_fraction(target)
+            res = solver.solve(rtol, max_it)
+            its, ok = res["iterations"], res["converged"]
+            elapsed = time.perf_counter() - t0
+            ok = ok and bool(np.all(np.isfinite(self.u.x.array)))
+            # a root with inverted elements solves the equations but is no deformation of the body
+            # (StVK has one under strong compression): it counts as a failure
+            jmin = self.min_det_F() if ok else float("nan")
+            if ok and jmin > 0.0:
+                history.append(
+                    {"load": target, "iterations": int(its), "factorisations": res["factorisations"], "min_det_F": jmin}
+                )
+                self._log(
+                    f"reference: load {target:.4g}: {int(its)} Newton iterations, {res['factorisations']} "
+                    f"factorisations ({elapsed:.1f} s)"
+                )
+                done = target
+                inc = min(2.0 * inc, 1.0)
+                continue
+            self.u.x.array[:] = saved
+            inc *= 0.5
+            self._log(
+                f"reference: load {target:.4g}: {_failure(res, ok, jmin, solver)}, load increment halved to {inc:.3g}"
+            )
+            if inc < min_increment or elapsed > time_limit:
+                why = f"increments down to {inc:.1e}" if inc < min_increment else f"{elapsed:.0f} s, the limit"
+                raise self._no_equilibrium(done, why, steps)
+        self.timings["solve_s"] = time.perf_counter() - t0
+        return {
+            "solver": "newton",
+            "petsc_options": opts,
+            "load_steps": history,
+            "iterations": sum(h["iterations"] for h in history),
+            "factorisations": solver.factorisations,  # failed load steps' included
+            "undone_steps": solver.undone,
+            "linear_iterations": solver.linear_iterations,
+            "rtol": rtol,
+            "min_det_F": history[-1]["min_det_F"],
+        }
+
+    def _no_equilibrium(self, done: float, why: str, steps: int) -> ReferenceSolveError:
+        """The error of a Newton solve that gave up at load fraction ``done`` (``why``)."""
+        return ReferenceSolveError(
+            f"reference: Newton found no equilibrium without inverted elements beyond load fraction "
+            f"{done:.4g} ({why}; law = "
+            f"{self.law}, P{self.degree}, refine {self.refine}, {self.n_dofs} dofs): the load may "
+            f"be too large for this mesh and law, or elements invert; try a smaller load, a finer mesh, "
+            f"law = linear, or more load steps (--load-steps {max(4 * steps, 10)})"
+        )
+
+    def _full_load_from_coarse(self, solver: Newton, rtol: float, max_it: int, history: list) -> float:
+        """Newton at the full load from the u a coarser level left: the load fraction reached (1, its
+        step recorded in ``history``), or 0 with u back at rest when it fails there."""
+        self.load_factor.value = 1.0
+        self.set_tool_fraction(1.0)
+        res = solver.solve(rtol, max_it)
+        ok = res["converged"] and bool(np.all(np.isfinite(self.u.x.array)))
+        jmin = self.min_det_F() if ok else float("nan")
+        if ok and jmin > 0.0:
+            step = {"load": 1.0, "iterations": res["iterations"], "factorisations": res["factorisations"]}
+            history.append({**step, "min_det_F": jmin, "nested": True})
+            self._log(
+                f"reference: full load from the coarser solution: {res['iterations']} Newton iterations, "
+                f"{res['factorisations']} factorisations"
+            )
+            return 1.0
+        self._log("reference: Newton from the coarser solution failed; load stepping from rest")
+        self.u.x.array[:] = 0.0
+        return 0.0
+
+    def solve(self, **kwargs) -> dict:
+        """solve_linear for the linear law without penalty, solve_newton otherwise."""
+        if self.linear:
+            return self.solve_linear(petsc_options=kwargs.get("petsc_options"))
+        return self.solve_newton(**kwargs)
+
+
+def _failure(res: dict, ok: bool, jmin: float, solver: Newton) -> str:
+    """What went wrong in a failed load step, for its line on stderr."""
+    if ok:
+        return f"Newton found inverted elements (min det F = {jmin:.3g})"
+    if res.get("diverged"):
+        return f"Newton diverged after {res['factorisations']} factorisations (residual {DIVERGED:.0e} x its best)"
+    if "ksp_reason" in res:
+        return f"the linear solver failed (PETSc KSP reason {res['ksp_reason']}{_mumps_info(solver.ksp)})"
+    return f"Newton failed ({res['factorisations']} factorisations)"
