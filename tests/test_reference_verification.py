@@ -344,7 +344,7 @@ def test_fibres_around_an_axis_engine_and_reference_converge_together():
     """The reference evaluates circumferential fibres at its quadrature points, the engine at each
     tetrahedron's centroid: one problem, two samplings of its coefficient, whose difference must vanish
     as the mesh is refined (with fibres along one direction they solve one linear system)."""
-    from verification.studies.seeds import seed_scene
+    from verification.studies.seeds.common import seed_scene
 
     def edit(around):
         def change(data):

@@ -16,6 +16,7 @@ from verification.engines.builtin import scene_model
 from verification.metrics import rel_l2
 from verification.runs.reference import reference_result
 from verification.studies import seeds
+from verification.studies.seeds import common, e2_partial_rotation, e3_tubes
 
 pytestmark = pytest.mark.slow
 
@@ -23,9 +24,9 @@ _RUNS: dict = {}
 
 
 def finding(key: str) -> dict:
-    """One experiment at seeds.SMALL, run once per session (the page test reuses all nine)."""
+    """One experiment at common.SMALL, run once per session (the page test reuses all nine)."""
     if key not in _RUNS:
-        _RUNS[key] = seeds.EXPERIMENTS[key](seeds.SMALL)
+        _RUNS[key] = seeds.EXPERIMENTS[key](common.SMALL)
     return _RUNS[key]
 
 
@@ -70,7 +71,7 @@ def test_tube_fibres_along_the_axis_follow_beam_theory():
     area = math.pi * (ro**2 - ri**2)
     shear = young / (2 * (1 + nu))
     kappa = 0.53  # Timoshenko's shear coefficient of a tube with ri / ro = 0.6 (Cowper 1966)
-    force = seeds.SMALL.tube_force
+    force = common.SMALL.tube_force
 
     def tip(e_axial):
         return force * length**3 / (3 * e_axial * inertia) + force * length / (kappa * shear * area)
@@ -78,7 +79,7 @@ def test_tube_fibres_along_the_axis_follow_beam_theory():
     # Fibres along the axis stiffen bending by young_fiber / young and leave the shear term alone.
     # Beam theory ignores the clamp's restrained Poisson contraction and the top's load spreading:
     # 15% is its accuracy on this short (L / D = 3) tube.
-    expected = tip(seeds.FIBRE_RATIO * young) / tip(young)
+    expected = tip(e3_tubes.FIBRE_RATIO * young) / tip(young)
     assert abs(axial["ref_ratio"] / expected - 1.0) < 0.15
     assert 1e3 * tip(young) == pytest.approx(iso["ref_tip_mm"], rel=0.15)
     # fibres around the tube resist its walls' hoop strain (the bent walls' Poisson contraction, the
@@ -114,9 +115,9 @@ def test_hybrid_limits_are_stvk_and_linear():
 
 def test_tensor_mass_is_the_p1_solution_on_every_mesh():
     f = finding("tensor-mass-vs-mass-spring")
-    h0, _ = seeds.SMALL.remesh_h
-    scene = seeds.seed_scene("beam-linear", f"-h{h0:g}", seeds._h_edit(h0))
-    u, _ = seeds._settled(scene, "linear-tm", seeds.SMALL.reference)
+    h0, _ = common.SMALL.remesh_h
+    scene = common.seed_scene("beam-linear", f"-h{h0:g}", e2_partial_rotation._h_edit(h0))
+    u, _ = common._settled(scene, "linear-tm", common.SMALL.reference)
     p1 = reference_result(scene, degree=1, estimate=False, own_mesh=True).displacement[0]
     # one linear system solved by dolfinx's LU and by damped dynamics settled to 1e-10 of the force
     # scale, over a conditioning of about 1e3
@@ -129,7 +130,7 @@ def test_tensor_mass_is_the_p1_solution_on_every_mesh():
 def test_critical_step_is_the_measured_stability_limit():
     f = finding("critical-stiffness")
     for r in f["table"]:
-        scene = seeds.seed_scene(
+        scene = common.seed_scene(
             "spring-block", f"-E{r['young_pa']:g}", lambda d, e=r["young_pa"]: d["material"].update(young=e)
         )
         model = scene_model(scene, "mass-spring")

@@ -1,0 +1,114 @@
+"""Experiment 5, the hybrid threshold: how much of StVK's accuracy a hybrid keeps, and at what rate."""
+
+from __future__ import annotations
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+from realtime.models import nonlinear_fraction
+from verification.metrics import rel_l2
+from verification.progress import log
+from verification.report.plots import png
+from verification.studies.seeds.common import KEEPS_NONLINEAR, Size, _finding, _ref, _reference_info, _settled
+from verification.studies.seeds.e4_liver import liver_scene
+
+
+def hybrid_rates(size: Size) -> dict:
+    out = _finding(
+        5,
+        "hybrid-threshold",
+        "The hybrid model's update rate against its threshold",
+        "000, slide 30 (Picinbono et al. 2003)",
+        "Using non-linear elasticity only where displacements exceed a threshold raises the update rate "
+        "of the liver model as the threshold grows (slide 30's table on 6342 tetrahedra, 1394 vertices).",
+        "confirmed when the rate at the largest threshold is at least 1.5 times the rate at zero and "
+        "never falls by more than 10% (timing noise) as the threshold grows; nuanced when it rises less. "
+        "Beside it: the fastest threshold whose answer stays within "
+        f"{KEEPS_NONLINEAR:.0%} of the all-linear model's departure from StVK tensor-mass",
+    )
+    scene = liver_scene(size.hybrid_scene, size)
+    ref, est = _ref(scene, size)
+    umax = float(np.linalg.norm(ref, axis=1).max())
+    rows, hybrid_answers = [], []
+    for frac in size.hybrid_fractions:
+        threshold = frac * umax
+        u, meta = _settled(scene, "hybrid-tm", size.reference, {"threshold": threshold}, allow_unsettled=True)
+        hybrid_answers.append(u)
+        rows.append(
+            {
+                "threshold_mm": 1e3 * threshold,
+                "threshold_of_max": frac,
+                "nonlinear_tets": nonlinear_fraction(scene.mesh.tets, ref, threshold),
+                "step_us": meta["step_us"],
+                "rate_hz": 1e6 / meta["step_us"],
+                "rel_l2": None if u is None else rel_l2(u, ref),
+                "settled": meta.get("unsettled", "yes"),
+            }
+        )
+        log(
+            f"seeds 5: threshold {1e3 * threshold:.2f} mm: {rows[-1]['step_us']:.0f} us, settled: {rows[-1]['settled']}"
+        )
+    bounds, answers = {}, {}
+    for m in ("stvk-tm", "linear-tm"):
+        answers[m], meta = _settled(scene, m, size.reference)
+        bounds[m] = {"step_us": meta["step_us"], "rate_hz": 1e6 / meta["step_us"], "rel_l2": rel_l2(answers[m], ref)}
+    linear_departure = rel_l2(answers["linear-tm"], answers["stvk-tm"])
+    for r, u in zip(rows, hybrid_answers, strict=True):
+        r["departure_from_stvk"] = None if u is None else rel_l2(u, answers["stvk-tm"])
+    out["table"] = rows
+    rates = [r["rate_hz"] for r in rows]
+    gain = rates[-1] / rates[0]
+    monotone = all(b > 0.9 * max(rates[: k + 1]) for k, b in enumerate(rates[1:]))
+    near = [
+        r
+        for r in rows
+        if r["departure_from_stvk"] is not None and r["departure_from_stvk"] <= KEEPS_NONLINEAR * linear_departure
+    ]
+    best = max(near, key=lambda r: r["rate_hz"]) if near else None
+    mesh = scene.mesh
+    out["data"] = {
+        "mesh": {"n_vertices": mesh.n_vertices, "n_tets": mesh.n_tets},
+        "rate_gain": gain,
+        "monotone": monotone,
+        "fastest_keeping_nonlinear": best,
+        "linear_departure_from_stvk": linear_departure,
+        "stvk-tm": bounds["stvk-tm"],
+        "linear-tm": bounds["linear-tm"],
+    }
+    out["verdict"] = "confirmed" if gain >= 1.5 and monotone else ("refuted" if gain <= 1.0 else "nuanced")
+    out["decides"] = (
+        f"the rate goes from {rates[0]:.0f} Hz (threshold 0) to {rates[-1]:.0f} Hz (all linear), x{gain:.2f}"
+        + (
+            f"; at {best['threshold_mm']:.2f} mm it runs at {best['rate_hz']:.0f} Hz, "
+            f"{best['departure_from_stvk']:.2%} from StVK (all linear: {linear_departure:.2%})"
+            if best
+            else ""
+        )
+    )
+
+    def one(r):
+        if r["rel_l2"] is None:
+            return f"{r['threshold_mm']:.2g} mm {r['rate_hz']:.0f} Hz (did not settle)"
+        return (
+            f"{r['threshold_mm']:.2g} mm {r['rate_hz']:.0f} Hz (error {r['rel_l2']:.1%}, "
+            f"{r['departure_from_stvk']:.2%} from StVK)"
+        )
+
+    out["figure"] = f"{mesh.n_tets} tetrahedra, {mesh.n_vertices} vertices: " + ", ".join(one(r) for r in rows)
+    out["reference"] = _reference_info([est])
+    fig, ax = plt.subplots(figsize=(6.4, 3.4))
+    xs = [r["threshold_of_max"] for r in rows]
+    ax.plot(xs, rates, "o-", color="#1f77b4", label="hybrid-tm rate")
+    ax.axhline(bounds["stvk-tm"]["rate_hz"], color="#1f77b4", ls=":", lw=0.8, label="stvk-tm rate")
+    ax.axhline(bounds["linear-tm"]["rate_hz"], color="#1f77b4", ls="--", lw=0.8, label="linear-tm rate")
+    ax.set_xlabel("threshold / largest displacement")
+    ax.set_ylabel("updates per second (Hz)", color="#1f77b4")
+    ax2 = ax.twinx()
+    ax2.plot(
+        xs, [np.nan if r["rel_l2"] is None else 100 * r["departure_from_stvk"] for r in rows], "s-", color="#d62728"
+    )
+    ax2.set_ylabel("departure from stvk-tm (%)", color="#d62728")
+    ax.legend(fontsize=7, loc="upper left")
+    ax.set_title(f"hybrid model on {scene.name} ({mesh.n_tets} tetrahedra)", fontsize=9)
+    out["plots"].append({"alt": "hybrid model's rate and error against its threshold", "png": png(fig)})
+    return out

@@ -1,0 +1,132 @@
+"""Experiment 8, rates: which model holds the visual and haptic rates at which mesh size."""
+
+from __future__ import annotations
+
+import math
+
+import matplotlib.pyplot as plt
+
+from realtime.models import QUASI_STATIC
+from verification.metrics import rel_l2
+from verification.progress import log
+from verification.report.plots import png
+from verification.scene import Scene
+from verification.studies.advise import FRAME_SHARE, _available_memory, _memory_bytes, frame_budget
+from verification.studies.seeds.common import Size, _finding, _ref, _reference_info, _settled, seed_scene
+
+#: Seconds a quasi-static model's precomputation may take in the rates study (its cost grows about
+#: 60-fold per refinement: 251 s for precomputed and 363 s for condensed on the 57856-tetrahedron beam).
+PRECOMPUTE_BUDGET = 60.0
+
+
+def _predicted_build(measured: list, n_vertices: int) -> float | None:
+    """A precomputation's time, s, at ``n_vertices``, extrapolated from (vertices, seconds) measured on
+    coarser meshes: the power law through the last two, or, from one, cubic growth (a dense block of
+    surface columns solved against a sparse factor whose cost grows with the volume); None without any."""
+    if not measured:
+        return None
+    (n1, t1) = measured[-1]
+    p = 3.0 if len(measured) < 2 else math.log(t1 / measured[-2][1]) / math.log(n1 / measured[-2][0])
+    return t1 * (n_vertices / n1) ** p
+
+
+RATE_MODELS = ("linear-tm", "corotational-tm", "stvk-tm", "hybrid-tm", "mass-spring", "precomputed", "condensed")
+
+RATES = (("visual", 10.0), ("haptic", 1000.0))
+
+
+def rates_scenes(size: Size) -> list[Scene]:
+    return [seed_scene("rates-beam", refine=level) for level in size.rate_levels]
+
+
+def rates(size: Size) -> dict:
+    out = _finding(
+        8,
+        "rates",
+        "Update rates",
+        "001 (Liu 2002: visual >= 10 Hz, haptic >= 1000 Hz)",
+        "A surgical simulator needs 10 updates per second for the eye and 1000 for a haptic device; "
+        "which model holds which rate, on how large a mesh, and at what error, on this machine.",
+        f"confirmed when every model holds both rates on every mesh (using {FRAME_SHARE:.0%} of a frame); "
+        "refuted when none holds the haptic rate even on the smallest; nuanced otherwise",
+    )
+    rows, estimates, built = [], [], {}
+    for scene in rates_scenes(size):
+        ref, est = _ref(scene, size)
+        estimates.append(est)
+        mesh = scene.mesh
+        for m in RATE_MODELS:
+            row = {"model": m, "n_tets": mesh.n_tets, "n_vertices": mesh.n_vertices}
+            need = _memory_bytes(m, mesh.n_vertices, len(mesh.surface_vertices))
+            if need > _available_memory():
+                row.update(status=f"needs {need / 1e9:.1f} GB, over half the free memory")
+                rows.append(row)
+                continue
+            predicted = _predicted_build(built.get(m, []), mesh.n_vertices)
+            if predicted is not None and predicted > PRECOMPUTE_BUDGET:
+                row.update(
+                    status=f"skipped: its precomputation would take about {predicted:.0f} s "
+                    f"(extrapolated from {len(built[m])} coarser meshes; the study allows {PRECOMPUTE_BUDGET:.0f} s)"
+                )
+                rows.append(row)
+                continue
+            log(f"seeds 8: {m} on {mesh.n_tets} tetrahedra")
+            u, meta = _settled(scene, m, size.reference, allow_unsettled=True)
+            settled = u is not None
+            if settled and m in QUASI_STATIC:
+                built.setdefault(m, []).append((mesh.n_vertices, meta["build_s"]))
+            run = {
+                "step_us": meta["step_us"],
+                "dt": meta["dt"],
+                "settle_steps": meta["static"]["steps"] if settled else 1,
+            }
+            row.update(
+                status="ok" if settled else f"did not settle: {meta['unsettled']}",
+                step_us=meta["step_us"],
+                rel_l2=rel_l2(u, ref) if settled else None,
+            )
+            for label, hz in RATES:
+                row[f"holds_{label}"] = frame_budget(run, hz, dynamic=False)["holds"]
+            rows.append(row)
+    out["table"] = rows
+    ok = [r for r in rows if "step_us" in r]  # timed: settled or not
+    every = all(r["status"] == "ok" and r["holds_visual"] and r["holds_haptic"] for r in rows)
+    smallest = min(r["n_tets"] for r in rows)
+    none_haptic = not any(r["holds_haptic"] for r in ok if r["n_tets"] == smallest)
+    largest = {}
+    for m in RATE_MODELS:
+        for label, _ in RATES:
+            held = [r for r in ok if r["model"] == m and r[f"holds_{label}"]]
+            best = max(held, key=lambda r: r["n_tets"]) if held else None
+            largest.setdefault(m, {})[label] = (
+                None if best is None else {"n_tets": best["n_tets"], "rel_l2": best["rel_l2"], "status": best["status"]}
+            )
+    out["data"] = {"largest_mesh_held": largest}
+    out["verdict"] = "confirmed" if every else ("refuted" if none_haptic else "nuanced")
+
+    def held(v):
+        if v is None:
+            return "none"
+        err = "not settled" if v["rel_l2"] is None else f"error {v['rel_l2']:.1%}"
+        return f"{v['n_tets']} tets ({err})"
+
+    order = sorted(largest, key=lambda m: -(largest[m]["haptic"] or {"n_tets": 0})["n_tets"])
+    out["decides"] = "largest mesh held at 1 kHz: " + ", ".join(f"{m} {held(largest[m]['haptic'])}" for m in order)
+    out["figure"] = "; ".join(
+        f"{m}: 10 Hz up to {held(v['visual'])}, 1 kHz up to {held(v['haptic'])}" for m, v in largest.items()
+    )
+    out["reference"] = _reference_info(estimates)
+    fig, ax = plt.subplots(figsize=(6.6, 3.8))
+    for m in RATE_MODELS:
+        rs = [r for r in ok if r["model"] == m]
+        if rs:
+            ax.loglog([r["n_tets"] for r in rs], [r["step_us"] for r in rs], "o-", ms=4, label=m)
+    for label, hz in RATES:
+        ax.axhline(FRAME_SHARE * 1e6 / hz, color="k", ls=":", lw=0.8)
+        ax.text(ax.get_xlim()[0], FRAME_SHARE * 1e6 / hz, f" {label} {hz:g} Hz", fontsize=7, va="bottom")
+    ax.set_xlabel("tetrahedra")
+    ax.set_ylabel("us per update")
+    ax.legend(fontsize=7)
+    ax.set_title("what fits in a frame on this machine", fontsize=9)
+    out["plots"].append({"alt": "time per update against mesh size with the visual and haptic frames", "png": png(fig)})
+    return out
