@@ -138,7 +138,7 @@ def references_ahead(private_cache, run_dir):
     takes every core), then each reads which ones failed from the file the solver left."""
     if not _SESSION["slow"]:
         return
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
     from verification.studies.prefetch import scene_jobs, solve_references
     from verification.studies.stability import FAILED_REFERENCES, reference_jobs
 

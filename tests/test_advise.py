@@ -15,7 +15,8 @@ import pytest
 from realtime import MODELS
 from verification.cli import main
 from verification.runs.reference import reference_result
-from verification.scene import SceneError, load_scene, parse
+from verification.scene import SceneError
+from verification.scene_file import load_scene, parse
 from verification.studies.advise import FRAME_SHARE, frame_budget, merge_same_answers
 
 

@@ -45,7 +45,7 @@ def test_error_budget_of_a_dynamic_run_has_a_time_part(capsys):
     b = json.loads(capsys.readouterr().out)["error_budget"]
     # the P1 reference returns its refined solution, so the mesh part is exactly its spatial difference
     from verification.runs.reference import reference_result
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
 
     ref = reference_result(load_scene("cantilever-dynamic"), degree=1, refine=0, estimate=True)
     assert b["mesh"] == pytest.approx(ref.meta["ref_err_space"], rel=1e-12)
@@ -124,7 +124,7 @@ def _read_pvd(pvd):
 def test_compare_vtk_writes_a_paraview_time_series(tmp_path, capsys):
     """A dynamic scene: one .vtu per output time with both displacements and the error, listed with their
     times in one .pvd; every value matches the run's own result files."""
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
 
     scene = load_scene("cantilever-dynamic")
     args = ["--degree", "1", "--json", "--vtk", str(tmp_path / "vtk")]
@@ -194,7 +194,7 @@ def test_a_damaged_cache_entry_is_computed_again(tmp_path, capsys, monkeypatch):
     from verification.cache import cache_dir
     from verification.runs.reference import reference_result
     from verification.runs.store import cached_compare
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
 
     monkeypatch.setenv("TISSUEBENCH_CACHE", str(tmp_path))
     scene = load_scene("cantilever-pull")

@@ -9,7 +9,7 @@ from verification.inputs import scene_inputs
 from verification.runs.compare import compare
 from verification.runs.reference import reference_result
 from verification.runs.simulate import output_times, run_model, trajectory
-from verification.scene import load_scene
+from verification.scene_file import load_scene
 
 
 @pytest.fixture(scope="module")

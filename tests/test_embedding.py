@@ -25,7 +25,7 @@ from realtime import (
 from realtime.models import cut
 from realtime.spectra import min_eigenvalue
 from verification.engines.builtin import scene_model
-from verification.scene import load_scene
+from verification.scene_file import load_scene
 
 MAT = Material(5e5, 0.45, 1000.0, law="stvk")
 

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from meshes.regions import SphereRegion
-from verification.scene import load_scene
+from verification.scene_file import load_scene
 
 
 def _key(x):

@@ -17,7 +17,8 @@ from realtime import Loading, LoadingError, Material, build_model
 from realtime.geometry import InvalidMeshError
 from verification import cli
 from verification.cli import main
-from verification.scene import SCENES_DIR, SceneError, builtin_scenes
+from verification.scene import SCENES_DIR, SceneError
+from verification.scene_file import builtin_scenes
 
 
 def run(args, capsys):
@@ -171,7 +172,7 @@ def test_text_files_as_editors_save_them(tmp_path, capsys):
     """A scene saved with a UTF-8 byte-order mark (Windows' Notepad) was "not valid TOML (Invalid
     statement (at line 1, column 1))"; it reads as the same scene. A gates file that is not text was
     a UnicodeDecodeError traceback; it is a one-line error."""
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
 
     text = (Path(load_scene("cantilever").path)).read_text()
     (tmp_path / "bom.toml").write_bytes(b"\xef\xbb\xbf" + text.encode())
@@ -435,7 +436,8 @@ def test_check_prints_the_extent_and_warns_of_a_mesh_in_millimetres(tmp_path, ca
     warnings = [line.strip() for line in out.splitlines() if line.strip().startswith("warning:")]
     assert len(warnings) == 3 and "214 m across" in warnings[0] and "scale = 0.001" in warnings[0]
     assert "material.young = 28 Pa" in warnings[1] and "material.density = 1 kg/m^3" in warnings[2]
-    from verification.scene import implausible, load_scene
+    from verification.scene import implausible
+    from verification.scene_file import load_scene
 
     assert implausible(load_scene(path)) == [w.removeprefix("warning: ") for w in warnings]
     assert all(implausible(load_scene(name)) == [] for name in builtin_scenes())
@@ -499,7 +501,7 @@ def test_a_static_scene_whose_own_answer_is_beyond_the_blow_up_guard_is_refused_
     # a study records it as the divergence it is, with its cause (the stability study varies E down to
     # where this happens, and goes on)
     from verification.runs.compare import compare
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
 
     row = compare(load_scene(path), "linear-tm")
     assert row["status"] == "diverged" and row["unbounded"] and "static answer reaches" in row["message"]

@@ -424,7 +424,7 @@ def test_a_settling_below_its_round_off_floor_stops_there_whatever_the_order_of_
     without progress (21 200 and 22 200 steps measured, one thread against two: round-off decided)."""
     from realtime import statics
     from verification.engines.builtin import scene_model
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
 
     scene = load_scene("cantilever")
     runs = []

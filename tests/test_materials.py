@@ -173,7 +173,7 @@ def test_layered_slab_is_exact_in_the_p1_reference_and_the_settled_linear_tensor
     from realtime import solve_static
     from verification.engines.builtin import scene_model
     from verification.runs.reference import reference_result
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
 
     scene = load_scene("layered-slab")
     exact = layered_closed_form(scene)
@@ -200,7 +200,7 @@ def test_p1_reference_and_linear_tensor_mass_solve_one_system_around_an_inclusio
     from realtime import solve_static
     from verification.engines.builtin import scene_model
     from verification.runs.reference import reference_result
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
 
     scene = load_scene("stiff-inclusion").with_material(law="linear")
     assert len(np.unique(scene.body_material().index)) == 2
@@ -215,7 +215,7 @@ def test_p1_reference_and_linear_tensor_mass_solve_one_system_around_an_inclusio
 
 def test_a_refined_scene_keeps_each_tetrahedron_s_material():
     from meshes.regions import locate
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
 
     scene = load_scene("stiff-inclusion")
     fine = scene.refined(1)
@@ -248,7 +248,8 @@ BAD_TABLES = [
 @pytest.mark.parametrize("old, new, message", BAD_TABLES, ids=[b[2][:30] for b in BAD_TABLES])
 def test_bad_material_tables_are_one_line_errors(tmp_path, capsys, old, new, message):
     from verification.cli import main
-    from verification.scene import SceneError, load_scene
+    from verification.scene import SceneError
+    from verification.scene_file import load_scene
 
     assert old in TWO
     path = _scene_file(tmp_path, TWO.replace(old, new, 1))
@@ -280,7 +281,8 @@ def test_a_material_drawn_from_a_cell_field_of_the_mesh_file(tmp_path, capsys):
 
     from meshes.generators import grid
     from verification.cli import main
-    from verification.scene import SceneError, load_scene
+    from verification.scene import SceneError
+    from verification.scene_file import load_scene
 
     mesh = grid((0.02, 0.01, 0.01), 0.005)
     zone = (mesh.points[mesh.tets].mean(axis=1)[:, 0] > 0.01).astype(float)
@@ -324,7 +326,7 @@ def test_a_mesh_file_whose_tags_alone_change_is_not_served_its_old_reference(tmp
 
     from meshes import structured_box
     from verification.runs.reference import reference_key
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
 
     box = structured_box((0.02, 0.01, 0.01), (4, 2, 2))
     x = box.points[box.tets].mean(axis=1)[:, 0]

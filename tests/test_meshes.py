@@ -212,7 +212,8 @@ def test_coincident_vertices_are_merged(tmp_path):
 
 
 def test_disconnected_parts_are_counted_and_a_free_one_is_an_error(tmp_path):
-    from verification.scene import SceneError, load_scene
+    from verification.scene import SceneError
+    from verification.scene_file import load_scene
 
     a = structured_box([0.01, 0.01, 0.01], 1)
     points = np.vstack([a.points, a.points + [0.05, 0.0, 0.0]])

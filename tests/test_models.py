@@ -299,7 +299,7 @@ def test_quasi_static_models_equal_the_static_linear_solution(name):
 
     from realtime.quasistatic import QuasiStatic
     from verification.inputs import build_loading
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
 
     scene = load_scene("cantilever-pull").with_material(law="linear")
     mesh = scene.mesh

@@ -9,7 +9,7 @@ from reference.driver import solve_static as reference_static
 from verification.cache import ROOT
 from verification.runs.compare import compare
 from verification.runs.reference import reference_result
-from verification.scene import load_scene
+from verification.scene_file import load_scene
 
 from .conftest import SWING
 

@@ -19,7 +19,7 @@ from reference.fem import ElasticityProblem
 from reference.manufactured import manufactured_errors
 from reference.problem import Displacement, Fixed, Gravity, Problem
 from verification.runs.results import Result
-from verification.scene import load_scene
+from verification.scene_file import load_scene
 
 from .conftest import SWING
 

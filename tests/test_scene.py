@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from verification.cli import main
-from verification.scene import SceneError, builtin_scenes, load_scene
+from verification.scene import SceneError
+from verification.scene_file import builtin_scenes, load_scene
 
 GOOD = textwrap.dedent("""
     name = "t"

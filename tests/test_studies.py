@@ -14,7 +14,7 @@ from verification.cache import cache_dir
 from verification.cli import main
 from verification.runs.reference import reference_result
 from verification.runs.store import largest_stable_fraction
-from verification.scene import load_scene
+from verification.scene_file import load_scene
 from verification.studies.advise import LINEAR_MODELS, deformation_summary
 from verification.studies.sweep import pareto_front
 
@@ -599,7 +599,7 @@ def test_a_settling_run_reports_its_steps_as_it_goes(monkeypatch, capfd):
     here so that every chunk of steps reports, with the residual against the tolerance asked."""
     from reference import progress
     from verification.runs.simulate import run_model
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
 
     monkeypatch.setattr(progress, "EVERY", 0.0)
     run_model(load_scene("block-press"), "linear-tm", dt_fraction=0.5)
@@ -658,7 +658,7 @@ def test_a_dynamic_run_reports_its_output_times_as_it_goes(monkeypatch, capfd):
     other long loop (progress.EVERY, set to 0 here so that each output time reports)."""
     from reference import progress
     from verification.runs.simulate import run_model
-    from verification.scene import load_scene
+    from verification.scene_file import load_scene
 
     monkeypatch.setattr(progress, "EVERY", 0.0)
     scene = load_scene("cantilever-dynamic")

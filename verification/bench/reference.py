@@ -16,7 +16,7 @@ from reference import solver
 from verification.bench.suite import machine
 from verification.progress import log
 from verification.runs.reference import reference_result
-from verification.scene import load_scene
+from verification.scene_file import load_scene
 
 BENCH_SCENES = Path(__file__).parents[1] / "scenes" / "bench"
 #: (label, scene, with the estimate): the slender P2 beam with and without its estimate, the

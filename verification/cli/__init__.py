@@ -19,7 +19,8 @@ from realtime import INTEGRATORS, MODELS, DivergenceError, InputError, NotConver
 from reference.errors import ReferenceSolveError
 from verification.engines.builtin import UnboundedAnswerError
 from verification.inputs import check_held
-from verification.scene import builtin_scenes, implausible, load_scene
+from verification.scene import implausible
+from verification.scene_file import builtin_scenes, load_scene
 
 
 def _print_json(obj) -> None:

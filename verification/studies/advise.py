@@ -28,7 +28,8 @@ from realtime import MODELS, NotConvergedError
 from verification.progress import Progress
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from verification.runs.store import cached_compare
-from verification.scene import Scene, SceneError, builtin_scenes
+from verification.scene import Scene, SceneError
+from verification.scene_file import builtin_scenes
 from verification.studies.sweep import sweep
 
 LINEAR_MODELS = ("linear-tm", "precomputed", "condensed")

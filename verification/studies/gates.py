@@ -24,7 +24,8 @@ from realtime import INTEGRATORS, MODELS
 from verification.cache import git_commit
 from verification.runs.results import atomic_write_text
 from verification.runs.store import cached_compare
-from verification.scene import SceneError, load_scene
+from verification.scene import SceneError
+from verification.scene_file import load_scene
 
 DEFAULT_CONFIG = Path(__file__).parent / "gates.toml"
 METRICS = ("rel_l2", "surface_rel_l2", "max_err", "reaction_rel_err", "volume_err")

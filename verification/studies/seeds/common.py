@@ -18,7 +18,8 @@ from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.results import atomic_savez
 from verification.runs.simulate import run_model
 from verification.runs.store import run_key
-from verification.scene import SCENES_DIR, Scene, parse, resolve
+from verification.scene import SCENES_DIR, Scene
+from verification.scene_file import parse, resolve
 
 SEEDS_SCENES = SCENES_DIR / "seeds"
 
