@@ -168,7 +168,7 @@ def test_compare_on_a_real_sofa_liver(capsys):
 
 
 def test_petsc_options_are_merged_and_a_malformed_one_is_one_line(capsys):
-    from verification.cli import build_parser
+    from verification.cli.parser import build_parser
 
     args = build_parser().parse_args(
         [

@@ -441,7 +441,7 @@ def test_check_prints_the_extent_and_warns_of_a_mesh_in_millimetres(tmp_path, ca
 
     assert implausible(load_scene(path)) == [w.removeprefix("warning: ") for w in warnings]
     assert all(implausible(load_scene(name)) == [] for name in builtin_scenes())
-    from verification.cli import _scene
+    from verification.cli.commands import _scene
 
     class Args:
         scene = str(path)

@@ -1,0 +1,456 @@
+"""The commands of ``tissuebench``, one function each (``cmd_NAME``): each reads its scene, runs what it
+asks through the studies and prints text, or with --json one JSON object."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from verification.inputs import check_held
+from verification.scene import implausible
+from verification.scene_file import builtin_scenes, load_scene
+
+
+def _print_json(obj) -> None:
+    print(json.dumps(obj, indent=1, default=_default))
+
+
+def _emit(args, out: dict, text) -> None:
+    """The command's result: ``out`` as JSON with --json, else ``text(out)``."""
+    if args.json:
+        _print_json(out)
+    else:
+        print(text(out))
+
+
+def _default(x):
+    import numpy as np
+
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return str(x)
+
+
+def cmd_scenes(args) -> int:
+    rows = []
+    for name, path in builtin_scenes().items():
+        s = load_scene(path)
+        rows.append(
+            {
+                "name": name,
+                "mode": s.time.mode,
+                "law": s.material.law,
+                "mesh": s.mesh_spec["generator"],
+                "description": s.description,
+                "path": str(path),
+            }
+        )
+    if args.json:
+        _print_json({"scenes": rows})
+    else:
+        for r in rows:
+            print(f"{r['name']:<18} {r['mode']:<8} {r['law']:<7} {r['mesh']:<9} {r['description']}")
+    return 0
+
+
+def _scene(args, warn: bool = True):
+    """The command's scene, cut ``--mesh-refine`` more times than its file says; with ``warn``, what
+    no soft tissue has (scene.implausible) goes to stderr before any work."""
+    scene = load_scene(args.scene, refine=getattr(args, "mesh_refine", 0))
+    check_held(scene)
+    if warn:
+        from verification.progress import log
+
+        for line in implausible(scene):
+            log(f"tissuebench: warning: {scene.path}: {line}")
+    return scene
+
+
+def _write_vtk(target: str, name: str, res) -> None:
+    """A result's displacements at every output time as a ParaView series (--vtk)."""
+    from verification.report.vtk import write_series
+
+    write_series(target, name, res.points, res.tets, res.times, {"displacement": res.displacement})
+
+
+def _zones(scene) -> list:
+    """Each [[material]] table: its region, law constants and how many tetrahedra it holds."""
+    import numpy as np
+
+    if not scene.zones:
+        return []
+    counts = np.bincount(scene.body_material().index, minlength=len(scene.zones))
+    return [
+        {
+            "table": f"material[{k}]",
+            "region": region.describe(),
+            "tets": int(counts[k]),
+            "young_pa": m.young,
+            "poisson": m.poisson,
+            "density_kg_m3": m.density,
+            "wave_speed_m_s": m.wave_speed,
+        }
+        for k, (region, m) in enumerate(scene.zones)
+    ]
+
+
+def cmd_check(args) -> int:
+    """Read a scene as every command does (mesh, regions, loading, a model) and describe it, solving
+    nothing: the check to run before a long study."""
+    import realtime
+    from verification.inputs import build_loading
+
+    scene = _scene(args, warn=False)  # check prints them with the rest
+    mesh = scene.mesh
+    loading = build_loading(mesh, scene.densities(), scene.problem)
+    lo, hi = mesh.bounding_box()
+    model = realtime.build_model("linear-tm", mesh.points, mesh.tets, scene.body_material(), loading)
+    regions = []
+    for i, fx in enumerate(scene.problem.fixed):
+        regions.append(
+            {"table": f"fixed[{i}]", "region": fx.region.describe(), "vertices": len(fx.region.vertices(mesh))}
+        )
+    for i, ld in enumerate(scene.problem.loads):
+        if hasattr(ld, "region"):
+            regions.append(
+                {"table": f"load[{i}]", "region": ld.region.describe(), "vertices": len(ld.region.vertices(mesh))}
+            )
+    m = scene.material
+    out = {
+        "scene": scene.name,
+        "path": str(scene.path),
+        "mode": scene.time.mode,
+        "law": m.law,
+        "mesh": {**mesh.quality(), "sha256": mesh.sha256(), "parts": mesh.parts()[0], "notes": list(mesh.notes)},
+        "regions": regions,
+        "material": {"lambda_pa": m.lam, "mu_pa": m.mu, "wave_speed_m_s": m.wave_speed},
+        "materials": _zones(scene),
+        "dt_crit_element_s": realtime.element_critical_dt(model),
+        "extent_m": {"min": lo.tolist(), "max": hi.tolist(), "size": (hi - lo).tolist()},
+        "warnings": implausible(scene),
+    }
+
+    def text(o):
+        q = o["mesh"]
+        lines = [
+            f"{o['scene']} ({o['mode']}, {o['law']}): {q['n_vertices']} vertices, {q['n_tets']} tetrahedra, "
+            f"{q['parts']} part(s), dihedral angles {q['min_dihedral_deg']:.1f} to {q['max_dihedral_deg']:.1f} "
+            f"degrees, aspect ratio up to {q['max_aspect_ratio']:.2f}"
+        ]
+        e = o["extent_m"]
+        lines.append(
+            "  extent: {:.4g} x {:.4g} x {:.4g} m, from ({:.4g}, {:.4g}, {:.4g}) to ({:.4g}, {:.4g}, {:.4g}) m".format(
+                *e["size"], *e["min"], *e["max"]
+            )
+        )
+        lines += [f"  warning: {w}" for w in o["warnings"]]
+        lines += [f"  mesh repaired: {n}" for n in q["notes"]]
+        lines += [
+            f"  {z['table']}: {z['region']} holds {z['tets']} tetrahedra: E = {z['young_pa']:.4g} Pa, "
+            f"nu = {z['poisson']:.4g}, rho = {z['density_kg_m3']:.4g} kg/m^3"
+            for z in o["materials"]
+        ]
+        lines += [f"  {r['table']}: {r['region']} holds {r['vertices']} vertices" for r in o["regions"]]
+        lines.append(f"  element estimate of the explicit critical step: {o['dt_crit_element_s']:.3g} s")
+        return "\n".join(lines)
+
+    _emit(args, out, text)
+    return 0
+
+
+def cmd_reference(args) -> int:
+    from verification.runs.reference import reference_result
+
+    scene = _scene(args)
+    res = reference_result(
+        scene,
+        degree=args.degree,
+        refine=args.refine,
+        estimate=not args.no_estimate,
+        use_cache=not args.no_cache,
+        newton_steps=args.load_steps,
+        petsc_options=args.petsc_option,
+    )
+    from mpi4py import MPI
+
+    if args.out and MPI.COMM_WORLD.rank == 0:
+        res.save(args.out)
+    if args.vtk and MPI.COMM_WORLD.rank == 0:
+        _write_vtk(args.vtk, f"{scene.name}-reference", res)
+    summary = {
+        "scene": scene.name,
+        "out": args.out,
+        "max_displacement": float(abs(res.displacement).max()),
+        "reaction": res.reaction[-1].tolist(),
+        "meta": res.meta,
+    }
+    if MPI.COMM_WORLD.rank == 0:
+        if args.json:
+            _print_json(summary)
+        else:
+            est = res.meta.get("ref_err_estimate")
+            print(
+                f"{scene.name}: P{args.degree} refine {args.refine}, max |u| = {summary['max_displacement']:.4g} m"
+                + (f", ref_err_estimate = {est:.3g}" if est is not None else "")
+                + (f", written to {args.out}" if args.out else "")
+                + (f"; unverified: {res.meta['unchecked']}" if res.meta.get("unchecked") else "")
+            )
+    return 0
+
+
+def cmd_run(args) -> int:
+    from verification.runs.simulate import run_model
+
+    scene = _scene(args)
+    res = run_model(scene, args.model, dt=args.dt, integrator=args.integrator, max_steps=args.max_steps)
+    if args.out:
+        res.save(args.out)
+    if args.vtk:
+        _write_vtk(args.vtk, f"{scene.name}-{args.model}", res)
+    m = res.meta
+    summary = {
+        "scene": scene.name,
+        "model": args.model,
+        "out": args.out,
+        "dt": m["dt"],
+        "dt_crit": m["dt_crit"],
+        "step_us": m["step_us"],
+        "settle_steps": m["static"]["steps"],
+        "max_displacement": float(abs(res.displacement).max()),
+        "reaction": res.reaction[-1].tolist(),
+    }
+    if args.json:
+        _print_json({**summary, "meta": m})
+    else:
+        # quasi-static models have no time step, dynamic runs no settling
+        step = "quasi-static update" if m["dt"] is None else f"dt = {m['dt']:.3g} s"
+        crit = f" (critical {m['dt_crit']:.3g} s)" if m.get("dt_crit") is not None else ""
+        settle = f"settled in {m['static']['steps']} steps, " if scene.time.mode == "static" else ""
+        print(
+            f"{scene.name} / {args.model}: {step}{crit}, {m['step_us']:.1f} us/step, {settle}"
+            f"max |u| = {summary['max_displacement']:.4g} m" + (f", written to {args.out}" if args.out else "")
+        )
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from verification.runs.compare import compare
+
+    scene = _scene(args)
+    out = compare(
+        scene,
+        args.model,
+        dt=args.dt,
+        integrator=args.integrator,
+        degree=args.degree,
+        refine=args.refine,
+        petsc_options=args.petsc_option,
+        max_steps=args.max_steps,
+        vtk=args.vtk,
+    )
+    if args.rate and out["status"] == "ok":
+        from verification.studies.advise import frame_budget
+
+        out["frame"] = frame_budget(out, args.rate, scene.time.mode == "dynamic")
+    if out.get("unbounded"):  # the scene's own answer is past the blow-up guard: its input, not a step
+        return _fail(f"tissuebench: {_one_line(out['message'])}", 2)
+    if args.json:
+        _print_json(out)
+    elif out["status"] != "ok":
+        print(out["message"])
+    else:
+        acc = " (at reference accuracy)" if out["at_reference_accuracy"] else ""
+        at = "its quasi-static update" if out["dt"] is None else f"dt = {out['dt']:.3g} s"
+        print(f"{scene.name} / {args.model} at {at}:")
+        for k in (
+            "rel_l2",
+            "surface_rel_l2",
+            "max_err",
+            "reaction_rel_err",
+            "volume_err",
+            "ref_err_estimate",
+            "step_us",
+            "realtime_factor",
+            "rate_hz",
+        ):
+            v = out[k]
+            print(f"  {k:<18} {'-' if v is None else f'{v:.4g}'}{acc if k == 'rel_l2' else ''}")
+        b = out.get("error_budget") or {}
+        if b.get("mesh") is not None:
+            parts = ", ".join(f"{p} {b[p]:.3g}" for p in ("mesh", "model", "time") if b.get(p) is not None)
+            print(f"  {'error_budget':<18} {parts}: the {b['dominant']}'s part dominates")
+        if out.get("frame"):
+            f = out["frame"]
+            print(f"  {'frame':<18} {'holds' if f['holds'] else 'does not hold'} {args.rate:g} Hz: {f['why']}")
+        for term in out.get("unrepresented") or []:
+            print(f"  {'not represented':<18} {term}: ran without it, and the errors above include what that costs")
+    return 0 if out["status"] == "ok" else 1
+
+
+def cmd_report(args) -> int:
+    from verification.report.page import seeds_report_dir, write_report, write_seeds_report
+
+    if args.seeds:
+        if args.scenes:
+            return _fail("tissuebench: report --seeds takes no scenes (it is the page of the seeds experiments)", 2)
+        from verification.studies.seeds import run_seeds
+
+        seeds_report_dir(args.out)  # a directory that cannot be made fails before half an hour of runs
+        path = write_seeds_report(run_seeds(), out=args.out)
+    else:
+        path = write_report(args.scenes or None, out=args.out, fractions=args.fractions)
+    print(f"report written to {path}")
+    return 0
+
+
+def cmd_seeds(args) -> int:
+    from verification.studies.seeds import EXPERIMENTS, format_seeds, run_seeds, without_pictures
+
+    unknown = [k for k in args.only or () if k not in EXPERIMENTS]
+    if unknown:
+        return _fail(f"tissuebench: seeds --only {unknown[0]}: not an experiment (known: {', '.join(EXPERIMENTS)})", 2)
+    out = run_seeds(args.only)
+    if args.json:
+        _print_json(without_pictures(out))
+    else:
+        print(format_seeds(out))
+    return 0
+
+
+def _mpi_comm():
+    """The world communicator when running under mpirun with more than one rank, else None."""
+    try:
+        from mpi4py import MPI
+    except ImportError:  # pragma: no cover - mpi4py comes with dolfinx
+        return None
+    return MPI.COMM_WORLD if MPI.COMM_WORLD.size > 1 else None
+
+
+def _rank0(comm) -> bool:
+    return comm is None or comm.rank == 0
+
+
+def cmd_sweep(args) -> int:
+    from verification.studies.sweep import format_sweep, sweep, sweep_csv
+
+    scene = _scene(args)
+    comm = _mpi_comm()
+    out = sweep(
+        scene,
+        models=args.models,
+        fractions=args.fractions,
+        dts=args.dts,
+        integrator=args.integrator,
+        largest_stable=not args.no_largest_stable,
+        use_cache=not args.no_cache,
+        comm=comm,
+        float32=args.float32,
+    )
+    if not _rank0(comm):
+        return 0
+    if args.csv:
+        from verification.runs.results import atomic_write_text
+
+        atomic_write_text(args.csv, sweep_csv(out))
+    _emit(args, out, format_sweep)
+    return 0
+
+
+def cmd_converge(args) -> int:
+    from verification.studies.converge import converge_manufactured, converge_space, converge_time, format_converge
+
+    scene = _scene(args)
+    if scene.manufactured:
+        out = converge_manufactured(scene)
+    elif args.in_ == "time":
+        out = converge_time(scene, models=args.models or ("linear-tm",))
+    else:
+        out = converge_space(scene, models=args.models or ("linear-tm", "stvk-tm"), levels=args.levels)
+    _emit(args, out, format_converge)
+    return 0
+
+
+def cmd_stability(args) -> int:
+    from verification.studies.stability import format_stability, stability
+
+    out = stability(_scene(args), models=args.models, tol=args.tol, use_cache=not args.no_cache)
+    _emit(args, out, format_stability)
+    return 0
+
+
+def cmd_advise(args) -> int:
+    from verification.studies.advise import advise, format_advice
+
+    comm = _mpi_comm()
+    scene = _scene(args)
+    if not args.no_cache:  # its three independent references on all the cores first (not under mpirun)
+        from verification.studies.prefetch import advice_jobs, solve_references
+
+        solve_references(advice_jobs([scene]))
+    out = advise(
+        scene,
+        tol=args.tol,
+        rate=args.rate,
+        metric=args.metric,
+        use_cache=not args.no_cache,
+        comm=comm,
+        models=args.models,
+    )
+    if _rank0(comm):
+        _emit(args, out, format_advice)
+    return 0
+
+
+def cmd_gate(args) -> int:
+    from verification.studies.gates import DEFAULT_CONFIG, format_gates, run_gates, update_baselines
+
+    path = Path(args.config) if args.config else DEFAULT_CONFIG
+    # a baseline names the commit that measured it: never a run cached by older code
+    rows = run_gates(
+        path,
+        quick=args.quick,
+        use_cache=not (args.no_cache or args.update_baselines),
+        baselines=not args.update_baselines,
+    )
+    if args.update_baselines:
+        update_baselines(path, rows)
+    out = {"config": str(path), "gates": rows, "passed": all(r["passed"] for r in rows)}
+    _emit(args, out, lambda o: format_gates(o["gates"]))
+    return 0 if out["passed"] else 1
+
+
+def cmd_bench(args) -> int:
+    if args.reference:
+        from mpi4py import MPI
+
+        from verification.bench.reference import format_table, run
+
+        out = run(cases=args.cases, newton=args.newton)
+        if MPI.COMM_WORLD.rank:  # under mpirun every rank solved; the first reports
+            return 0
+    else:
+        from verification.bench.suite import format_table, run
+
+        out = run(meshes=args.meshes, repeats=args.repeats)
+        if args.markdown:
+            from verification.bench.suite import write_markdown
+
+            write_markdown(args.markdown, out)
+    if args.out:
+        from verification.runs.results import atomic_write_text
+
+        atomic_write_text(args.out, json.dumps(out, indent=1, default=_default))
+    _emit(args, out, format_table)
+    return 0
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+def _fail(message: str, status: int) -> int:
+    print(message, file=sys.stderr)
+    return status
