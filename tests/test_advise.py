@@ -17,7 +17,7 @@ from verification.cli import main
 from verification.runs.reference import reference_result
 from verification.scene import SceneError
 from verification.scene_file import load_scene, parse
-from verification.studies.advise import FRAME_SHARE, frame_budget, merge_same_answers
+from verification.studies.frame import FRAME_SHARE, frame_budget, merge_same_answers
 
 
 def _row(model="linear-tm", dt=1e-5, step_us=10.0, settle=1000, err=0.1, integrator="symplectic-euler"):

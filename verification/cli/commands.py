@@ -252,7 +252,7 @@ def cmd_compare(args) -> int:
         vtk=args.vtk,
     )
     if args.rate and out["status"] == "ok":
-        from verification.studies.advise import frame_budget
+        from verification.studies.frame import frame_budget
 
         out["frame"] = frame_budget(out, args.rate, scene.time.mode == "dynamic")
     if out.get("unbounded"):  # the scene's own answer is past the blow-up guard: its input, not a step

@@ -33,7 +33,7 @@ from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.results import atomic_write_text  # noqa: E402
 from verification.runs.simulate import run_model  # noqa: E402
 from verification.scene import SceneError, load_scene  # noqa: E402
-from verification.studies.advise import advise, refined_times  # noqa: E402
+from verification.studies.advise import advise, refined_times
 from verification.studies.converge import converge_manufactured, converge_time  # noqa: E402
 from verification.studies.prefetch import advice_jobs, settle_ahead, solve_references  # noqa: E402
 from verification.studies.stability import FAILED_REFERENCES, reference_jobs, settle_cells, stability  # noqa: E402

@@ -19,8 +19,6 @@ rate says is needed.
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 
@@ -30,6 +28,17 @@ from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, referen
 from verification.runs.store import cached_compare
 from verification.scene import Scene, SceneError
 from verification.scene_file import builtin_scenes
+from verification.studies.frame import (
+    FRAME_SHARE,
+    available_memory,
+    cost,
+    frame_budget,
+    label,
+    memory_bytes,
+    merge_same_answers,
+    predict,
+    verdict,
+)
 from verification.studies.sweep import sweep
 
 LINEAR_MODELS = ("linear-tm", "precomputed", "condensed")
@@ -44,11 +53,6 @@ BUILD_LIMIT_S = 120.0
 BUILD_GROWTH = 64.0
 #: Time-stepping models tried with implicit Euler on static scenes (it settles in tens of steps).
 IMPLICIT_MODELS = ("linear-tm", "corotational-tm", "stvk-tm")
-#: The share of a frame a candidate may use: the rest is margin for timing noise between this run and
-#: the simulator's (the spread of repeated timings on a loaded 2-core machine reaches 10-20%).
-FRAME_SHARE = 0.8
-#: Two runs of one model whose errors differ by less than this, relatively, are the same answer.
-SAME_ANSWER = 1e-6
 #: The most uniform refinements the advisor proposes (each multiplies the tetrahedra by 8).
 MAX_LEVEL = 3
 #: Refined candidates the advisor runs before it gives up on a level.
@@ -86,135 +90,6 @@ def deformation_summary(points: np.ndarray, tets: np.ndarray, u: np.ndarray) -> 
     }
 
 
-def frame_budget(row: dict, rate: float, dynamic: bool, share: float = FRAME_SHARE) -> dict:
-    """Whether a run (a ``compare`` row) holds ``rate`` frames per second on this machine, using at
-    most ``share`` of each frame (FRAME_SHARE for every command, so that ``compare --rate`` and
-    ``advise`` decide alike), and what reaching its answer costs.
-
-    - A quasi-static model (precomputed, condensed) updates once per frame: the update must fit.
-    - On a dynamic scene a time-stepping model must keep up with the wall clock: a frame of 1/rate s
-      advances it by 1/rate s, ceil(1 / (rate dt)) steps, which must fit in the frame (a real-time
-      factor of at least one, rounding included), and dt must not exceed the frame, or the state
-      changes less often than the display.
-    - On a static scene a frame runs as many steps as fit (at least one must), and the answer is
-      reached after the run's ``settle_steps``: ``time_to_answer_s`` is the wall time to settle at that
-      pace, what a user waits after a load change. Quasi-static models answer within their update.
-
-    Returns holds (bool), steps_per_frame, work_us (of one frame), frame_us, time_to_answer_s (None
-    on a dynamic scene, where the answer is the trajectory itself) and why (one line).
-    """
-    frame_us = 1e6 / rate
-    budget_us = share * frame_us
-    step_us = row["step_us"]
-    out = {"frame_us": frame_us, "share": share, "step_us": step_us}
-    if row.get("dt") is None:  # quasi-static: one update per frame
-        holds = step_us <= budget_us
-        out.update(
-            steps_per_frame=1,
-            work_us=step_us,
-            time_to_answer_s=None if dynamic else step_us * 1e-6,
-            holds=holds,
-            why=f"one update of {step_us:.3g} us per frame of {frame_us:.3g} us",
-        )
-        return out
-    dt_us = row["dt"] * 1e6
-    if dynamic:
-        n = max(1, math.ceil(frame_us / dt_us * (1.0 - 1e-12)))
-        work = n * step_us
-        holds = work <= budget_us and dt_us <= frame_us
-        why = f"{n} steps of {step_us:.3g} us keep up with the clock in {work:.3g} us of a {frame_us:.3g} us frame"
-        if dt_us > frame_us:
-            why = f"dt = {dt_us:.3g} us is longer than a frame of {frame_us:.3g} us: the state changes at {1e6 / dt_us:.0f} Hz"
-        elif work > budget_us:
-            why = (
-                f"{n} steps of {step_us:.3g} us per simulated frame take {work:.3g} us, over "
-                f"{share:.0%} of a {frame_us:.3g} us frame (real-time factor {frame_us / work:.2f})"
-            )
-        out.update(steps_per_frame=n, work_us=work, time_to_answer_s=None, holds=holds, why=why)
-        return out
-    n = int(budget_us // step_us)
-    settle = row.get("settle_steps") or 1
-    if n < 1:
-        out.update(
-            steps_per_frame=0,
-            work_us=step_us,
-            time_to_answer_s=settle * step_us * 1e-6,
-            holds=False,
-            why=f"one step takes {step_us:.3g} us, over {share:.0%} of a {frame_us:.3g} us frame",
-        )
-        return out
-    out.update(
-        steps_per_frame=n,
-        work_us=n * step_us,
-        time_to_answer_s=settle * step_us * 1e-6,
-        holds=True,
-        why=f"{n} step{'s' if n > 1 else ''} of {step_us:.3g} us per frame; settles in {settle} steps, "
-        f"{settle * step_us * 1e-6:.3g} s ({math.ceil(settle / n)} frames)",
-    )
-    return out
-
-
-def _cost(row: dict, dynamic: bool) -> float:
-    """What the advisor minimises: on a static scene the wall time to the answer, on a dynamic one the
-    work per frame (the share of the machine a candidate takes)."""
-    b = row["frame"]
-    return b["work_us"] if dynamic else b["time_to_answer_s"]
-
-
-def merge_same_answers(rows: list[dict], metric: str, dynamic: bool) -> list[dict]:
-    """One row per model and integrator among runs whose ``metric`` values agree within SAME_ANSWER
-    (relative): a step that changes nothing is not a choice. The row kept is the cheapest (``_cost``);
-    it lists the steps merged into it (``merged_dt``). Rows that diverged are kept apart."""
-    groups: list[list[dict]] = []
-    for r in rows:
-        if r["status"] != "ok":
-            groups.append([r])
-            continue
-        for g in groups:
-            h = g[0]
-            if (
-                h["status"] == "ok"
-                and (h["model"], h["integrator"]) == (r["model"], r["integrator"])
-                and abs(h[metric] - r[metric]) <= SAME_ANSWER * max(abs(h[metric]), abs(r[metric]), 1e-300)
-            ):
-                g.append(r)
-                break
-        else:
-            groups.append([r])
-    out = []
-    for g in groups:
-        best = min(g, key=lambda r: _cost(r, dynamic)) if g[0]["status"] == "ok" else g[0]
-        out.append({**best, "merged_dt": sorted(r["dt"] for r in g if r.get("dt") is not None)})
-    return out
-
-
-def _label(r: dict) -> str:
-    if r.get("dt") is None:
-        return f"{r['model']} ({r['integrator']})"
-    return f"{r['model']} ({r['integrator']}, dt {r['dt']:.3g} s)"
-
-
-def _verdict(r: dict, metric: str, tol: float) -> tuple[bool, str]:
-    """Whether a candidate qualifies, and a line saying why or why not."""
-    if r["status"] == "diverged":
-        ratio = f", {r['dt'] / r['dt_crit']:.2f} x its critical step" if r.get("dt_crit") else ""
-        return False, f"{_label(r)}: unstable, diverged at step {r.get('step')}{ratio}"
-    if r["status"] != "ok":
-        return False, f"{_label(r)}: {r['status']} ({r.get('message', '')})"
-    value = r.get(metric)
-    bad = []
-    if value is None or value > tol:
-        b = r.get("error_budget") or {}
-        parts = ", ".join(f"{k} {b[k]:.3g}" for k in ("mesh", "model", "time") if b.get(k) is not None)
-        bad.append(f"{metric} {value:.3g} > {tol:g}" + (f" ({parts})" if parts else ""))
-    if not r["frame"]["holds"]:
-        bad.append(r["frame"]["why"])
-    without = "".join(f"; ran without {term}" for term in r.get("unrepresented") or [])
-    if bad:
-        return False, f"{_label(r)}: {'; '.join(bad)}{without}"
-    return True, f"{_label(r)}: {metric} {value:.3g} <= {tol:g}; {r['frame']['why']}{without}"
-
-
 def _candidates(
     scene: Scene, metric: str, rate: float, use_cache: bool, comm, progress_label: str, models=None
 ) -> list[dict]:
@@ -247,45 +122,8 @@ def _compare_or_unsettled(scene: Scene, model: str, integrator: str, fraction, u
 
 
 def _pick(rows: list[dict], metric: str, tol: float, dynamic: bool):
-    ok = [r for r in rows if _verdict(r, metric, tol)[0]]
-    return min(ok, key=lambda r: _cost(r, dynamic)) if ok else None
-
-
-def _memory_bytes(model: str, n_vertices: int, n_surface: int) -> float:
-    """What a model's dense precomputation takes, in bytes: precomputed's responses (free dofs x
-    surface dofs) and condensed's Schur complement with its Cholesky factor (retained squared, twice);
-    both solve their right-hand sides a block at a time. Time-stepping models: sparse, negligible."""
-    n, s = 3.0 * n_vertices, 3.0 * n_surface  # dofs, surface dofs
-    if model == "precomputed":
-        return 8 * n * s
-    if model == "condensed":
-        return 8 * 2 * s * s
-    return 0.0
-
-
-def _available_memory() -> float:
-    """Bytes of memory the advisor lets one run take: half of what the system has available."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return 0.5 * float(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0.5 * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
-def _predict(r: dict, levels: int, dynamic: bool, rate: float, share: float = FRAME_SHARE) -> dict:
-    """A level-0 row's frame budget on a mesh refined ``levels`` times: a step costs 8^levels times as
-    much (the element loops), and an explicit step is 2^levels times shorter (dt_crit is proportional
-    to h), so a static scene settles in 2^levels times the steps and a dynamic frame needs 2^levels
-    times the steps. Implicit Euler's step (a sparse solve) is taken to grow like the elements too."""
-    grow = 8.0**levels
-    row = {**r, "step_us": r["step_us"] * grow}
-    if r.get("dt") is not None:
-        if r["integrator"] != "implicit-euler":
-            row["dt"] = r["dt"] / 2.0**levels
-        row["settle_steps"] = (r.get("settle_steps") or 1) * (2**levels if r["integrator"] != "implicit-euler" else 1)
-    return frame_budget(row, rate, dynamic, share)
+    ok = [r for r in rows if verdict(r, metric, tol)[0]]
+    return min(ok, key=lambda r: cost(r, dynamic)) if ok else None
 
 
 def propose_mesh(scene: Scene, rows: list[dict], metric: str, tol: float, rate: float, use_cache: bool) -> dict:
@@ -312,45 +150,7 @@ def propose_mesh(scene: Scene, rows: list[dict], metric: str, tol: float, rate: 
         return out
     order = min(observed, P1_ORDER)
     dynamic = scene.time.mode == "dynamic"
-    memory = _available_memory()
-    surface = len(scene.mesh.surface_vertices)
-    plans = []
-    for r in rows:
-        if r["status"] != "ok" or r["model"] in OWN_MESH:
-            continue
-        own = _own(r)
-        for level in range(1, MAX_LEVEL + 1):
-            mesh_part = e1 / 2.0 ** (order * (level - 1))
-            # the parts' errors are distances between solutions: the total is at most their sum and, when
-            # they are unrelated (as P1's locking and a model's linearity are), close to their
-            # root-sum-square. A row is tried from the level where the latter meets the tolerance up to the
-            # one where the former does; the run on the level decides.
-            likely, bound = math.hypot(mesh_part, own), mesh_part + own
-            if likely > tol:
-                continue
-            predicted = _predict(r, level, dynamic, rate)
-            # a level-0 timing scaled by 8^L carries its noise 8^L-fold: a candidate a little over the
-            # budget by prediction is still worth a run, which decides
-            hopeful = _predict(r, level, dynamic, rate, share=FRAME_SHARE * OPTIMISM)["holds"]
-            need = _memory_bytes(r["model"], n * 8**level, surface * 4**level)
-            build = (r.get("build_s") or 0.0) * BUILD_GROWTH**level if r["integrator"] == "quasi-static" else 0.0
-            plans.append(
-                {
-                    "row": r,
-                    "level": level,
-                    "predicted_error": likely,
-                    "error_bound": bound,
-                    "predicted_mesh_part": mesh_part,
-                    "predicted": predicted,
-                    "hopeful": hopeful,
-                    "memory_bytes": need,
-                    "fits_memory": need <= memory,
-                    "predicted_build_s": build,
-                    "builds_in_time": build <= BUILD_LIMIT_S,
-                }
-            )
-            if bound <= tol:
-                break
+    plans = _plans(scene, rows, e1, order, tol, rate)
     if not plans:
         out.update(
             level=None,
@@ -372,23 +172,56 @@ def propose_mesh(scene: Scene, rows: list[dict], metric: str, tol: float, rate: 
     return out
 
 
-def advise(
-    scene: Scene, tol: float, rate: float, metric: str = "rel_l2", use_cache: bool = True, comm=None, models=None
-) -> dict:
-    """The cheapest (model, integrator, dt, mesh) whose ``metric`` is at most ``tol`` while a simulator
-    holds ``rate`` frames per second on this machine (``frame_budget`` with FRAME_SHARE of each frame),
-    with the runner-up and why every cheaper option failed; on a refined mesh when the mesh's own error
-    stops every model on the scene's (module docstring). ``models``: the ones to choose from (default
-    all: a simulator may have only some). ``command`` re-runs the pick with compare."""
-    if metric == "reaction_rel_err" and not scene.problem.tools:
-        raise SceneError(
-            f"{scene.path}: --metric reaction_rel_err measures the tool's force, and this scene has no "
-            "displacement load (tool); use rel_l2 or surface_rel_l2"
-        )
-    if not (tol > 0 and rate > 0):
-        raise SceneError(f"--tol {tol!r} and --rate {rate!r}: both must be positive")
+def _plans(scene: Scene, rows: list[dict], e1: float, order: float, tol: float, rate: float) -> list[dict]:
+    """For each candidate row, the levels to try it on: from where its predicted total (the mesh's part
+    at ``order`` from ``e1`` on one refinement, and its own) likely meets ``tol`` up to where it surely
+    does, with its predicted frame budget, memory and build time."""
     dynamic = scene.time.mode == "dynamic"
-    rows = _candidates(scene, metric, rate, use_cache, comm, f"advise {scene.name}", models)
+    memory = available_memory()
+    n, surface = scene.mesh.n_vertices, len(scene.mesh.surface_vertices)
+    plans = []
+    for r in rows:
+        if r["status"] != "ok" or r["model"] in OWN_MESH:
+            continue
+        own = _own(r)
+        for level in range(1, MAX_LEVEL + 1):
+            mesh_part = e1 / 2.0 ** (order * (level - 1))
+            # the parts' errors are distances between solutions: the total is at most their sum and, when
+            # they are unrelated (as P1's locking and a model's linearity are), close to their
+            # root-sum-square. A row is tried from the level where the latter meets the tolerance up to the
+            # one where the former does; the run on the level decides.
+            likely, bound = math.hypot(mesh_part, own), mesh_part + own
+            if likely > tol:
+                continue
+            predicted = predict(r, level, dynamic, rate)
+            # a level-0 timing scaled by 8^L carries its noise 8^L-fold: a candidate a little over the
+            # budget by prediction is still worth a run, which decides
+            hopeful = predict(r, level, dynamic, rate, share=FRAME_SHARE * OPTIMISM)["holds"]
+            need = memory_bytes(r["model"], n * 8**level, surface * 4**level)
+            build = (r.get("build_s") or 0.0) * BUILD_GROWTH**level if r["integrator"] == "quasi-static" else 0.0
+            plans.append(
+                {
+                    "row": r,
+                    "level": level,
+                    "predicted_error": likely,
+                    "error_bound": bound,
+                    "predicted_mesh_part": mesh_part,
+                    "predicted": predicted,
+                    "hopeful": hopeful,
+                    "memory_bytes": need,
+                    "fits_memory": need <= memory,
+                    "predicted_build_s": build,
+                    "builds_in_time": build <= BUILD_LIMIT_S,
+                }
+            )
+            if bound <= tol:
+                break
+    return plans
+
+
+def _summary(scene: Scene, tol: float, rate: float, metric: str) -> tuple[dict, str]:
+    """The advice's header (the question, the reference's deformation and estimate, the mesh) and the
+    deformation in words."""
     ref = reference_result(scene, **REFERENCE_DEFAULTS)
     mesh = scene.mesh
     defo = deformation_summary(
@@ -408,6 +241,27 @@ def advise(
         "mesh": _mesh_summary(scene),
         "reference_err_estimate": ref.meta.get("ref_err_estimate"),
     }
+    return out, physics
+
+
+def advise(
+    scene: Scene, tol: float, rate: float, metric: str = "rel_l2", use_cache: bool = True, comm=None, models=None
+) -> dict:
+    """The cheapest (model, integrator, dt, mesh) whose ``metric`` is at most ``tol`` while a simulator
+    holds ``rate`` frames per second on this machine (``frame_budget`` with FRAME_SHARE of each frame),
+    with the runner-up and why every cheaper option failed; on a refined mesh when the mesh's own error
+    stops every model on the scene's (module docstring). ``models``: the ones to choose from (default
+    all: a simulator may have only some). ``command`` re-runs the pick with compare."""
+    if metric == "reaction_rel_err" and not scene.problem.tools:
+        raise SceneError(
+            f"{scene.path}: --metric reaction_rel_err measures the tool's force, and this scene has no "
+            "displacement load (tool); use rel_l2 or surface_rel_l2"
+        )
+    if not (tol > 0 and rate > 0):
+        raise SceneError(f"--tol {tol!r} and --rate {rate!r}: both must be positive")
+    dynamic = scene.time.mode == "dynamic"
+    rows = _candidates(scene, metric, rate, use_cache, comm, f"advise {scene.name}", models)
+    out, physics = _summary(scene, tol, rate, metric)
     choice = _pick(rows, metric, tol, dynamic)
     proposal = None
     tried = []
@@ -418,76 +272,21 @@ def advise(
         if blocked_by_mesh:
             proposal = propose_mesh(scene, rows, metric, tol, rate, use_cache)
             choice, tried = _run_plans(scene, proposal, metric, tol, rate, use_cache)
-    ranked = sorted((r for r in rows if r["status"] == "ok"), key=lambda r: _cost(r, dynamic))
-    rejected = [_verdict(r, metric, tol)[1] for r in rows if not _verdict(r, metric, tol)[0]]
+    ranked = sorted((r for r in rows if r["status"] == "ok"), key=lambda r: cost(r, dynamic))
+    rejected = [verdict(r, metric, tol)[1] for r in rows if not verdict(r, metric, tol)[0]]
     out["proposal"] = _proposal_summary(proposal, tried)
     if choice is None:
-        best = min((r for r in rows if r["status"] == "ok"), key=lambda r: r[metric], default=None)
-        why = f"no model meets {metric} <= {tol:g} at {rate:g} Hz on this mesh"
-        if best is not None:
-            why += f": the most accurate is {_label(best)} with {best[metric]:.3g}"
-        if proposal is not None and proposal.get("level") is None:
-            why += f"; {proposal['why']}"
-        elif proposal is not None and tried:
-            why += f"; on the mesh refined {refined_times(proposal['level'])} no candidate tried qualified either"
-        elif proposal is not None:
-            first = proposal["plans"][0]
-            why += (
-                f"; the mesh's part ({proposal['mesh_part'][0]:.3g}, observed order "
-                f"{proposal['observed_order']:.2f}) leaves room for a model's own only on the mesh refined "
-                f"{refined_times(first['level'])}, and there no model is predicted to hold {rate:g} Hz within "
-                f"memory: the first, {_label(first['row'])}, "
-                + (
-                    first["predicted"]["why"]
-                    if not first["predicted"]["holds"]
-                    else f"would need {first['memory_bytes'] / 1e9:.0f} GB"
-                )
-            )
+        why = _why_none(rows, metric, tol, rate, proposal, tried)
         out.update(model=None, integrator=None, dt=None, why=f"{why}; {physics}", rejected=rejected, runner_up=None)
         return out
     level = choice.get("level", 0)
     target = scene.refined(level) if level else scene
-    cheaper = [_verdict(r, metric, tol)[1] for r in ranked if _cost(r, dynamic) < _cost(choice, dynamic)]
-    cheaper += [_verdict(r, metric, tol)[1] for r in rows if r["status"] != "ok"]  # unstable or unsettled
+    cheaper = [verdict(r, metric, tol)[1] for r in ranked if cost(r, dynamic) < cost(choice, dynamic)]
+    cheaper += [verdict(r, metric, tol)[1] for r in rows if r["status"] != "ok"]  # unstable or unsettled
     if level:
         cheaper = [f"on the scene's mesh: {line}" for line in rejected]
-    runner = next(
-        (
-            r
-            for r in ranked
-            if r is not choice and r["model"] != choice["model"] and _verdict(r, metric, tol)[0] and not level
-        ),
-        None,
-    )
-    if choice["model"] in LINEAR_MODELS:
-        why = f"linear is enough: {physics}, and {choice['model']} meets {metric} <= {tol:g} ({choice[metric]:.3g})"
-    elif level:
-        # on the scene's mesh the linear models' totals carry the mesh's part; their own part does not
-        own = [_own(r) for r in rows if r["status"] == "ok" and r["model"] in LINEAR_MODELS and r.get("error_budget")]
-        why = f"{choice['model']} is the first candidate that qualifies there: {physics}" + (
-            f"; the linear models' own part of the error (against P1 on the same mesh) is at least {min(own):.3g}"
-            if own
-            else ""
-        )
-    else:
-        linear = [r for r in rows if r["status"] == "ok" and r["model"] in LINEAR_MODELS]
-        accurate = [r for r in linear if r[metric] <= tol]
-        if not linear:
-            why = f"{choice['model']} is the cheapest that qualifies: {physics}"
-        elif not accurate:
-            why = f"needs a rotation-invariant model: {physics}; the linear models' {metric} is at least " + format(
-                min(r[metric] for r in linear), ".3g"
-            )
-        elif any(_verdict(r, metric, tol)[0] for r in accurate):
-            best = min((r for r in accurate if _verdict(r, metric, tol)[0]), key=lambda r: _cost(r, dynamic))
-            why = (
-                f"{choice['model']} is the cheapest that qualifies; linear is accurate enough too ({physics}): "
-                f"{_label(best)} meets {metric} {best[metric]:.3g} but costs more"
-            )
-        else:
-            why = f"the linear models accurate enough do not hold the rate ({physics}): " + "; ".join(
-                _verdict(r, metric, tol)[1] for r in accurate
-            )
+    runner = None if level else _runner_up(ranked, choice, metric, tol)
+    why = _why_pick(choice, rows, metric, tol, dynamic, level, physics)
     if level:
         why = (
             f"the mesh's part of the error ({proposal['mesh_part'][0]:.3g}) stops every model on the scene's mesh; "
@@ -522,6 +321,73 @@ def advise(
     return out
 
 
+def _runner_up(ranked: list[dict], choice: dict, metric: str, tol: float) -> dict | None:
+    """The cheapest qualifying row of another model than the pick's."""
+    return next(
+        (r for r in ranked if r is not choice and r["model"] != choice["model"] and verdict(r, metric, tol)[0]), None
+    )
+
+
+def _why_none(rows: list[dict], metric: str, tol: float, rate: float, proposal, tried: list) -> str:
+    """Why no candidate qualified: the most accurate, and what the mesh proposal found."""
+    best = min((r for r in rows if r["status"] == "ok"), key=lambda r: r[metric], default=None)
+    why = f"no model meets {metric} <= {tol:g} at {rate:g} Hz on this mesh"
+    if best is not None:
+        why += f": the most accurate is {label(best)} with {best[metric]:.3g}"
+    if proposal is not None and proposal.get("level") is None:
+        why += f"; {proposal['why']}"
+    elif proposal is not None and tried:
+        why += f"; on the mesh refined {refined_times(proposal['level'])} no candidate tried qualified either"
+    elif proposal is not None:
+        first = proposal["plans"][0]
+        why += (
+            f"; the mesh's part ({proposal['mesh_part'][0]:.3g}, observed order "
+            f"{proposal['observed_order']:.2f}) leaves room for a model's own only on the mesh refined "
+            f"{refined_times(first['level'])}, and there no model is predicted to hold {rate:g} Hz within "
+            f"memory: the first, {label(first['row'])}, "
+            + (
+                first["predicted"]["why"]
+                if not first["predicted"]["holds"]
+                else f"would need {first['memory_bytes'] / 1e9:.0f} GB"
+            )
+        )
+    return why
+
+
+def _why_pick(choice: dict, rows: list[dict], metric: str, tol: float, dynamic: bool, level: int, physics: str) -> str:
+    """Why the pick: linear is enough, or what the linear models lack (their error, or the rate)."""
+    if choice["model"] in LINEAR_MODELS:
+        why = f"linear is enough: {physics}, and {choice['model']} meets {metric} <= {tol:g} ({choice[metric]:.3g})"
+    elif level:
+        # on the scene's mesh the linear models' totals carry the mesh's part; their own part does not
+        own = [_own(r) for r in rows if r["status"] == "ok" and r["model"] in LINEAR_MODELS and r.get("error_budget")]
+        why = f"{choice['model']} is the first candidate that qualifies there: {physics}" + (
+            f"; the linear models' own part of the error (against P1 on the same mesh) is at least {min(own):.3g}"
+            if own
+            else ""
+        )
+    else:
+        linear = [r for r in rows if r["status"] == "ok" and r["model"] in LINEAR_MODELS]
+        accurate = [r for r in linear if r[metric] <= tol]
+        if not linear:
+            why = f"{choice['model']} is the cheapest that qualifies: {physics}"
+        elif not accurate:
+            why = f"needs a rotation-invariant model: {physics}; the linear models' {metric} is at least " + format(
+                min(r[metric] for r in linear), ".3g"
+            )
+        elif any(verdict(r, metric, tol)[0] for r in accurate):
+            best = min((r for r in accurate if verdict(r, metric, tol)[0]), key=lambda r: cost(r, dynamic))
+            why = (
+                f"{choice['model']} is the cheapest that qualifies; linear is accurate enough too ({physics}): "
+                f"{label(best)} meets {metric} {best[metric]:.3g} but costs more"
+            )
+        else:
+            why = f"the linear models accurate enough do not hold the rate ({physics}): " + "; ".join(
+                verdict(r, metric, tol)[1] for r in accurate
+            )
+    return why
+
+
 def _own(r: dict) -> float:
     b = r.get("error_budget") or {}
     return (b.get("model") or 0.0) + (b.get("time") or 0.0)
@@ -550,7 +416,7 @@ def _run_plans(scene: Scene, proposal: dict, metric: str, tol: float, rate: floa
         if row["status"] == "ok":
             row["frame"] = frame_budget(row, rate, dynamic)
         row["level"] = p["level"]
-        ok, line = _verdict(row, metric, tol)
+        ok, line = verdict(row, metric, tol)
         tried.append(
             {"level": p["level"], "model": row["model"], "integrator": row["integrator"], "ok": ok, "why": line}
         )

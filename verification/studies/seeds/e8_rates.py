@@ -11,7 +11,7 @@ from verification.metrics import rel_l2
 from verification.progress import log
 from verification.report.plots import png
 from verification.scene import Scene
-from verification.studies.advise import FRAME_SHARE, _available_memory, _memory_bytes, frame_budget
+from verification.studies.frame import FRAME_SHARE, available_memory, frame_budget, memory_bytes
 from verification.studies.seeds.common import Size, _finding, _ref, _reference_info, _settled, seed_scene
 
 #: Seconds a quasi-static model's precomputation may take in the rates study (its cost grows about
@@ -57,8 +57,8 @@ def rates(size: Size) -> dict:
         mesh = scene.mesh
         for m in RATE_MODELS:
             row = {"model": m, "n_tets": mesh.n_tets, "n_vertices": mesh.n_vertices}
-            need = _memory_bytes(m, mesh.n_vertices, len(mesh.surface_vertices))
-            if need > _available_memory():
+            need = memory_bytes(m, mesh.n_vertices, len(mesh.surface_vertices))
+            if need > available_memory():
                 row.update(status=f"needs {need / 1e9:.1f} GB, over half the free memory")
                 rows.append(row)
                 continue
