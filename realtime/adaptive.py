@@ -235,8 +235,6 @@ def build_adaptive_tm(
     exact a load vector as the caller has) may be given, else they are made here (``carried_loading``).
     The Model's vertices are the coarse ones first, then the midpoints that do not hang; its ``tets``
     are the mixed mesh's tetrahedra with no hanging vertex. The first N vertices are the scene's."""
-    from .models import _model
-
     points, tets = prepare_mesh(points, tets)
     loading = loading if loading is not None else Loading.free_body(len(points))
     loading.check(len(points))
@@ -277,23 +275,22 @@ def build_adaptive_tm(
         return float(np.max(np.asarray(K.sum(axis=1)).ravel() / np.repeat(model.mass, 3)))
 
     whole = np.all(plan.tets < nm, axis=1)  # the tetrahedra with no hanging vertex
-    model = _model(
-        "adaptive-tm",
-        plan.points[:nm],
-        plan.tets[whole],
-        mats.subset(whole),
-        model_loading,
-        adaptive_force,
-        adaptive_energy,
-        data,
-        False,
-        scratch,
-        rest=rest,
-        bound=bound,
-        plan=plan,
-        observed=len(points),
+    return Model(
+        name="adaptive-tm",
+        points=plan.points[:nm],
+        tets=plan.tets[whole],
+        material=mats.subset(whole),
+        mass=mass,
+        loading=model_loading,
+        force_kernel=adaptive_force,
+        energy_kernel=adaptive_energy,
+        data=data,
+        new_scratch=scratch,
+        rest_stiffness_of=rest,
+        eigenvalue_bound_of=bound,
+        linear=False,
+        extra={"plan": plan, "observed": len(points)},
     )
-    return Model(**{**model.__dict__, "mass": mass})
 
 
 def _prolongation(hanging: np.ndarray, n_model: int, n_full: int) -> sp.csr_matrix:

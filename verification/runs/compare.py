@@ -117,54 +117,18 @@ def compare(
     try:
         res = run_model(scene, model_name, dt=dt, dt_fraction=dt_fraction, integrator=integrator, max_steps=max_steps)
     except DivergenceError as exc:
-        return {
-            **base,
-            "status": "diverged",
-            "dt": exc.dt,
-            "dt_crit": exc.dt_crit,
-            "step": exc.step,
-            "message": str(exc),
-            "unbounded": isinstance(exc, UnboundedAnswerError),
-        }
+        return {**base, **_diverged(exc)}
+    metrics = _metrics(scene, res, ref)
     mesh = scene.mesh
-    has_tools = bool(scene.problem.tools)
-    metrics = compute(
-        mesh.points,
-        mesh.tets,
-        mesh.surface_vertices,
-        res.displacement,
-        ref.displacement,
-        res.reaction if has_tools else None,
-        ref.reaction if has_tools else None,
-        ref.meta.get("ref_err_estimate"),
-    )
     if vtk is not None:
-        from verification.report.vtk import write_series
-
-        write_series(
-            vtk,
-            f"{scene.name}-{model_name}",
-            mesh.points,
-            mesh.tets,
-            ref.times,
-            {
-                "reference_displacement": ref.displacement,
-                "model_displacement": res.displacement,
-                "error": res.displacement - ref.displacement,
-                "error_magnitude": np.linalg.norm(res.displacement - ref.displacement, axis=2),
-            },
-        )
+        _write_vtk(vtk, scene, model_name, res, ref)
     m = res.meta
     parts = error_budget(scene, model_name, res, ref, integrator, max_steps) if budget else None
-    single = None
-    if float32 and model_name in FLOAT32_MODELS and integrator != "implicit-euler":
-        twin = float32_twin(scene, res)
-        u32 = twin.pop("displacement")
-        single = {
-            **twin,
-            "rel_l2_vs_float64": rel_l2(u32, res.displacement),
-            "rel_l2": rel_l2(u32, ref.displacement),
-        }
+    single = (
+        _float32_row(scene, res, ref)
+        if float32 and model_name in FLOAT32_MODELS and integrator != "implicit-euler"
+        else None
+    )
     return {
         **base,
         "status": "ok",
@@ -182,18 +146,79 @@ def compare(
         "settle_steps": m["static"]["steps"],
         "settle_ms": m["settle_ms"],
         "build_s": m.get("build_s"),
-        "reference": {
-            "degree": ref.meta["degree"],
-            "refine": ref.meta["refine"],
-            "law": ref.meta["law"],
-            "cache_key": ref.meta.get("cache_key"),
-            # what the reference's own error is known to be: its bar, or "unverified" without the estimate
-            "ref_err_estimate": ref.meta.get("ref_err_estimate"),
-            "verified": ref.meta.get("ref_err_estimate") is not None,
-            "min_det_F": ref.meta.get("min_det_F"),
-            "returned_level": ref.meta.get("returned_level"),
-            "petsc_options": ref.meta.get("petsc_options"),
-        },
+        "reference": _reference_summary(ref),
         "n_vertices": mesh.n_vertices,
         "n_tets": mesh.n_tets,
     }
+
+
+def _write_vtk(vtk: str, scene: Scene, model_name: str, res: Result, ref: Result) -> None:
+    """Both displacements and the pointwise error at every output time as one ParaView series."""
+    from verification.report.vtk import write_series
+
+    mesh = scene.mesh
+    write_series(
+        vtk,
+        f"{scene.name}-{model_name}",
+        mesh.points,
+        mesh.tets,
+        ref.times,
+        {
+            "reference_displacement": ref.displacement,
+            "model_displacement": res.displacement,
+            "error": res.displacement - ref.displacement,
+            "error_magnitude": np.linalg.norm(res.displacement - ref.displacement, axis=2),
+        },
+    )
+
+
+def _reference_summary(ref: Result) -> dict:
+    """What a row says of its reference: how it was solved and what its own error is known to be (its
+    bar, or "unverified" without the estimate)."""
+    return {
+        "degree": ref.meta["degree"],
+        "refine": ref.meta["refine"],
+        "law": ref.meta["law"],
+        "cache_key": ref.meta.get("cache_key"),
+        # what the reference's own error is known to be: its bar, or "unverified" without the estimate
+        "ref_err_estimate": ref.meta.get("ref_err_estimate"),
+        "verified": ref.meta.get("ref_err_estimate") is not None,
+        "min_det_F": ref.meta.get("min_det_F"),
+        "returned_level": ref.meta.get("returned_level"),
+        "petsc_options": ref.meta.get("petsc_options"),
+    }
+
+
+def _float32_row(scene: Scene, res: Result, ref: Result) -> dict:
+    """The row's float32 twin: its distance from the float64 run, its error and its step times."""
+    twin = float32_twin(scene, res)
+    u32 = twin.pop("displacement")
+    return {**twin, "rel_l2_vs_float64": rel_l2(u32, res.displacement), "rel_l2": rel_l2(u32, ref.displacement)}
+
+
+def _diverged(exc: DivergenceError) -> dict:
+    """A diverged run's row: where it blew up, and whether the scene's own answer is what is unbounded."""
+    return {
+        "status": "diverged",
+        "dt": exc.dt,
+        "dt_crit": exc.dt_crit,
+        "step": exc.step,
+        "message": str(exc),
+        "unbounded": isinstance(exc, UnboundedAnswerError),
+    }
+
+
+def _metrics(scene: Scene, res: Result, ref: Result) -> dict:
+    """The run's metrics against its reference (``metrics.compute``), the tool force where there are tools."""
+    mesh = scene.mesh
+    has_tools = bool(scene.problem.tools)
+    return compute(
+        mesh.points,
+        mesh.tets,
+        mesh.surface_vertices,
+        res.displacement,
+        ref.displacement,
+        res.reaction if has_tools else None,
+        ref.reaction if has_tools else None,
+        ref.meta.get("ref_err_estimate"),
+    )
