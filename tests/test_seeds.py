@@ -198,7 +198,7 @@ def test_report_seeds_fails_on_a_bad_directory_before_running(tmp_path, capsys):
 
 
 def test_seeds_page_images_load_in_a_headless_browser(tmp_path):
-    from verification.report.page import write_seeds_report
+    from verification.report.seeds_page import write_seeds_report
 
     browser = shutil.which("chromium") or shutil.which("chromium-browser")
     assert browser, "chromium is not installed: `make setup` installs it (Debian package chromium)"

@@ -291,7 +291,8 @@ def cmd_compare(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from verification.report.page import seeds_report_dir, write_report, write_seeds_report
+    from verification.report.page import write_report
+    from verification.report.seeds_page import seeds_report_dir, write_seeds_report
 
     if args.seeds:
         if args.scenes:

@@ -60,6 +60,38 @@ def sweep_plan(models, fractions, dts, integrator: str) -> list[dict]:
     return plan
 
 
+def _run_plan(scene: Scene, plan: list[dict], ref, integrator: str, use_cache: bool, float32: bool, rank, size):
+    """This rank's share of the plan's runs (every size-th from its rank), each through the run cache,
+    with its index in the plan; the largest stable step found first where the plan asks for it."""
+    progress = Progress(len(plan), f"sweep {scene.name}") if rank == 0 else None
+    rows = []
+    for k, item in enumerate(plan):
+        if k % size != rank:
+            continue
+        fraction = item["fraction"]
+        if fraction == "largest-stable":
+            fraction = largest_stable_fraction(scene, item["model"], integrator, use_cache=use_cache)["stable"]
+            row = cached_compare(
+                scene, item["model"], integrator, None, fraction, ref, use_cache=use_cache, float32=float32
+            )
+            row["largest_stable"] = True
+        else:
+            row = cached_compare(
+                scene,
+                item["model"],
+                item["integrator"] if item["integrator"] != "quasi-static" else integrator,
+                item["dt"],
+                fraction,
+                ref,
+                use_cache=use_cache,
+                float32=float32,
+            )
+        rows.append({**row, "plan_index": k})
+        if progress:
+            progress.step(f"{item['model']} {fraction}")
+    return rows
+
+
 def sweep(
     scene: Scene,
     models=None,
@@ -98,32 +130,7 @@ def sweep(
         for m in models:
             if m not in QUASI_STATIC and integrator != "implicit-euler":
                 plan.append({"model": m, "integrator": integrator, "dt": None, "fraction": "largest-stable"})
-    progress = Progress(len(plan), f"sweep {scene.name}") if rank == 0 else None
-    rows = []
-    for k, item in enumerate(plan):
-        if k % size != rank:
-            continue
-        fraction = item["fraction"]
-        if fraction == "largest-stable":
-            fraction = largest_stable_fraction(scene, item["model"], integrator, use_cache=use_cache)["stable"]
-            row = cached_compare(
-                scene, item["model"], integrator, None, fraction, ref, use_cache=use_cache, float32=float32
-            )
-            row["largest_stable"] = True
-        else:
-            row = cached_compare(
-                scene,
-                item["model"],
-                item["integrator"] if item["integrator"] != "quasi-static" else integrator,
-                item["dt"],
-                fraction,
-                ref,
-                use_cache=use_cache,
-                float32=float32,
-            )
-        rows.append({**row, "plan_index": k})
-        if progress:
-            progress.step(f"{item['model']} {fraction}")
+    rows = _run_plan(scene, plan, ref, integrator, use_cache, float32, rank, size)
     if comm is not None and size > 1:
         gathered = comm.gather(rows, root=0)
         if rank != 0:
