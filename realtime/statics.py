@@ -74,40 +74,22 @@ def solve_static(
     last good chunk, re-estimates omega_max there and goes on at ``safety`` times the new critical step.
     ``StaticResult.dt`` is the step in use at the end.
 
-    ``steps``: take exactly that many steps and return, whatever the residual. A float32 model needs
-    it: the rounding of u to float32 puts a residual floor far above any tolerance (1.3e-2 of the
-    load on the cantilever, K amplifying the rounding's high frequencies, also when the residual is
-    evaluated in float64), reached long before u has converged (after 2000 steps its u was 4.5e-2 off
-    the equilibrium, after 8000 steps 3e-6, then no closer), so no residual can say when to stop.
-    Given the steps its float64 twin took at the same dt, the float32 run has made the same progress
-    and differs from it by round-off (``verification``'s sweep does this).
+    ``steps``: take exactly that many steps and return, whatever the residual (``_step_budget``: a
+    float32 model needs it).
 
     ``progress``: called as progress(steps taken, relative residual) after every chunk, for a caller
     that reports to a user who waits (the engine itself prints nothing).
     """
-    if steps is None and model.precision != "float64":
-        raise InputError(
-            f"solve_static: {model.name} was built with precision = {model.precision!r}, whose residual cannot show "
-            "convergence; pass steps (the count its float64 twin took at the same dt)"
-        )
-    if steps is not None:
-        if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
-            raise InputError(f"solve_static: steps = {steps!r}: must be a whole number of steps >= 0")
-        max_steps = int(steps)
-    n = model.n_vertices
-    state = model.rest_state()
-    lo = model.loading
+    max_steps = _step_budget(model, steps, max_steps)
+    state, lo = model.rest_state(), model.loading
     arrived = float(lo.tool_ramp.max()) if len(lo.tool_ramp) else 0.0
     free = lo.free
     omega2 = max_eigenvalue(model)
     dt_crit = 2.0 / math.sqrt(omega2)
     adaptive = dt is None
     dt = safety * dt_crit if adaptive else dt
-    integ = SymplecticEuler(alpha=0.0)
-    alpha = 2.0 * math.sqrt(omega2) * 1e-3
-    taken = 0
-    residual = best = np.inf
-    since_best = 0
+    integ, alpha = SymplecticEuler(alpha=0.0), 2.0 * math.sqrt(omega2) * 1e-3
+    taken, residual, best, since_best = 0, np.inf, np.inf, 0
     fmag = float(np.linalg.norm(lo.external_force * free))
     while taken < max_steps:
         integ.alpha = alpha
@@ -119,60 +101,93 @@ def solve_static(
             if not adaptive or model.linear:
                 raise
             state = good
-            omega2 = max(omega2, max_eigenvalue(model, state.u))
-            new_crit = 2.0 / math.sqrt(omega2)
-            if new_crit >= dt_crit:  # the estimate did not move: halve instead of looping
-                new_crit = 0.5 * dt_crit
-            dt_crit = new_crit
+            omega2, dt_crit = _stiffer(model, state, omega2, dt_crit)
             dt = safety * dt_crit
-            state.v[:] = 0.0
             continue
         taken += n
         f = model.internal_force(state.u)
-        r = (f + lo.external_force) * free
         scale = max(fmag, float(np.linalg.norm(model.reaction(state.u))), 1e-300)
-        residual = float(np.linalg.norm(r)) / scale
+        residual = float(np.linalg.norm((f + lo.external_force) * free)) / scale
         if progress is not None:
             progress(taken, residual)
         if state.t >= arrived and steps is None:
-            if residual < rtol:
+            best, since_best = (residual, 0) if residual < 0.9 * best else (best, since_best + 1)
+            if _converged(model, state.u, residual, rtol, scale, f, best, since_best):
                 break
-            if residual < 1e3 * rtol and residual < FLOOR_FACTOR * residual_floor(model, state.u, scale, f):
-                break
-            if residual < 0.9 * best:
-                best, since_best = residual, 0
-            else:
-                since_best += 1
-            # a round-off floor: accept a plateau within 1000 rtol that has not improved for 50 chunks;
-            # the residual reached is reported
-            if since_best >= 50 and best < 1e3 * rtol:
-                break
-        uf = state.u * free
-        den = float(np.sum(model.mass[:, None] * uf * uf))
-        if den > 0.0:
-            # u_f.K(u) u_f / u_f.M u_f with K(u) the tangent stiffness at the current state, applied to
-            # the free part alone (K_fp u_p is no stiffness of the free system): a central difference
-            # of the force along u_f, exact for a linear model
-            h = 1e-4 / max(float(np.abs(uf).max()), 1e-300) * float(np.abs(state.u).max() + 1e-12)
-            kuf = (model.internal_force(state.u - h * uf) - model.internal_force(state.u + h * uf)) / (2.0 * h)
-            rq = float(np.sum(kuf * uf)) / den
-            if rq > 0.0:
-                alpha = 2.0 * math.sqrt(min(rq, omega2))
+        alpha = _damping(model, state.u, free, omega2, alpha)
     else:
-        if steps is not None:
-            state.v[:] = 0.0
-            state.steps = taken
-            return StaticResult(state=state, steps=taken, residual=residual, dt=dt)
-        slow = math.sqrt(omega2) / max(0.5 * alpha, 1e-300)  # fastest over slowest mode, as last estimated
-        raise NotConvergedError(
-            f"{model.name}: damped dynamics reached a relative residual of {residual:.2e} "
-            f"(asked {rtol:.1e}) in {taken} steps of {dt:.3g} s: its slowest mode is about {slow:.2g} times "
-            "slower than its fastest (a slender or finely meshed body), and explicit steps settle it in about "
-            "that many steps per tenfold; allow more steps, or settle with implicit Euler"
-        )
+        if steps is None:
+            raise _not_settled(model, residual, rtol, taken, dt, math.sqrt(omega2) / max(0.5 * alpha, 1e-300))
     state.v[:] = 0.0
     state.steps = taken
     return StaticResult(state=state, steps=taken, residual=residual, dt=dt)
+
+
+def _not_settled(model: Model, residual: float, rtol: float, taken: int, dt: float, slow: float):
+    """The error of a settling that ran out of steps; ``slow``: its fastest over its slowest mode, as last
+    estimated."""
+    return NotConvergedError(
+        f"{model.name}: damped dynamics reached a relative residual of {residual:.2e} "
+        f"(asked {rtol:.1e}) in {taken} steps of {dt:.3g} s: its slowest mode is about {slow:.2g} times "
+        "slower than its fastest (a slender or finely meshed body), and explicit steps settle it in about "
+        "that many steps per tenfold; allow more steps, or settle with implicit Euler"
+    )
+
+
+def _converged(model: Model, u, residual: float, rtol: float, scale: float, f, best: float, since_best: int) -> bool:
+    """solve_static's stopping rule: the residual below rtol, or within 1000 rtol and below FLOOR_FACTOR
+    times its round-off floor, or a plateau within 1000 rtol that has not improved for 50 chunks (the
+    residual reached is reported)."""
+    if residual < rtol:
+        return True
+    if residual < 1e3 * rtol and residual < FLOOR_FACTOR * residual_floor(model, u, scale, f):
+        return True
+    return since_best >= 50 and best < 1e3 * rtol
+
+
+def _stiffer(model: Model, state: State, omega2: float, dt_crit: float) -> tuple[float, float]:
+    """After a chunk diverged, back at its start (``state``, at rest now): omega_max^2 re-estimated there
+    and the new critical step, half the old one where the estimate did not move (instead of looping)."""
+    omega2 = max(omega2, max_eigenvalue(model, state.u))
+    new_crit = 2.0 / math.sqrt(omega2)
+    state.v[:] = 0.0
+    return omega2, (new_crit if new_crit < dt_crit else 0.5 * dt_crit)
+
+
+def _step_budget(model: Model, steps, max_steps: int) -> int:
+    """The steps solve_static may take: ``steps`` exactly where given (a whole number), else ``max_steps``;
+    InputError for a float32 model without ``steps``. The rounding of u to float32 puts a residual floor
+    far above any tolerance (1.3e-2 of the load on the cantilever, K amplifying the rounding's high
+    frequencies, also when the residual is evaluated in float64), reached long before u has converged
+    (after 2000 steps its u was 4.5e-2 off the equilibrium, after 8000 steps 3e-6, then no closer), so
+    no residual can say when to stop. Given the steps its float64 twin took at the same dt, the float32
+    run has made the same progress and differs from it by round-off (``verification``'s sweep does this)."""
+    if steps is None and model.precision != "float64":
+        raise InputError(
+            f"solve_static: {model.name} was built with precision = {model.precision!r}, whose residual cannot show "
+            "convergence; pass steps (the count its float64 twin took at the same dt)"
+        )
+    if steps is None:
+        return max_steps
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
+        raise InputError(f"solve_static: steps = {steps!r}: must be a whole number of steps >= 0")
+    return int(steps)
+
+
+def _damping(model: Model, u: np.ndarray, free: np.ndarray, omega2: float, alpha: float) -> float:
+    """The mass damping 2 omega_1 of the next chunk, omega_1^2 the Rayleigh quotient
+    u_f.K(u) u_f / u_f.M u_f of the free displacement u_f, K(u) the tangent stiffness at the current
+    state applied to the free part alone (K_fp u_p is no stiffness of the free system): a central
+    difference of the force along u_f, exact for a linear model. ``alpha`` where the quotient says
+    nothing (u_f = 0, or a non-positive quotient)."""
+    uf = u * free
+    den = float(np.sum(model.mass[:, None] * uf * uf))
+    if den <= 0.0:
+        return alpha
+    h = 1e-4 / max(float(np.abs(uf).max()), 1e-300) * float(np.abs(u).max() + 1e-12)
+    kuf = (model.internal_force(u - h * uf) - model.internal_force(u + h * uf)) / (2.0 * h)
+    rq = float(np.sum(kuf * uf)) / den
+    return 2.0 * math.sqrt(min(rq, omega2)) if rq > 0.0 else alpha
 
 
 def solve_static_implicit(

@@ -106,6 +106,14 @@ def test_report_has_plots_and_data(tmp_path):
     budget = data["scenes"][0]["budget"]
     assert budget["rows"] and budget["verdict"].startswith("The P1 finite-element solution on this mesh is")
     assert (tmp_path / "r" / "runs.csv").read_text().startswith("scene,model")
+    # the first screen answers: the pick's table comes before any section, names the advisor's pick with its
+    # error and the interval the reference's bar allows; the runs that blew up on purpose are folded
+    first = text.index("<table class='first'>")
+    assert first < text.index("<section")
+    pick = data["scenes"][0]["advice"]
+    opening = text[first : text.index("</table>", first)]
+    assert f"<b>{pick['model']}</b>" in opening and f"{pick['value']:.3g} (" in opening
+    assert text.index("<details><summary>") < text.index("diverged at step")
 
 
 def _read_pvd(pvd):

@@ -488,7 +488,7 @@ def test_the_studies_workers_print_whole_progress_lines_and_no_compiler_calls(tm
     (tmp_path / "swing.toml").write_text(SWING)
     code = (
         "from verification.studies.prefetch import solve_references\n"
-        "from verification.scene import load_scene\n"
+        "from verification.scene_file import load_scene\n"
         f"s = load_scene({str(tmp_path / 'swing.toml')!r})\n"
         "print(solve_references([(s, dict(degree=2, estimate=True)), (s, dict(degree=1, estimate=False))], 2))\n"
     )

@@ -29,7 +29,7 @@ from verification.report.sections import (
     stability_section,
 )
 from verification.runs.results import atomic_write_text
-from verification.scene import load_scene
+from verification.scene_file import load_scene
 from verification.studies.prefetch import advice_jobs, settle_ahead, solve_references
 from verification.studies.stability import FAILED_REFERENCES, reference_jobs, settle_cells
 from verification.studies.sweep import default_fractions, sweep_csv

@@ -23,7 +23,7 @@ from verification.report.plots import (
 from verification.report.plots import img as _img
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.simulate import run_model
-from verification.scene import load_scene
+from verification.scene_file import load_scene
 from verification.studies.advise import advise, refined_times
 from verification.studies.converge import converge_manufactured, converge_time
 from verification.studies.stability import stability
