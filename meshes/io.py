@@ -79,6 +79,30 @@ def _cat(blocks: list, width: int) -> np.ndarray:
     return np.concatenate(blocks) if blocks else np.zeros((0, width) if width else 0, np.int64)
 
 
+def _gmsh1_section(lines, header: str, row, fail) -> None:
+    """Read a gmsh 1 section from ``lines`` (an iterator of (line number, text)): find ``header``, read
+    its count, then hand each entry's fields to ``row``; ``fail`` (a function of a message that raises)
+    where the file says otherwise."""
+    for _, line in lines:
+        if line.strip() == header:
+            break
+    else:
+        fail(f"no {header} section")
+    lineno, count = next(lines, (0, ""))
+    try:
+        n = int(count.split()[0])
+    except (ValueError, IndexError):
+        fail(f"line {lineno}: expected the number of entries after {header}, got {count!r}")
+    for _ in range(n):
+        lineno, line = next(lines, (None, None))
+        if line is None:
+            fail(f"{header} announces {n} entries but the file ends")
+        try:
+            row(line.split())
+        except (ValueError, IndexError):
+            fail(f"line {lineno}: cannot read {line.strip()!r}")
+
+
 def _read_gmsh1(path: Path) -> _Cells:
     """gmsh's legacy format 1 ($NOD/$ELM, SOFA's classic meshes), which meshio cannot read.
 
@@ -91,27 +115,6 @@ def _read_gmsh1(path: Path) -> _Cells:
 
     lines = iter(enumerate(path.read_text(errors="replace").splitlines(), start=1))
     labels, coords, tets, tet_tags, tris, tri_tags, others = [], [], [], [], [], [], []
-
-    def section(header, n_fields, row):
-        for _, line in lines:
-            if line.strip() == header:
-                break
-        else:
-            fail(f"no {header} section")
-        lineno, count = next(lines, (0, ""))
-        try:
-            n = int(count.split()[0])
-        except (ValueError, IndexError):
-            fail(f"line {lineno}: expected the number of entries after {header}, got {count!r}")
-        for _ in range(n):
-            lineno, line = next(lines, (None, None))
-            if line is None:
-                fail(f"{header} announces {n} entries but the file ends")
-            parts = line.split()
-            try:
-                row(parts)
-            except (ValueError, IndexError):
-                fail(f"line {lineno}: cannot read {line.strip()!r}")
 
     def node(parts):
         labels.append(int(parts[0]))
@@ -133,8 +136,8 @@ def _read_gmsh1(path: Path) -> _Cells:
         else:
             others.append(_GMSH1_TYPES.get(kind, f"gmsh type {kind}"))
 
-    section("$NOD", 4, node)
-    section("$ELM", 5, element)
+    _gmsh1_section(lines, "$NOD", node, fail)
+    _gmsh1_section(lines, "$ELM", element, fail)
     labels = np.asarray(labels, dtype=np.int64)
     if len(np.unique(labels)) != len(labels):
         fail("a node label appears twice")
@@ -370,6 +373,40 @@ def read_mesh(path: str | os.PathLike, scale: float = 1.0) -> TetMesh:
     return _clean(path, cells, float(scale))
 
 
+def _merge_duplicates(points: np.ndarray, tets: np.ndarray, notes: list) -> np.ndarray:
+    """Each vertex's representative (N,) int64: the lowest index of its cluster of coincident points
+    (within DUPLICATE_TOL of the used vertices' diagonal), itself where it has none; a note when any
+    merge."""
+    used = np.unique(tets)
+    diag = float(np.linalg.norm(np.ptp(points[used], axis=0))) or 1.0
+    pairs = cKDTree(points[used]).query_pairs(DUPLICATE_TOL * diag, output_type="ndarray")
+    n = len(points)
+    if not len(pairs):
+        return np.arange(n)
+    # clusters of coincident points are the connected components of the coincidence pairs
+    graph = coo_matrix((np.ones(len(pairs)), (used[pairs[:, 0]], used[pairs[:, 1]])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    lowest = np.full(label.max() + 1, n, dtype=np.int64)
+    np.minimum.at(lowest, label, np.arange(n))
+    rep = lowest[label]
+    notes.append(f"merged {int(np.sum(rep != np.arange(n)))} duplicate vertices")
+    return rep
+
+
+def _groups(c: _Cells, tet_tags, tris: np.ndarray, compact: np.ndarray) -> tuple[dict, dict]:
+    """The file's groups by name: vertex groups from its tagged triangles, cell groups from its tagged
+    tetrahedra (``compact`` maps file vertices to the kept ones, -1 for dropped)."""
+    vertex_tags, cell_tags = {}, {}
+    if tet_tags is not None:
+        for t in np.unique(tet_tags[tet_tags != c.no_group]):
+            cell_tags[c.names.get(int(t), str(int(t)))] = np.flatnonzero(tet_tags == t).astype(np.int64)
+    if c.tri_tags is not None and len(tris):
+        for t in np.unique(c.tri_tags[c.tri_tags != c.no_group]):
+            v = compact[np.unique(tris[c.tri_tags == t])]
+            vertex_tags[c.names.get(int(t), str(int(t)))] = np.unique(v[v >= 0]).astype(np.int64)
+    return vertex_tags, cell_tags
+
+
 def _clean(path: Path, c: _Cells, scale: float) -> TetMesh:
     """Repairs of a file's raw arrays (see read_mesh), each said in a note."""
     notes = _quadratic_note(c)
@@ -381,20 +418,8 @@ def _clean(path: Path, c: _Cells, scale: float) -> TetMesh:
     if tets.min() < 0 or tets.max() >= len(points):
         bad = int(np.argwhere((tets < 0) | (tets >= len(points)))[0, 0])
         raise InvalidMeshError(f"{path}: tetrahedron {bad} {tets[bad].tolist()} refers to a missing vertex")
-    # duplicate vertices: one representative (the lowest index) for each cluster of coincident points
-    used = np.unique(tets)
-    diag = float(np.linalg.norm(np.ptp(points[used], axis=0))) or 1.0
-    pairs = cKDTree(points[used]).query_pairs(DUPLICATE_TOL * diag, output_type="ndarray")
-    rep = np.arange(len(points))
-    if len(pairs):
-        # clusters of coincident points are the connected components of the coincidence pairs
-        n = len(points)
-        graph = coo_matrix((np.ones(len(pairs)), (used[pairs[:, 0]], used[pairs[:, 1]])), shape=(n, n))
-        _, label = connected_components(graph, directed=False)
-        lowest = np.full(label.max() + 1, n, dtype=np.int64)
-        np.minimum.at(lowest, label, np.arange(n))
-        rep = lowest[label]
-        notes.append(f"merged {int(np.sum(rep != np.arange(len(points))))} duplicate vertices")
+    rep = _merge_duplicates(points, tets, notes)
+    if np.any(rep != np.arange(len(points))):
         tets, tris = rep[tets], rep[tris] if len(tris) else tris
     # duplicate tetrahedra (the same four vertices twice)
     keys = np.sort(tets, axis=1)
@@ -429,14 +454,7 @@ def _clean(path: Path, c: _Cells, scale: float) -> TetMesh:
         mixed = "" if negative.all() else f" of {len(tets)} (the file mixes both orientations)"
         first = ", ".join(str(int(i)) for i in np.flatnonzero(negative)[:3])
         notes.append(f"turned {int(negative.sum())} tetrahedra{mixed} to positive orientation (tetrahedron {first}...)")
-    vertex_tags, cell_tags = {}, {}
-    if tet_tags is not None:
-        for t in np.unique(tet_tags[tet_tags != c.no_group]):
-            cell_tags[c.names.get(int(t), str(int(t)))] = np.flatnonzero(tet_tags == t).astype(np.int64)
-    if c.tri_tags is not None and len(tris):
-        for t in np.unique(c.tri_tags[c.tri_tags != c.no_group]):
-            v = compact[np.unique(tris[c.tri_tags == t])]
-            vertex_tags[c.names.get(int(t), str(int(t)))] = np.unique(v[v >= 0]).astype(np.int64)
+    vertex_tags, cell_tags = _groups(c, tet_tags, tris, compact)
     unused = sorted(set(c.names.values()) - set(cell_tags) - set(vertex_tags))
     if unused:
         # gmsh 2.2 saved with Mesh.SaveAll = 1 keeps $PhysicalNames but writes every element's tag as 0

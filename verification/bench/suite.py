@@ -204,126 +204,23 @@ def _place_on_roofline(roof: Roofline, row: dict, work: tuple[float, float] | No
 
 
 def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
+    """Every case on every mesh of ``meshes``, timed in round-robin rounds (``repeats``), each placed on
+    this machine's roofline; the machine, its thread scaling and what the hot loops compile to."""
     rows = []
     log("bench: measuring this core's FMA peak and triad bandwidths (the roofline)")
     roof = Roofline()
-    iso = Material(2.8e4, 0.4, 1000.0, law="stvk")
-    fibre = Material(2.8e4, 0.4, 1000.0, law="stvk", fiber=(1.0, 0.0, 0.0), young_fiber=6e4, volume_penalty=5e4)
     rng = np.random.default_rng(0)
     thread_ceilings = {}
     for name in meshes:
         mesh = stored_mesh(name)
         base = {"mesh": name, "mesh_sha256": mesh.sha256()[:16], "n_vertices": mesh.n_vertices, "n_tets": mesh.n_tets}
-        loading = _loading(mesh, iso.density)
+        loading = _loading(mesh, ISO.density)
         u0 = 1e-4 * rng.standard_normal(mesh.points.shape) * loading.free
         n = steps if mesh.n_tets < 20000 else max(steps // 2, 5)
-        cases = []
-        haptic = []
-        built = {}  # label -> the one-thread model of its row
-        for label, model_name, mat in (
-            ("linear-tm", "linear-tm", iso),
-            ("linear-tm (transverse)", "linear-tm", fibre),
-            ("corotational-tm", "corotational-tm", iso),
-            ("stvk-tm", "stvk-tm", iso),
-            ("stvk-tm (transverse + penalty)", "stvk-tm", fibre),
-            ("hybrid-tm (10% of vertices past threshold)", "hybrid-tm", iso),
-            ("mass-spring", "mass-spring", iso),
-        ):
-            log(f"bench: {name} {label}")
-            model = build_model(model_name, mesh.points, mesh.tets, mat, loading)
-            built[label] = model
-            integ = SymplecticEuler()
-            dt = 0.5 * integ.critical_dt(model)
-            u = u0.copy()
-            if model_name == "hybrid-tm":
-                # move a tenth of the vertices past the threshold: the non-linear part of a local tool.
-                # At 0.5 dt_crit that jolt would spread over the mesh within the timed steps (88% of
-                # the tetrahedra non-linear after 50); a step costs the same at any dt, so the hybrid
-                # row steps at 1e-3 dt_crit and keeps the prepared non-linear set.
-                near = np.argsort(np.linalg.norm(mesh.points - mesh.points[0], axis=1))[: mesh.n_vertices // 10]
-                u[near] += 2 * model.extra["threshold"] * loading.free[near]
-                dt *= 2e-3
-            state = State(u=u, v=np.zeros_like(u))
-            cases.append(
-                {
-                    "name": label,
-                    "model": model_name,
-                    **base,
-                    "dt": dt,
-                    "integrator": integ.name,
-                    "n": n,
-                    "fn": _step_case(integ, model, state, dt, n),
-                }
-            )
-            if label in ("linear-tm", "stvk-tm"):
-                haptic.append(
-                    {
-                        **cases[-1],
-                        "name": f"{label}, one step a call (haptic loop)",
-                        "n": n,
-                        "fn": _step_case(SymplecticEuler(), model, State(u=u.copy(), v=np.zeros_like(u)), dt, 1, n),
-                    }
-                )
-            if label == "linear-tm":
-                # what a haptic loop's call costs before it steps (the checks, the entry into the compiled
-                # loop, the returned force), apart from the noise of a difference of two step times
-                haptic.append(
-                    {
-                        **cases[-1],
-                        "name": CALL_ROW,
-                        "n": CALLS,
-                        "fn": _step_case(SymplecticEuler(), model, State(u=u.copy(), v=np.zeros_like(u)), dt, 0, CALLS),
-                    }
-                )
-            if model_name == "hybrid-tm":
-                cases[-1]["probe"] = lambda model=model, state=state: {
-                    "nonlinear_fraction": nonlinear_fraction(model.tets, state.u, model.extra["threshold"])
-                }
-        cases += haptic
-        # the float32 kernels (build_model's precision), beside their float64 rows
-        for model_name in FLOAT32_MODELS:
-            log(f"bench: {name} {model_name}, float32")
-            model = build_model(model_name, mesh.points, mesh.tets, iso, loading, precision="float32")
-            one = next(c for c in cases if c["name"] == model_name)
-            u = u0.astype(np.float32)
-            state = State(u=u, v=np.zeros_like(u))
-            cases.append(
-                {
-                    **one,
-                    "name": f"{model_name}, float32",
-                    "precision": "float32",
-                    "versus": model_name,
-                    "fn": _step_case(SymplecticEuler(), model, state, one["dt"], n),
-                }
-            )
-        # the threaded kernels on every core (realtime.threaded), beside their one-thread rows: the step,
-        # and the force kernel alone (the update after it streams the state and does not gain as much)
+        cases, built = _model_cases(name, mesh, base, loading, u0, n)
+        cases += _float32_cases(name, mesh, loading, u0, n, cases)
         threads = min(os.cpu_count() or 1, THREADS)
-        for model_name in ("linear-tm", "corotational-tm", "stvk-tm") if threads > 1 else ():
-            log(f"bench: {name} {model_name}, {threads} threads")
-            model = build_model(model_name, mesh.points, mesh.tets, iso, loading, threads=threads)
-            one = next(c for c in cases if c["name"] == model_name)
-            state = State(u=u0.copy(), v=np.zeros_like(u0))
-            alone = f"{model_name}, force alone"
-            cases += [
-                {
-                    **one,
-                    "name": f"{model_name}, {threads} threads",
-                    "threads": threads,
-                    "versus": model_name,
-                    "fn": _step_case(SymplecticEuler(), model, state, one["dt"], n),
-                },
-                {**base, "name": alone, "model": model_name, "n": n, "fn": _force_case(built[model_name], u0, n)},
-                {
-                    **base,
-                    "name": f"{alone}, {threads} threads",
-                    "model": model_name,
-                    "threads": threads,
-                    "versus": alone,
-                    "n": n,
-                    "fn": _force_case(model, u0, n),
-                },
-            ]
+        cases += _thread_cases(name, mesh, base, loading, u0, n, cases, built, threads)
         cases += _phase_cases(built["stvk-tm"], u0, n, base)
         # what the machine itself gains from the threads, in the same rounds: the roofline's loops on one
         # thread and on all, the triad on as many bytes as stvk-tm's step streams
@@ -331,111 +228,18 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
         footprint = step_work("stvk-tm", mesh.n_vertices, mesh.n_tets, n_edges)[1]
         ceilings = thread_loops(threads, footprint) if threads > 1 else {}
         cases += [{"name": key, "ceiling": True, "n": units, "fn": fn} for key, (fn, units) in ceilings.items()]
-        # the baseline a user would otherwise write: scipy's BSR product with the same matrix
-        lin = build_model("linear-tm", mesh.points, mesh.tets, iso, loading)
-        K = lin.extra["tensors"].matrix().tobsr(blocksize=(3, 3))
-        x = u0.ravel().copy()
-        reps = 50 if mesh.n_tets < 20000 else 10
-
-        def bsr(K=K, x=x, reps=reps):
-            for _ in range(reps):
-                K @ x
-
-        cases.append(
-            {"name": "scipy-bsr-matvec", "model": None, **base, "nnz_blocks": int(K.nnz // 9), "n": reps, "fn": bsr}
-        )
-        surface = len(mesh.surface_vertices) * 3
-        for model_name in ("precomputed", "condensed"):
-            if surface > DENSE_LIMIT:
-                rows.append(
-                    {
-                        "name": model_name,
-                        "model": model_name,
-                        **base,
-                        "step_us": None,
-                        "skipped": f"{surface} surface dofs: the dense precomputation would not fit",
-                    }
-                )
-                continue
-            log(f"bench: {name} {model_name}")
-            tool = int(mesh.surface_vertices[np.argmax(mesh.points[mesh.surface_vertices, 2])])
-            free = loading.free.copy()
-            free[tool] = 0.0
-            lo = Loading(
-                **{
-                    **loading.__dict__,
-                    "free": free,
-                    "tool_vertex": np.array([tool]),
-                    "tool_mask": np.ones((1, 3)),
-                    "tool_id": np.zeros(1, np.int64),
-                    "tool_kind": np.zeros(1, np.int64),
-                    "tool_vector": np.array([[0.0, 0.0, -0.005]]),
-                    "tool_axis": np.array([[0.0, 0.0, 1.0]]),
-                    "tool_center": np.zeros((1, 3)),
-                    "tool_angle": np.zeros(1),
-                    "tool_ramp": np.zeros(1),
-                    "tool_ramp_shape": np.zeros(1, np.int64),
-                }
-            )
-            t0 = time.perf_counter()
-            model = build_model(model_name, mesh.points, mesh.tets, iso, lo)
-            build_s = time.perf_counter() - t0
-            state = State.at_rest(mesh.n_vertices)
-            cases.append(
-                {
-                    "name": f"{model_name} (full update, 1 contact vertex)",
-                    "model": model_name,
-                    **base,
-                    "build_s": build_s,
-                    "n": 1,
-                    "fn": _step_case(QuasiStatic(), model, state, 1e-3, 1),
-                }
-            )
-            if model_name == "precomputed":
-                pc = model.extra["quasistatic"]
-                d = np.array([0.0, 0.0, -0.005])
-
-                def force(pc=pc, tool=tool, d=d):
-                    for _ in range(1000):
-                        pc.tool_force(tool, d)
-
-                cases.append(
-                    {
-                        "name": "precomputed tool-force update (1 contact vertex)",
-                        "model": model_name,
-                        **base,
-                        "n": 1000,
-                        "fn": force,
-                    }
-                )
+        cases.append(_bsr_case(mesh, base, loading, u0))
+        skipped, quasi = _quasi_static_cases(name, mesh, base, loading)
+        rows += skipped
+        cases += quasi
         log(f"bench: {name} timing {len(cases)} cases x {repeats} rounds")
         _time_round_robin(cases, repeats)
         if ceilings:
             timed = {c["name"]: c["step_us"] for c in cases if c.get("ceiling")}
-            scaling = {"threads": threads, "bytes": footprint, **thread_scaling(timed, threads)}
-            thread_ceilings[name] = scaling
+            thread_ceilings[name] = {"threads": threads, "bytes": footprint, **thread_scaling(timed, threads)}
             cases = [c for c in cases if not c.get("ceiling")]
-        for c in cases:
-            c.pop("fn")
-            c.update(c.pop("probe", dict)())
-            if c["name"] == "scipy-bsr-matvec":
-                work = bsr_work(c["nnz_blocks"], mesh.n_vertices)
-            elif "phase" in c:
-                work = stvk_phase_work(c["phase"], mesh.n_vertices, mesh.n_tets)
-            elif c["name"] == c["model"] or c["name"].startswith(f"{c['model']}, one step"):
-                work = step_work(c["model"], mesh.n_vertices, mesh.n_tets, n_edges)
-            else:  # a variant (fibres, penalty) does more than the counted kernel
-                work = None
-            _place_on_roofline(roof, c, work)
-            rows.append(c)
-        for c in rows:
-            if c["mesh"] == name and "versus" in c:
-                # measured in the same rounds as the one-thread float64 row it is a variant of
-                one = next(r for r in rows if r["mesh"] == name and r["name"] == c["versus"])
-                c["speedup"] = one["step_us"] / c["step_us"]
-            whole = next((r for r in rows if r["mesh"] == name and r["name"] == c.get("part_of")), None)
-            if c["mesh"] == name and whole is not None:  # "force alone" is timed on a machine with threads
-                c["share"] = c["step_us"] / whole["step_us"]
+        rows += _placed(roof, cases, mesh, n_edges)
+        _relate(rows, name)
     log("bench: what the hot loops compile to on this target (verification.bench.codegen)")
     return {
         "machine": {**machine(), "roofline": roof.summary(), "thread_scaling": thread_ceilings},
@@ -443,6 +247,249 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
         "results": rows,
         "meshes": {m: STORED.get(m) or (*STORED[m.removesuffix(RENUMBERED)], "renumbered") for m in meshes},
     }
+
+
+#: The benchmark's materials: isotropic StVK, and transversely isotropic with the volume penalty.
+ISO = Material(2.8e4, 0.4, 1000.0, law="stvk")
+FIBRE = Material(2.8e4, 0.4, 1000.0, law="stvk", fiber=(1.0, 0.0, 0.0), young_fiber=6e4, volume_penalty=5e4)
+
+
+def _model_cases(name: str, mesh, base: dict, loading, u0, n: int) -> tuple[list, dict]:
+    """Each model's step on one thread (and the haptic loop's one step a call, and its bare call), and
+    the one-thread model of each row by its label."""
+    cases = []
+    haptic = []
+    built = {}  # label -> the one-thread model of its row
+    for label, model_name, mat in (
+        ("linear-tm", "linear-tm", ISO),
+        ("linear-tm (transverse)", "linear-tm", FIBRE),
+        ("corotational-tm", "corotational-tm", ISO),
+        ("stvk-tm", "stvk-tm", ISO),
+        ("stvk-tm (transverse + penalty)", "stvk-tm", FIBRE),
+        ("hybrid-tm (10% of vertices past threshold)", "hybrid-tm", ISO),
+        ("mass-spring", "mass-spring", ISO),
+    ):
+        log(f"bench: {name} {label}")
+        model = build_model(model_name, mesh.points, mesh.tets, mat, loading)
+        built[label] = model
+        integ = SymplecticEuler()
+        dt = 0.5 * integ.critical_dt(model)
+        u = u0.copy()
+        if model_name == "hybrid-tm":
+            # move a tenth of the vertices past the threshold: the non-linear part of a local tool.
+            # At 0.5 dt_crit that jolt would spread over the mesh within the timed steps (88% of
+            # the tetrahedra non-linear after 50); a step costs the same at any dt, so the hybrid
+            # row steps at 1e-3 dt_crit and keeps the prepared non-linear set.
+            near = np.argsort(np.linalg.norm(mesh.points - mesh.points[0], axis=1))[: mesh.n_vertices // 10]
+            u[near] += 2 * model.extra["threshold"] * loading.free[near]
+            dt *= 2e-3
+        state = State(u=u, v=np.zeros_like(u))
+        cases.append(
+            {
+                "name": label,
+                "model": model_name,
+                **base,
+                "dt": dt,
+                "integrator": integ.name,
+                "n": n,
+                "fn": _step_case(integ, model, state, dt, n),
+            }
+        )
+        if label in ("linear-tm", "stvk-tm"):
+            haptic.append(
+                {
+                    **cases[-1],
+                    "name": f"{label}, one step a call (haptic loop)",
+                    "n": n,
+                    "fn": _step_case(SymplecticEuler(), model, State(u=u.copy(), v=np.zeros_like(u)), dt, 1, n),
+                }
+            )
+        if label == "linear-tm":
+            # what a haptic loop's call costs before it steps (the checks, the entry into the compiled
+            # loop, the returned force), apart from the noise of a difference of two step times
+            haptic.append(
+                {
+                    **cases[-1],
+                    "name": CALL_ROW,
+                    "n": CALLS,
+                    "fn": _step_case(SymplecticEuler(), model, State(u=u.copy(), v=np.zeros_like(u)), dt, 0, CALLS),
+                }
+            )
+        if model_name == "hybrid-tm":
+            cases[-1]["probe"] = lambda model=model, state=state: {
+                "nonlinear_fraction": nonlinear_fraction(model.tets, state.u, model.extra["threshold"])
+            }
+    return cases + haptic, built
+
+
+def _float32_cases(name: str, mesh, loading, u0, n: int, cases: list) -> list:
+    """The float32 kernels (build_model's precision), beside their float64 rows."""
+    out = []
+    for model_name in FLOAT32_MODELS:
+        log(f"bench: {name} {model_name}, float32")
+        model = build_model(model_name, mesh.points, mesh.tets, ISO, loading, precision="float32")
+        one = next(c for c in cases if c["name"] == model_name)
+        u = u0.astype(np.float32)
+        state = State(u=u, v=np.zeros_like(u))
+        out.append(
+            {
+                **one,
+                "name": f"{model_name}, float32",
+                "precision": "float32",
+                "versus": model_name,
+                "fn": _step_case(SymplecticEuler(), model, state, one["dt"], n),
+            }
+        )
+    return out
+
+
+def _thread_cases(name: str, mesh, base: dict, loading, u0, n: int, cases: list, built: dict, threads: int) -> list:
+    """The threaded kernels on every core (realtime.threaded), beside their one-thread rows: the step,
+    and the force kernel alone (the update after it streams the state and does not gain as much)."""
+    out = []
+    for model_name in ("linear-tm", "corotational-tm", "stvk-tm") if threads > 1 else ():
+        log(f"bench: {name} {model_name}, {threads} threads")
+        model = build_model(model_name, mesh.points, mesh.tets, ISO, loading, threads=threads)
+        one = next(c for c in cases if c["name"] == model_name)
+        state = State(u=u0.copy(), v=np.zeros_like(u0))
+        alone = f"{model_name}, force alone"
+        out += [
+            {
+                **one,
+                "name": f"{model_name}, {threads} threads",
+                "threads": threads,
+                "versus": model_name,
+                "fn": _step_case(SymplecticEuler(), model, state, one["dt"], n),
+            },
+            {**base, "name": alone, "model": model_name, "n": n, "fn": _force_case(built[model_name], u0, n)},
+            {
+                **base,
+                "name": f"{alone}, {threads} threads",
+                "model": model_name,
+                "threads": threads,
+                "versus": alone,
+                "n": n,
+                "fn": _force_case(model, u0, n),
+            },
+        ]
+    return out
+
+
+def _bsr_case(mesh, base: dict, loading, u0) -> dict:
+    """The baseline a user would otherwise write: scipy's BSR product with the same matrix."""
+    lin = build_model("linear-tm", mesh.points, mesh.tets, ISO, loading)
+    K = lin.extra["tensors"].matrix().tobsr(blocksize=(3, 3))
+    x = u0.ravel().copy()
+    reps = 50 if mesh.n_tets < 20000 else 10
+
+    def bsr(K=K, x=x, reps=reps):
+        for _ in range(reps):
+            K @ x
+
+    return {"name": "scipy-bsr-matvec", "model": None, **base, "nnz_blocks": int(K.nnz // 9), "n": reps, "fn": bsr}
+
+
+def _quasi_static_cases(name: str, mesh, base: dict, loading) -> tuple[list, list]:
+    """Precomputed and condensed: the full update with one contact vertex, and precomputed's tool-force
+    update; rows that say why where the dense precomputation would not fit."""
+    skipped, cases = [], []
+    surface = len(mesh.surface_vertices) * 3
+    for model_name in ("precomputed", "condensed"):
+        if surface > DENSE_LIMIT:
+            skipped.append(
+                {
+                    "name": model_name,
+                    "model": model_name,
+                    **base,
+                    "step_us": None,
+                    "skipped": f"{surface} surface dofs: the dense precomputation would not fit",
+                }
+            )
+            continue
+        log(f"bench: {name} {model_name}")
+        tool = int(mesh.surface_vertices[np.argmax(mesh.points[mesh.surface_vertices, 2])])
+        free = loading.free.copy()
+        free[tool] = 0.0
+        lo = Loading(
+            **{
+                **loading.__dict__,
+                "free": free,
+                "tool_vertex": np.array([tool]),
+                "tool_mask": np.ones((1, 3)),
+                "tool_id": np.zeros(1, np.int64),
+                "tool_kind": np.zeros(1, np.int64),
+                "tool_vector": np.array([[0.0, 0.0, -0.005]]),
+                "tool_axis": np.array([[0.0, 0.0, 1.0]]),
+                "tool_center": np.zeros((1, 3)),
+                "tool_angle": np.zeros(1),
+                "tool_ramp": np.zeros(1),
+                "tool_ramp_shape": np.zeros(1, np.int64),
+            }
+        )
+        t0 = time.perf_counter()
+        model = build_model(model_name, mesh.points, mesh.tets, ISO, lo)
+        build_s = time.perf_counter() - t0
+        state = State.at_rest(mesh.n_vertices)
+        cases.append(
+            {
+                "name": f"{model_name} (full update, 1 contact vertex)",
+                "model": model_name,
+                **base,
+                "build_s": build_s,
+                "n": 1,
+                "fn": _step_case(QuasiStatic(), model, state, 1e-3, 1),
+            }
+        )
+        if model_name == "precomputed":
+            pc = model.extra["quasistatic"]
+            d = np.array([0.0, 0.0, -0.005])
+
+            def force(pc=pc, tool=tool, d=d):
+                for _ in range(1000):
+                    pc.tool_force(tool, d)
+
+            cases.append(
+                {
+                    "name": "precomputed tool-force update (1 contact vertex)",
+                    "model": model_name,
+                    **base,
+                    "n": 1000,
+                    "fn": force,
+                }
+            )
+    return skipped, cases
+
+
+def _placed(roof, cases: list, mesh, n_edges: int) -> list:
+    """The timed cases as rows, each placed on the roofline by the work its kernel does."""
+    rows = []
+    for c in cases:
+        c.pop("fn")
+        c.update(c.pop("probe", dict)())
+        if c["name"] == "scipy-bsr-matvec":
+            work = bsr_work(c["nnz_blocks"], mesh.n_vertices)
+        elif "phase" in c:
+            work = stvk_phase_work(c["phase"], mesh.n_vertices, mesh.n_tets)
+        elif c["name"] == c["model"] or c["name"].startswith(f"{c['model']}, one step"):
+            work = step_work(c["model"], mesh.n_vertices, mesh.n_tets, n_edges)
+        else:  # a variant (fibres, penalty) does more than the counted kernel
+            work = None
+        _place_on_roofline(roof, c, work)
+        rows.append(c)
+    return rows
+
+
+def _relate(rows: list, name: str) -> None:
+    """Each variant row's speed-up over the one-thread float64 row it was measured beside, and each
+    part's share of its whole."""
+    for c in rows:
+        if c["mesh"] == name and "versus" in c:
+            # measured in the same rounds as the one-thread float64 row it is a variant of
+            one = next(r for r in rows if r["mesh"] == name and r["name"] == c["versus"])
+            c["speedup"] = one["step_us"] / c["step_us"]
+        whole = next((r for r in rows if r["mesh"] == name and r["name"] == c.get("part_of")), None)
+        if c["mesh"] == name and whole is not None:  # "force alone" is timed on a machine with threads
+            c["share"] = c["step_us"] / whole["step_us"]
 
 
 def format_table(out: dict) -> str:

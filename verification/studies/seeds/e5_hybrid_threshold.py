@@ -9,6 +9,7 @@ from realtime.models import nonlinear_fraction
 from verification.metrics import rel_l2
 from verification.progress import log
 from verification.report.plots import png
+from verification.scene import Scene
 from verification.studies.seeds.common import KEEPS_NONLINEAR, Size, _finding, _ref, _reference_info, _settled
 from verification.studies.seeds.e4_liver import liver_scene
 
@@ -29,25 +30,8 @@ def hybrid_rates(size: Size) -> dict:
     scene = liver_scene(size.hybrid_scene, size)
     ref, est = _ref(scene, size)
     umax = float(np.linalg.norm(ref, axis=1).max())
-    rows, hybrid_answers = [], []
-    for frac in size.hybrid_fractions:
-        threshold = frac * umax
-        u, meta = _settled(scene, "hybrid-tm", size.reference, {"threshold": threshold}, allow_unsettled=True)
-        hybrid_answers.append(u)
-        rows.append(
-            {
-                "threshold_mm": 1e3 * threshold,
-                "threshold_of_max": frac,
-                "nonlinear_tets": nonlinear_fraction(scene.mesh.tets, ref, threshold),
-                "step_us": meta["step_us"],
-                "rate_hz": 1e6 / meta["step_us"],
-                "rel_l2": None if u is None else rel_l2(u, ref),
-                "settled": meta.get("unsettled", "yes"),
-            }
-        )
-        log(
-            f"seeds 5: threshold {1e3 * threshold:.2f} mm: {rows[-1]['step_us']:.0f} us, settled: {rows[-1]['settled']}"
-        )
+    pairs = [_threshold_row(scene, frac * umax, frac, ref, size) for frac in size.hybrid_fractions]
+    rows, hybrid_answers = [row for row, _ in pairs], [u for _, u in pairs]
     bounds, answers = {}, {}
     for m in ("stvk-tm", "linear-tm"):
         answers[m], meta = _settled(scene, m, size.reference)
@@ -96,6 +80,15 @@ def hybrid_rates(size: Size) -> dict:
 
     out["figure"] = f"{mesh.n_tets} tetrahedra, {mesh.n_vertices} vertices: " + ", ".join(one(r) for r in rows)
     out["reference"] = _reference_info([est])
+    out["plots"].append(
+        {"alt": "hybrid model's rate and error against its threshold", "png": _plot(rows, rates, bounds, scene)}
+    )
+    return out
+
+
+def _plot(rows: list[dict], rates: list[float], bounds: dict, scene: Scene) -> str:
+    """The hybrid model's rate and its departure from StVK against its threshold, the bounds' rates
+    beside."""
     fig, ax = plt.subplots(figsize=(6.4, 3.4))
     xs = [r["threshold_of_max"] for r in rows]
     ax.plot(xs, rates, "o-", color="#1f77b4", label="hybrid-tm rate")
@@ -109,6 +102,23 @@ def hybrid_rates(size: Size) -> dict:
     )
     ax2.set_ylabel("departure from stvk-tm (%)", color="#d62728")
     ax.legend(fontsize=7, loc="upper left")
-    ax.set_title(f"hybrid model on {scene.name} ({mesh.n_tets} tetrahedra)", fontsize=9)
-    out["plots"].append({"alt": "hybrid model's rate and error against its threshold", "png": png(fig)})
-    return out
+    ax.set_title(f"hybrid model on {scene.name} ({scene.mesh.n_tets} tetrahedra)", fontsize=9)
+    return png(fig)
+
+
+def _threshold_row(scene: Scene, threshold: float, frac: float, ref, size: Size) -> tuple[dict, object]:
+    """hybrid-tm at ``threshold`` (m, ``frac`` of the largest reference displacement): its row (step time,
+    rate, error, the share of tetrahedra non-linear at the reference's answer) and its settled answer
+    (N, 3) m, None where it did not settle. ``ref``: the reference displacement (N, 3) m."""
+    u, meta = _settled(scene, "hybrid-tm", size.reference, {"threshold": threshold}, allow_unsettled=True)
+    row = {
+        "threshold_mm": 1e3 * threshold,
+        "threshold_of_max": frac,
+        "nonlinear_tets": nonlinear_fraction(scene.mesh.tets, ref, threshold),
+        "step_us": meta["step_us"],
+        "rate_hz": 1e6 / meta["step_us"],
+        "rel_l2": None if u is None else rel_l2(u, ref),
+        "settled": meta.get("unsettled", "yes"),
+    }
+    log(f"seeds 5: threshold {1e3 * threshold:.2f} mm: {row['step_us']:.0f} us, settled: {row['settled']}")
+    return row, u

@@ -28,8 +28,6 @@ def formula_dt(model) -> tuple[float, float]:
 
 
 def critical_stiffness(size: Size) -> dict:
-    from verification.engines.builtin import scene_model
-
     out = _finding(
         7,
         "critical-stiffness",
@@ -41,33 +39,7 @@ def critical_stiffness(size: Size) -> dict:
         "h^1 (within 0.15) and the formula's step is within a factor 2 of it; nuanced when the scaling holds "
         "but the constant does not; refuted when the scaling fails",
     )
-    rows = []
-    for level in size.spring_levels:
-        for young in size.spring_youngs:
-
-            def edit(data, young=young):
-                data["material"]["young"] = float(young)
-
-            scene = seed_scene("spring-block", f"-E{young:g}", edit, refine=level)
-            model = scene_model(scene, "mass-spring")
-            stable = largest_stable_fraction(scene, "mass-spring")
-            dt_f, valence = formula_dt(model)
-            measured = stable["stable"] * stable["dt_crit"]
-            rows.append(
-                {
-                    "young_pa": young,
-                    "level": level,
-                    "n_vertices": scene.mesh.n_vertices,
-                    "mean_edge_mm": 1e3 * scene.mesh.mean_edge(),
-                    "mean_valence": valence,
-                    "measured_dt_s": measured,
-                    "unstable_dt_s": stable["unstable"] * stable["dt_crit"] if stable["unstable"] else None,
-                    "lanczos_dt_s": stable["dt_crit"],
-                    "formula_dt_s": dt_f,
-                    "measured_over_formula": measured / dt_f,
-                }
-            )
-            log(f"seeds 7: E {young:g} Pa, level {level}: stable {measured:.3g} s, formula {dt_f:.3g} s")
+    rows = [_measured(level, young) for level in size.spring_levels for young in size.spring_youngs]
     out["table"] = rows
     level0 = [r for r in rows if r["level"] == size.spring_levels[0]]
     slope_e = _slope([r["young_pa"] for r in level0], [r["measured_dt_s"] for r in level0])
@@ -99,6 +71,14 @@ def critical_stiffness(size: Size) -> dict:
         "ref_err_estimate": None,
         "verified": True,
     }
+    out["plots"].append(
+        {"alt": "measured largest stable step against the critical-stiffness formula", "png": _plot(rows, size)}
+    )
+    return out
+
+
+def _plot(rows: list[dict], size: Size) -> str:
+    """The measured largest stable step against the formula's, one series per refinement."""
     fig, ax = plt.subplots(figsize=(5.4, 3.8))
     for level, mk in zip(size.spring_levels, ("o", "s", "^"), strict=False):
         rs = [r for r in rows if r["level"] == level]
@@ -110,5 +90,32 @@ def critical_stiffness(size: Size) -> dict:
     ax.set_ylabel("largest stable dt, measured (s)")
     ax.legend(fontsize=7)
     ax.set_title("mass-spring critical step over E and h", fontsize=9)
-    out["plots"].append({"alt": "measured largest stable step against the critical-stiffness formula", "png": png(fig)})
-    return out
+    return png(fig)
+
+
+def _measured(level: int, young: float) -> dict:
+    """The spring block at ``young`` (Pa) refined ``level`` times: its largest stable step by bisection
+    and the critical-stiffness formula's."""
+    from verification.engines.builtin import scene_model
+
+    def edit(data, young=young):
+        data["material"]["young"] = float(young)
+
+    scene = seed_scene("spring-block", f"-E{young:g}", edit, refine=level)
+    model = scene_model(scene, "mass-spring")
+    stable = largest_stable_fraction(scene, "mass-spring")
+    dt_f, valence = formula_dt(model)
+    measured = stable["stable"] * stable["dt_crit"]
+    log(f"seeds 7: E {young:g} Pa, level {level}: stable {measured:.3g} s, formula {dt_f:.3g} s")
+    return {
+        "young_pa": young,
+        "level": level,
+        "n_vertices": scene.mesh.n_vertices,
+        "mean_edge_mm": 1e3 * scene.mesh.mean_edge(),
+        "mean_valence": valence,
+        "measured_dt_s": measured,
+        "unstable_dt_s": stable["unstable"] * stable["dt_crit"] if stable["unstable"] else None,
+        "lanczos_dt_s": stable["dt_crit"],
+        "formula_dt_s": dt_f,
+        "measured_over_formula": measured / dt_f,
+    }

@@ -54,40 +54,7 @@ def rates(size: Size) -> dict:
     for scene in rates_scenes(size):
         ref, est = _ref(scene, size)
         estimates.append(est)
-        mesh = scene.mesh
-        for m in RATE_MODELS:
-            row = {"model": m, "n_tets": mesh.n_tets, "n_vertices": mesh.n_vertices}
-            need = memory_bytes(m, mesh.n_vertices, len(mesh.surface_vertices))
-            if need > available_memory():
-                row.update(status=f"needs {need / 1e9:.1f} GB, over half the free memory")
-                rows.append(row)
-                continue
-            predicted = _predicted_build(built.get(m, []), mesh.n_vertices)
-            if predicted is not None and predicted > PRECOMPUTE_BUDGET:
-                row.update(
-                    status=f"skipped: its precomputation would take about {predicted:.0f} s "
-                    f"(extrapolated from {len(built[m])} coarser meshes; the study allows {PRECOMPUTE_BUDGET:.0f} s)"
-                )
-                rows.append(row)
-                continue
-            log(f"seeds 8: {m} on {mesh.n_tets} tetrahedra")
-            u, meta = _settled(scene, m, size.reference, allow_unsettled=True)
-            settled = u is not None
-            if settled and m in QUASI_STATIC:
-                built.setdefault(m, []).append((mesh.n_vertices, meta["build_s"]))
-            run = {
-                "step_us": meta["step_us"],
-                "dt": meta["dt"],
-                "settle_steps": meta["static"]["steps"] if settled else 1,
-            }
-            row.update(
-                status="ok" if settled else f"did not settle: {meta['unsettled']}",
-                step_us=meta["step_us"],
-                rel_l2=rel_l2(u, ref) if settled else None,
-            )
-            for label, hz in RATES:
-                row[f"holds_{label}"] = frame_budget(run, hz, dynamic=False)["holds"]
-            rows.append(row)
+        rows += [_rate_row(scene, m, ref, size, built) for m in RATE_MODELS]
     out["table"] = rows
     ok = [r for r in rows if "step_us" in r]  # timed: settled or not
     every = all(r["status"] == "ok" and r["holds_visual"] and r["holds_haptic"] for r in rows)
@@ -116,6 +83,14 @@ def rates(size: Size) -> dict:
         f"{m}: 10 Hz up to {held(v['visual'])}, 1 kHz up to {held(v['haptic'])}" for m, v in largest.items()
     )
     out["reference"] = _reference_info(estimates)
+    out["plots"].append(
+        {"alt": "time per update against mesh size with the visual and haptic frames", "png": _plot(ok)}
+    )
+    return out
+
+
+def _plot(ok: list[dict]) -> str:
+    """Time per update against mesh size, with the visual and haptic frames."""
     fig, ax = plt.subplots(figsize=(6.6, 3.8))
     for m in RATE_MODELS:
         rs = [r for r in ok if r["model"] == m]
@@ -128,5 +103,41 @@ def rates(size: Size) -> dict:
     ax.set_ylabel("us per update")
     ax.legend(fontsize=7)
     ax.set_title("what fits in a frame on this machine", fontsize=9)
-    out["plots"].append({"alt": "time per update against mesh size with the visual and haptic frames", "png": png(fig)})
-    return out
+    return png(fig)
+
+
+def _rate_row(scene: Scene, m: str, ref, size: Size, built: dict) -> dict:
+    """One model on one beam: its step time, error and whether it holds each rate, or why it was not
+    run (memory, or a precomputation ``built`` predicts too slow; each quasi-static build is recorded
+    there). ``ref``: the reference displacement (N, 3) m at the beam's vertices."""
+    mesh = scene.mesh
+    row = {"model": m, "n_tets": mesh.n_tets, "n_vertices": mesh.n_vertices}
+    need = memory_bytes(m, mesh.n_vertices, len(mesh.surface_vertices))
+    if need > available_memory():
+        row.update(status=f"needs {need / 1e9:.1f} GB, over half the free memory")
+        return row
+    predicted = _predicted_build(built.get(m, []), mesh.n_vertices)
+    if predicted is not None and predicted > PRECOMPUTE_BUDGET:
+        row.update(
+            status=f"skipped: its precomputation would take about {predicted:.0f} s "
+            f"(extrapolated from {len(built[m])} coarser meshes; the study allows {PRECOMPUTE_BUDGET:.0f} s)"
+        )
+        return row
+    log(f"seeds 8: {m} on {mesh.n_tets} tetrahedra")
+    u, meta = _settled(scene, m, size.reference, allow_unsettled=True)
+    settled = u is not None
+    if settled and m in QUASI_STATIC:
+        built.setdefault(m, []).append((mesh.n_vertices, meta["build_s"]))
+    run = {
+        "step_us": meta["step_us"],
+        "dt": meta["dt"],
+        "settle_steps": meta["static"]["steps"] if settled else 1,
+    }
+    row.update(
+        status="ok" if settled else f"did not settle: {meta['unsettled']}",
+        step_us=meta["step_us"],
+        rel_l2=rel_l2(u, ref) if settled else None,
+    )
+    for label, hz in RATES:
+        row[f"holds_{label}"] = frame_budget(run, hz, dynamic=False)["holds"]
+    return row
