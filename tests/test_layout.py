@@ -1,0 +1,101 @@
+"""The house's layout holds (docs/architecture.md section 1): no import circle, no file over 600 lines
+but the numba kernel files, no function over 80 lines but the numba kernels. Read from the sources, so
+that a change that breaks one fails here, naming where."""
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("meshes", "realtime", "reference", "verification")
+MAX_FILE_LINES, MAX_FUNCTION_LINES = 600, 80
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for pkg in PACKAGES:
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            parts = list(path.relative_to(ROOT).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            out[".".join(parts)] = path
+    return out
+
+
+def _imports(name: str, path: Path, modules: dict) -> set[str]:
+    """The project's modules that ``name`` imports, at the top or inside a function: ``from a.b import c``
+    counts a.b.c when it is a module, else a.b."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        targets = []
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                up = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(up + ([base] if base else []))
+            targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base for a in node.names]
+        for t in targets:
+            while t and t not in modules:
+                t = t.rpartition(".")[0]
+            if t and t != name:
+                found.add(t)
+    return found
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import cycle of ``graph``, as the modules around it, or None."""
+    state: dict[str, int] = {}  # 1 on the path, 2 done
+    path: list[str] = []
+
+    def visit(v):
+        state[v] = 1
+        path.append(v)
+        for w in sorted(graph[v]):
+            if state.get(w) == 1:
+                return path[path.index(w) :] + [w]
+            if w not in state and (found := visit(w)):
+                return found
+        state[v] = 2
+        path.pop()
+        return None
+
+    for v in sorted(graph):
+        if v not in state and (found := visit(v)):
+            return found
+    return None
+
+
+def test_cycle_finder_finds_a_planted_circle():
+    """The finder itself: a three-module circle is found and named, a chain is not one."""
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": set()}) is None
+
+
+def test_no_import_circles():
+    modules = _modules()
+    graph = {name: _imports(name, path, modules) for name, path in modules.items()}
+    cycle = _cycle(graph)
+    assert cycle is None, "import circle: " + " -> ".join(cycle)
+
+
+def _is_kernel(node) -> bool:
+    """A function numba compiles (its decorator names njit or jit)."""
+    return any("jit" in ast.unparse(d) for d in node.decorator_list)
+
+
+def test_files_and_functions_are_small():
+    too_long = []
+    for path in _modules().values():
+        source = path.read_text()
+        tree = ast.parse(source)
+        functions = [n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef)]
+        kernels = any(_is_kernel(f) for f in functions)
+        if source.count("\n") > MAX_FILE_LINES and not kernels:
+            too_long.append(f"{path.relative_to(ROOT)}: {source.count(chr(10))} lines")
+        for f in functions:
+            lines = f.end_lineno - f.lineno + 1
+            if lines > MAX_FUNCTION_LINES and not _is_kernel(f):
+                too_long.append(f"{path.relative_to(ROOT)}:{f.lineno} {f.name}: {lines} lines")
+    assert not too_long, "; ".join(too_long)
