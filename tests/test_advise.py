@@ -15,21 +15,14 @@ import pytest
 from realtime import MODELS
 from verification.cli import main
 from verification.runs.reference import reference_result
+from verification.runs.row import Row
 from verification.scene import SceneError
 from verification.scene_file import load_scene, parse
 from verification.studies.frame import FRAME_SHARE, frame_budget, merge_same_answers
 
 
 def _row(model="linear-tm", dt=1e-5, step_us=10.0, settle=1000, err=0.1, integrator="symplectic-euler"):
-    return {
-        "model": model,
-        "integrator": integrator,
-        "status": "ok",
-        "dt": dt,
-        "step_us": step_us,
-        "settle_steps": settle,
-        "rel_l2": err,
-    }
+    return Row("a scene", model, integrator, "ok", dt=dt, step_us=step_us, settle_steps=settle, rel_l2=err)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -77,15 +70,13 @@ def test_rows_whose_step_changes_nothing_are_one_row_ranked_by_time_to_settle():
         _row(dt=2e-5, step_us=9.5, settle=17000, err=0.2),
         _row(model="stvk-tm", dt=3e-5, step_us=20.0, settle=20000, err=0.1),
     ]
-    for r in rows:
-        r["frame"] = frame_budget(r, 1000.0, dynamic=False)
+    rows = [r.replace(frame=frame_budget(r, 1000.0, dynamic=False)) for r in rows]
     merged = merge_same_answers(rows, "rel_l2", dynamic=False)
-    assert [r["model"] for r in merged] == ["linear-tm", "stvk-tm"]
-    assert merged[0]["dt"] == 3e-5 and merged[0]["merged_dt"] == [1e-5, 2e-5, 3e-5]
+    assert [r.model for r in merged] == ["linear-tm", "stvk-tm"]
+    assert merged[0].dt == 3e-5 and merged[0].merged_dt == (1e-5, 2e-5, 3e-5)
     # on a dynamic scene the step changes the answer: rows with different errors stay apart
     dyn = [_row(dt=1e-5, err=0.01), _row(dt=2e-5, err=0.02)]
-    for r in dyn:
-        r["frame"] = frame_budget(r, 1000.0, dynamic=True)
+    dyn = [r.replace(frame=frame_budget(r, 1000.0, dynamic=True)) for r in dyn]
     assert len(merge_same_answers(dyn, "rel_l2", dynamic=True)) == 2
 
 

@@ -208,7 +208,7 @@ def test_a_damaged_cache_entry_is_computed_again(tmp_path, capsys, monkeypatch):
     scene = load_scene("cantilever-pull")
     opts = {"degree": 1, "estimate": False}
     first = cached_compare(scene, "linear-tm", ref_opts=opts)
-    assert first["cached"] is False
+    assert first.cached is False
     entries = sorted(p for p in cache_dir().rglob("*") if p.is_file())
     kinds = {p.parent.name for p in entries}
     assert {"reference", "settled", "runs"} <= kinds, entries
@@ -220,9 +220,9 @@ def test_a_damaged_cache_entry_is_computed_again(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     for kind in ("reference", "settled", "runs"):
         assert f"/{kind}/" in err and "damaged" in err, err
-    assert again["cached"] is False and again["rel_l2"] == first["rel_l2"]
+    assert again.cached is False and again.rel_l2 == first.rel_l2
     assert ref.meta["degree"] == 1
-    assert cached_compare(scene, "linear-tm", ref_opts=opts)["cached"] is True
+    assert cached_compare(scene, "linear-tm", ref_opts=opts).cached is True
 
 
 @pytest.mark.slow

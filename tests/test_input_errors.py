@@ -504,4 +504,4 @@ def test_a_static_scene_whose_own_answer_is_beyond_the_blow_up_guard_is_refused_
     from verification.scene_file import load_scene
 
     row = compare(load_scene(path), "linear-tm")
-    assert row["status"] == "diverged" and row["unbounded"] and "static answer reaches" in row["message"]
+    assert row.status == "diverged" and row.unbounded and "static answer reaches" in row.message

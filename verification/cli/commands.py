@@ -25,13 +25,9 @@ def _emit(args, out: dict, text) -> None:
 
 
 def _default(x):
-    import numpy as np
+    from verification.runs.row import jsonable
 
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    return str(x)
+    return jsonable(x)
 
 
 def cmd_scenes(args) -> int:
@@ -240,7 +236,7 @@ def cmd_compare(args) -> int:
     from verification.runs.compare import compare
 
     scene = _scene(args)
-    out = compare(
+    row = compare(
         scene,
         args.model,
         dt=args.dt,
@@ -251,43 +247,48 @@ def cmd_compare(args) -> int:
         max_steps=args.max_steps,
         vtk=args.vtk,
     )
-    if args.rate and out["status"] == "ok":
+    if args.rate and row.ok:
         from verification.studies.frame import frame_budget
 
-        out["frame"] = frame_budget(out, args.rate, scene.time.mode == "dynamic")
-    if out.get("unbounded"):  # the scene's own answer is past the blow-up guard: its input, not a step
-        return _fail(f"tissuebench: {_one_line(out['message'])}", 2)
+        row = row.replace(frame=frame_budget(row, args.rate, scene.time.mode == "dynamic"))
+    if row.unbounded:  # the scene's own answer is past the blow-up guard: its input, not a step
+        return _fail(f"tissuebench: {_one_line(row.message)}", 2)
     if args.json:
-        _print_json(out)
-    elif out["status"] != "ok":
-        print(out["message"])
+        _print_json(row)
+    elif not row.ok:
+        print(row.message)
     else:
-        acc = " (at reference accuracy)" if out["at_reference_accuracy"] else ""
-        at = "its quasi-static update" if out["dt"] is None else f"dt = {out['dt']:.3g} s"
-        print(f"{scene.name} / {args.model} at {at}:")
-        for k in (
-            "rel_l2",
-            "surface_rel_l2",
-            "max_err",
-            "reaction_rel_err",
-            "volume_err",
-            "ref_err_estimate",
-            "step_us",
-            "realtime_factor",
-            "rate_hz",
-        ):
-            v = out[k]
-            print(f"  {k:<18} {'-' if v is None else f'{v:.4g}'}{acc if k == 'rel_l2' else ''}")
-        b = out.get("error_budget") or {}
-        if b.get("mesh") is not None:
-            parts = ", ".join(f"{p} {b[p]:.3g}" for p in ("mesh", "model", "time") if b.get(p) is not None)
-            print(f"  {'error_budget':<18} {parts}: the {b['dominant']}'s part dominates")
-        if out.get("frame"):
-            f = out["frame"]
-            print(f"  {'frame':<18} {'holds' if f['holds'] else 'does not hold'} {args.rate:g} Hz: {f['why']}")
-        for term in out.get("unrepresented") or []:
-            print(f"  {'not represented':<18} {term}: ran without it, and the errors above include what that costs")
-    return 0 if out["status"] == "ok" else 1
+        _print_row(scene, args, row)
+    return 0 if row.ok else 1
+
+
+def _print_row(scene, args, row) -> None:
+    """A compare row as text: its metrics, error budget, frame budget and what the model did not represent."""
+    acc = " (at reference accuracy)" if row.at_reference_accuracy else ""
+    at = "its quasi-static update" if row.dt is None else f"dt = {row.dt:.3g} s"
+    print(f"{scene.name} / {args.model} at {at}:")
+    for k in (
+        "rel_l2",
+        "surface_rel_l2",
+        "max_err",
+        "reaction_rel_err",
+        "volume_err",
+        "ref_err_estimate",
+        "step_us",
+        "realtime_factor",
+        "rate_hz",
+    ):
+        v = getattr(row, k)
+        print(f"  {k:<18} {'-' if v is None else f'{v:.4g}'}{acc if k == 'rel_l2' else ''}")
+    b = row.error_budget or {}
+    if b.get("mesh") is not None:
+        parts = ", ".join(f"{p} {b[p]:.3g}" for p in ("mesh", "model", "time") if b.get(p) is not None)
+        print(f"  {'error_budget':<18} {parts}: the {b['dominant']}'s part dominates")
+    if row.frame:
+        f = row.frame
+        print(f"  {'frame':<18} {'holds' if f['holds'] else 'does not hold'} {args.rate:g} Hz: {f['why']}")
+    for term in row.unrepresented:
+        print(f"  {'not represented':<18} {term}: ran without it, and the errors above include what that costs")
 
 
 def cmd_report(args) -> int:

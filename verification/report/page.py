@@ -29,6 +29,7 @@ from verification.report.sections import (
     stability_section,
 )
 from verification.runs.results import atomic_write_text
+from verification.runs.row import jsonable
 from verification.scene_file import load_scene
 from verification.studies.prefetch import advice_jobs, settle_ahead, solve_references
 from verification.studies.stability import FAILED_REFERENCES, reference_jobs, settle_cells
@@ -101,7 +102,7 @@ Data: <a href="data.json">data.json</a>, <a href="runs.csv">runs.csv</a>. Scenes
 {"".join(sections)}
 </body></html>"""
     outdir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(outdir / "data.json", json.dumps(data, indent=1, default=str))
+    atomic_write_text(outdir / "data.json", json.dumps(data, indent=1, default=jsonable))
     csv = "scene," + sweep_csv(data["scenes"][0]["sweep"]).splitlines()[0] + "\n"
     for d in data["scenes"]:
         csv += "".join(f"{d['scene']},{line}\n" for line in sweep_csv(d["sweep"]).splitlines()[1:])

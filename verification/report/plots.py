@@ -17,6 +17,8 @@ import numpy as np  # noqa: E402
 from matplotlib.collections import LineCollection, PolyCollection  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
+from verification.runs.row import Row  # noqa: E402
+
 
 def png(fig) -> str:
     """The figure as base64 PNG text; the figure is closed."""
@@ -61,29 +63,27 @@ def _legend_beside(ax) -> None:
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
 
 
-def plot_error_vs_speed(rows: list[dict], ref_est: float | None, title: str) -> str:
+def plot_error_vs_speed(rows: list[Row], ref_est: float | None, title: str) -> str:
     """Log-log rel_l2 against step_us, one series per model, the Pareto front as a staircase."""
     fig, ax = plt.subplots(figsize=(7.2, 4.6))
-    ok = [r for r in rows if r["status"] == "ok"]
-    for model in sorted({r["model"] for r in ok}):
-        pts = sorted((r for r in ok if r["model"] == model), key=lambda r: r["step_us"])
-        ax.loglog([r["step_us"] for r in pts], [max(r["rel_l2"], 1e-16) for r in pts], "o", label=model, alpha=0.8)
+    ok = [r for r in rows if r.status == "ok"]
+    for model in sorted({r.model for r in ok}):
+        pts = sorted((r for r in ok if r.model == model), key=lambda r: r.step_us)
+        ax.loglog([r.step_us for r in pts], [max(r.rel_l2, 1e-16) for r in pts], "o", label=model, alpha=0.8)
         for r in pts:
-            label = "q-s" if not r.get("dt_crit") else f"{r['dt'] / r['dt_crit']:.2g}"
-            ax.annotate(
-                label, (r["step_us"], max(r["rel_l2"], 1e-16)), textcoords="offset points", xytext=(4, 3), fontsize=7
-            )
-    front = sorted((r for r in ok if r.get("pareto")), key=lambda r: r["step_us"])
+            label = "q-s" if not r.dt_crit else f"{r.dt / r.dt_crit:.2g}"
+            ax.annotate(label, (r.step_us, max(r.rel_l2, 1e-16)), textcoords="offset points", xytext=(4, 3), fontsize=7)
+    front = sorted((r for r in ok if r.pareto), key=lambda r: r.step_us)
     if front:
         ax.step(
-            [r["step_us"] for r in front],
-            [r["rel_l2"] for r in front],
+            [r.step_us for r in front],
+            [r.rel_l2 for r in front],
             where="post",
             color="k",
             lw=1,
             label="Pareto front",
         )
-    errs = [max(r["rel_l2"], 1e-16) for r in ok]
+    errs = [max(r.rel_l2, 1e-16) for r in ok]
     if ref_est:
         ax.axhline(ref_est, color="grey", ls="--", lw=1, label="reference error estimate")
         lo = min(errs + [ref_est]) / 10
@@ -98,27 +98,27 @@ def plot_error_vs_speed(rows: list[dict], ref_est: float | None, title: str) -> 
     return png(fig)
 
 
-def budget_rows(rows: list[dict]) -> list[dict]:
+def budget_rows(rows: list[Row]) -> list[Row]:
     """One row per model with an error budget: its run at the largest step that stayed stable."""
     best = {}
     for r in rows:
-        if r["status"] == "ok" and r.get("error_budget") and r["error_budget"].get("mesh") is not None:
-            if r["model"] not in best or (r["dt"] or 0.0) > (best[r["model"]]["dt"] or 0.0):
-                best[r["model"]] = r
+        if r.status == "ok" and r.error_budget and r.error_budget.get("mesh") is not None:
+            if r.model not in best or (r.dt or 0.0) > (best[r.model].dt or 0.0):
+                best[r.model] = r
     return [best[m] for m in sorted(best)]
 
 
-def plot_budget(rows: list[dict], title: str) -> str:
+def plot_budget(rows: list[Row], title: str) -> str:
     """Horizontal stacked bars: each model's error split into the mesh's, the model's and the time
     step's parts (relative L2), with the model's total error marked."""
     fig, ax = plt.subplots(figsize=(7.2, 0.45 * len(rows) + 1.4))
     left = np.zeros(len(rows))
     for part, colour in (("mesh", "#8c8c8c"), ("model", "#d95f02"), ("time", "#1b9e77")):
-        width = np.array([r["error_budget"].get(part) or 0.0 for r in rows])
-        ax.barh([r["model"] for r in rows], width, left=left, color=colour, label=part)
+        width = np.array([r.error_budget.get(part) or 0.0 for r in rows])
+        ax.barh([r.model for r in rows], width, left=left, color=colour, label=part)
         left += width
     # the parts are distances between solutions: the total can be below their sum (errors that cancel)
-    ax.plot([r["rel_l2"] for r in rows], range(len(rows)), "k|", markersize=22, mew=2, label="total error")
+    ax.plot([r.rel_l2 for r in rows], range(len(rows)), "k|", markersize=22, mew=2, label="total error")
     ax.set_xlabel("relative L2 displacement error, by part (fraction)")
     ax.set_title(title, fontsize=9)
     _legend_beside(ax)
@@ -126,14 +126,14 @@ def plot_budget(rows: list[dict], title: str) -> str:
     return png(fig)
 
 
-def budget_verdict(rows: list[dict]) -> str:
+def budget_verdict(rows: list[Row]) -> str:
     """One sentence: which part of the error dominates, with the numbers that say so."""
     if not rows:
         return "No error budget: the P1 solution on this mesh could not be computed."
-    mesh = rows[0]["error_budget"]["mesh"]
-    models = [r["error_budget"]["model"] for r in rows]
-    times = [r["error_budget"]["time"] for r in rows if r["error_budget"].get("time") is not None]
-    dominant = [r["error_budget"]["dominant"] for r in rows]
+    mesh = rows[0].error_budget["mesh"]
+    models = [r.error_budget["model"] for r in rows]
+    times = [r.error_budget["time"] for r in rows if r.error_budget.get("time") is not None]
+    dominant = [r.error_budget["dominant"] for r in rows]
     lead = max(set(dominant), key=dominant.count)
     text = (
         f"The P1 finite-element solution on this mesh is {100 * mesh:.1f}% off the converged reference; the models "

@@ -22,6 +22,7 @@ from verification.report.plots import (
 )
 from verification.report.plots import img as _img
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
+from verification.runs.row import Row
 from verification.runs.simulate import run_model
 from verification.scene_file import load_scene
 from verification.studies.advise import advise, refined_times
@@ -65,7 +66,7 @@ def _solver(options: dict) -> str:
     return f"{options['ksp_type'].upper()} preconditioned by {pc.upper()}"
 
 
-def _sweep_table(rows: list[dict]) -> str:
+def _sweep_table(rows: list[Row]) -> str:
     head = (
         "<tr><th>model</th><th>integrator</th><th>dt (s)</th><th>dt / dt_crit</th><th>rel_l2</th>"
         "<th>surface_rel_l2</th><th>max_err (m)</th><th>reaction_rel_err</th><th>volume_err</th>"
@@ -73,24 +74,24 @@ def _sweep_table(rows: list[dict]) -> str:
     )
     out = [head]
     for r in rows:
-        ratio = "quasi-static" if not r.get("dt_crit") else fmt(r["dt"] / r["dt_crit"], ".2f")
-        if r.get("largest_stable"):
+        ratio = "quasi-static" if not r.dt_crit else fmt(r.dt / r.dt_crit, ".2f")
+        if r.largest_stable:
             ratio += " (largest stable)"
-        if r["status"] != "ok":
+        if r.status != "ok":
             out.append(
-                f"<tr class='bad'><td>{r['model']}</td><td>{r['integrator']}</td><td>{fmt(r['dt'])}</td>"
-                f"<td>{ratio}</td><td colspan='9'>diverged at step {r['step']} (critical dt "
-                f"{fmt(r['dt_crit'])} s)</td></tr>"
+                f"<tr class='bad'><td>{r.model}</td><td>{r.integrator}</td><td>{fmt(r.dt)}</td>"
+                f"<td>{ratio}</td><td colspan='9'>diverged at step {r.step} (critical dt "
+                f"{fmt(r.dt_crit)} s)</td></tr>"
             )
             continue
-        acc = " <em>(at reference accuracy)</em>" if r["at_reference_accuracy"] else ""
-        acc += "".join(f" <em>(ran without {html.escape(t)})</em>" for t in r.get("unrepresented") or [])
+        acc = " <em>(at reference accuracy)</em>" if r.at_reference_accuracy else ""
+        acc += "".join(f" <em>(ran without {html.escape(t)})</em>" for t in r.unrepresented or [])
         out.append(
-            f"<tr><td>{r['model']}</td><td>{r['integrator']}</td><td>{fmt(r['dt'])}</td><td>{ratio}</td>"
-            f"<td>{fmt(r['rel_l2'])}{acc}</td><td>{fmt(r['surface_rel_l2'])}</td><td>{fmt(r['max_err'])}</td>"
-            f"<td>{fmt(r['reaction_rel_err'])}</td><td>{fmt(r['volume_err'])}</td><td>{fmt(r['step_us'], '.1f')}</td>"
-            f"<td>{fmt(r['step_us_min'], '.1f')} - {fmt(r['step_us_max'], '.1f')}</td><td>{fmt(r['rate_hz'], '.0f')}</td>"
-            f"<td>{'yes' if r.get('pareto') else ''}</td></tr>"
+            f"<tr><td>{r.model}</td><td>{r.integrator}</td><td>{fmt(r.dt)}</td><td>{ratio}</td>"
+            f"<td>{fmt(r.rel_l2)}{acc}</td><td>{fmt(r.surface_rel_l2)}</td><td>{fmt(r.max_err)}</td>"
+            f"<td>{fmt(r.reaction_rel_err)}</td><td>{fmt(r.volume_err)}</td><td>{fmt(r.step_us, '.1f')}</td>"
+            f"<td>{fmt(r.step_us_min, '.1f')} - {fmt(r.step_us_max, '.1f')}</td><td>{fmt(r.rate_hz, '.0f')}</td>"
+            f"<td>{'yes' if r.pareto else ''}</td></tr>"
         )
     return "<table>" + "".join(out) + "</table>"
 
@@ -151,7 +152,7 @@ def scene_section(name: str, fractions=None) -> tuple[str, dict]:
 {_reference_html(ref)}
 <h3>Error against speed</h3>
 {_img(plot_error_vs_speed(rows, ref.meta.get("ref_err_estimate"), f"{scene.name}: error against speed"), f"error against step time for {scene.name}")}
-{_sweep_table([r for r in rows if r["status"] == "ok"])}
+{_sweep_table([r for r in rows if r.status == "ok"])}
 {_diverged_html(rows)}
 <h3>Error budget</h3>
 <p>Each model's error split into the mesh's part (the P1 finite-element solution of the same law on the same
@@ -171,34 +172,34 @@ scenes, the time step's (the model against itself at an eighth of its step).</p>
         "sweep": sw,
         "advice": adv,
         "budget": {
-            "rows": [{"model": r["model"], "dt": r["dt"], **r["error_budget"]} for r in budgets],
+            "rows": [{"model": r.model, "dt": r.dt, **r.error_budget} for r in budgets],
             "verdict": budget_verdict(budgets),
         },
     }
 
 
-def _pictures(scene, ref, rows: list[dict]) -> tuple[list[str], dict]:
+def _pictures(scene, ref, rows: list[Row]) -> tuple[list[str], dict]:
     """For each of PICTURE_MODELS, its run at its largest stable step deformed beside the reference at
     the instant of largest displacement, and its tool force over time (T, 3) N."""
     pictures, reactions = [], {}
     for model in PICTURE_MODELS:
-        good = [r for r in rows if r["model"] == model and r["status"] == "ok"]
+        good = [r for r in rows if r.model == model and r.status == "ok"]
         if not good:
             continue
-        r = max(good, key=lambda r: r["dt"] or 0.0)
+        r = max(good, key=lambda r: r.dt or 0.0)
         # the row's own run (by its fraction, as the sweep ran it: a static one is then settled already)
-        fraction = r.get("fraction")
+        fraction = r.fraction
         res = run_model(
             scene,
             model,
-            dt=None if fraction else r["dt"],
+            dt=None if fraction else r.dt,
             dt_fraction=fraction,
-            integrator=r["integrator"] if r["dt"] else "symplectic-euler",
+            integrator=r.integrator if r.dt else "symplectic-euler",
         )
         k = int(np.argmax(np.abs(ref.displacement).max(axis=(1, 2))))
-        at = "quasi-static" if r["dt"] is None else f"dt = {r['dt']:.3g} s"
+        at = "quasi-static" if r.dt is None else f"dt = {r.dt:.3g} s"
         when = f", t = {ref.times[k]:.3g} s" if scene.time.mode == "dynamic" else ""
-        title = f"{scene.name}: {model} ({at}{when}), rel_l2 = {r['rel_l2']:.3g}"
+        title = f"{scene.name}: {model} ({at}{when}), rel_l2 = {r.rel_l2:.3g}"
         pictures.append(plot_deformation(scene.mesh, ref.displacement[k], res.displacement[k], model, title))
         reactions[model] = res.reaction
     return pictures, reactions
@@ -230,7 +231,7 @@ Solved at commit {html.escape(str(ref.meta.get("commit")))}, {html.escape(str(re
 <ul>{levels}</ul>"""
 
 
-def _budget_html(scene, budgets: list[dict]) -> str:
+def _budget_html(scene, budgets: list[Row]) -> str:
     """The error budget's plot and its verdict in words."""
     plot = (
         _img(plot_budget(budgets, f"{scene.name}: whose error is it?"), f"error budget of {scene.name}")
@@ -248,9 +249,9 @@ def _reaction_html(scene, ref, reactions: dict) -> str:
     return "<h3>The tool's force over time</h3>" + _img(plot, "tool force")
 
 
-def _diverged_html(rows: list[dict]) -> str:
+def _diverged_html(rows: list[Row]) -> str:
     """The runs that blew up (the steps beyond each model's limit are run on purpose), folded."""
-    bad = [r for r in rows if r["status"] != "ok"]
+    bad = [r for r in rows if r.status != "ok"]
     if not bad:
         return ""
     return (

@@ -14,6 +14,7 @@ from verification.inputs import scene_inputs
 from verification.metrics import compute, rel_l2
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from verification.runs.results import Result
+from verification.runs.row import Row
 from verification.runs.simulate import _run_dynamic, run_model, time_steps
 from verification.scene import Scene
 
@@ -94,10 +95,10 @@ def compare(
     budget: bool = True,
     float32: bool = False,
     **ref_options,
-) -> dict:
-    """Metrics of one model run against the scene's reference (docs/architecture.md section 6).
+) -> Row:
+    """Metrics of one model run against the scene's reference, as a Row (docs/architecture.md section 6).
 
-    A diverging run gives {"status": "diverged", ...} with the step, dt and dt_crit instead of errors.
+    A diverging run gives a row of status "diverged" with the step, dt and dt_crit instead of errors.
     ``unrepresented`` lists what the material asks that the model does not represent (fibres, the
     volume penalty: realtime.models.unrepresented): it ran without it, and its errors measure the cost.
     ``vtk`` (a directory or a .pvd path) also writes both displacements and the pointwise error at every
@@ -112,12 +113,12 @@ def compare(
         "model": model_name,
         "integrator": "quasi-static" if model_name in QUASI_STATIC else integrator,
     }
-    base["unrepresented"] = unrepresented(model_name, scene.body_material())
+    base["unrepresented"] = tuple(unrepresented(model_name, scene.body_material()))
     ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
     try:
         res = run_model(scene, model_name, dt=dt, dt_fraction=dt_fraction, integrator=integrator, max_steps=max_steps)
     except DivergenceError as exc:
-        return {**base, **_diverged(exc)}
+        return Row(**base, **_diverged(exc))
     metrics = _metrics(scene, res, ref)
     mesh = scene.mesh
     if vtk is not None:
@@ -129,27 +130,27 @@ def compare(
         if float32 and model_name in FLOAT32_MODELS and integrator != "implicit-euler"
         else None
     )
-    return {
+    return Row(
         **base,
-        "status": "ok",
-        "error_budget": parts,
-        "float32": single,
-        "dt": m["dt"],
-        "dt_crit": m["dt_crit"],
-        "dt_crit_element": m.get("dt_crit_element"),
+        status="ok",
+        error_budget=parts,
+        float32=single,
+        dt=m["dt"],
+        dt_crit=m["dt_crit"],
+        dt_crit_element=m.get("dt_crit_element"),
         **metrics,
-        "step_us": m["step_us"],
-        "step_us_min": m["step_us_min"],
-        "step_us_max": m["step_us_max"],
-        "realtime_factor": m["realtime_factor"],
-        "rate_hz": m["rate_hz"],
-        "settle_steps": m["static"]["steps"],
-        "settle_ms": m["settle_ms"],
-        "build_s": m.get("build_s"),
-        "reference": _reference_summary(ref),
-        "n_vertices": mesh.n_vertices,
-        "n_tets": mesh.n_tets,
-    }
+        step_us=m["step_us"],
+        step_us_min=m["step_us_min"],
+        step_us_max=m["step_us_max"],
+        realtime_factor=m["realtime_factor"],
+        rate_hz=m["rate_hz"],
+        settle_steps=m["static"]["steps"],
+        settle_ms=m["settle_ms"],
+        build_s=m.get("build_s"),
+        reference=_reference_summary(ref),
+        n_vertices=mesh.n_vertices,
+        n_tets=mesh.n_tets,
+    )
 
 
 def _write_vtk(vtk: str, scene: Scene, model_name: str, res: Result, ref: Result) -> None:
@@ -197,7 +198,7 @@ def _float32_row(scene: Scene, res: Result, ref: Result) -> dict:
 
 
 def _diverged(exc: DivergenceError) -> dict:
-    """A diverged run's row: where it blew up, and whether the scene's own answer is what is unbounded."""
+    """A diverged run's fields: where it blew up, and whether the scene's own answer is what is unbounded."""
     return {
         "status": "diverged",
         "dt": exc.dt,

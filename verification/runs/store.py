@@ -11,13 +11,12 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
-
 from verification.cache import RUN_CODE, cache_dir, code_digest, digest, machine_id, read_cached
 from verification.engines.builtin import STABLE_STEPS
 from verification.runs.compare import compare
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.results import atomic_write_text
+from verification.runs.row import Row, jsonable
 from verification.scene import Scene
 
 
@@ -61,15 +60,14 @@ def cached_compare(
     max_steps: int = 2_000_000,
     budget: bool = True,
     float32: bool = False,
-) -> dict:
-    """``runner.compare`` through the run cache. The row says whether it came from the cache."""
+) -> Row:
+    """``runs.compare.compare`` through the run cache. The row says whether it came from the cache."""
     ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
     key = run_key(scene, model, integrator, dt, fraction, ref_opts, budget, {"float32": True} if float32 else None)
     path = cache_dir() / "runs" / f"{scene.name}-{key}.json"
-    row = read_cached(path, _read_json) if use_cache else None
+    row = read_cached(path, _read_row) if use_cache else None
     if row is not None:
-        row["cached"] = True
-        return row
+        return row.replace(cached=True)
     ref = reference if reference is not None else reference_result(scene, **ref_opts)
     row = compare(
         scene,
@@ -82,17 +80,10 @@ def cached_compare(
         budget=budget,
         float32=float32,
     )
-    row["fraction"] = fraction
+    row = row.replace(fraction=fraction)
     if use_cache:
-        atomic_write_text(path, json.dumps(row, default=_jsonable))
-    row["cached"] = False
+        atomic_write_text(path, json.dumps(row.to_json(), default=jsonable))
     return row
-
-
-def _jsonable(x):
-    if isinstance(x, np.generic):
-        return x.item()
-    return str(x)
 
 
 def largest_stable_fraction(
@@ -136,3 +127,8 @@ def _read_json(path) -> dict:
     if not isinstance(row, dict):
         raise ValueError(f"not a JSON object but {type(row).__name__}")
     return row
+
+
+def _read_row(path) -> Row:
+    """A cached row (``Row.from_json`` of a JSON object; anything else is a damaged entry, ValueError)."""
+    return Row.from_json(_read_json(path))

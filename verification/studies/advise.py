@@ -25,6 +25,7 @@ import numpy as np
 from realtime import MODELS, NotConvergedError
 from verification.progress import Progress
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
+from verification.runs.row import Row
 from verification.runs.store import cached_compare
 from verification.scene import Scene, SceneError
 from verification.scene_file import builtin_scenes
@@ -92,7 +93,7 @@ def deformation_summary(points: np.ndarray, tets: np.ndarray, u: np.ndarray) -> 
 
 def _candidates(
     scene: Scene, metric: str, rate: float, use_cache: bool, comm, progress_label: str, models=None
-) -> list[dict]:
+) -> list[Row]:
     """The scene's runs of ``models`` (default all), each with its frame budget, merged by
     ``merge_same_answers``."""
     dynamic = scene.time.mode == "dynamic"
@@ -107,29 +108,27 @@ def _candidates(
         for m in extra:
             rows.append(_compare_or_unsettled(scene, m, "implicit-euler", None, use_cache))
             progress.step(f"{m} implicit-euler")
-    for r in rows:
-        if r["status"] == "ok":
-            r["frame"] = frame_budget(r, rate, dynamic)
+    rows = [r.replace(frame=frame_budget(r, rate, dynamic)) if r.ok else r for r in rows]
     return merge_same_answers(rows, metric, dynamic)
 
 
-def _compare_or_unsettled(scene: Scene, model: str, integrator: str, fraction, use_cache: bool) -> dict:
+def _compare_or_unsettled(scene: Scene, model: str, integrator: str, fraction, use_cache: bool) -> Row:
     """A cached compare row; a run that does not settle is a candidate that failed, not an error."""
     try:
         return cached_compare(scene, model, integrator, None, fraction, use_cache=use_cache)
     except NotConvergedError as exc:
-        return {"model": model, "integrator": integrator, "dt": None, "status": "not settled", "message": str(exc)}
+        return Row(scene.name, model, integrator, "not settled", message=str(exc))
 
 
-def _pick(rows: list[dict], metric: str, tol: float, dynamic: bool):
+def _pick(rows: list[Row], metric: str, tol: float, dynamic: bool):
     ok = [r for r in rows if verdict(r, metric, tol)[0]]
     return min(ok, key=lambda r: cost(r, dynamic)) if ok else None
 
 
-def propose_mesh(scene: Scene, rows: list[dict], metric: str, tol: float, rate: float, use_cache: bool) -> dict:
+def propose_mesh(scene: Scene, rows: list[Row], metric: str, tol: float, rate: float, use_cache: bool) -> dict:
     """The refinement level that the observed convergence of the mesh's part predicts is needed, and
     the candidates to run there, cheapest predicted first (see the module docstring, step 5)."""
-    budgets = [r["error_budget"] for r in rows if r["status"] == "ok" and (r.get("error_budget") or {}).get("mesh")]
+    budgets = [r.error_budget for r in rows if r.status == "ok" and (r.error_budget or {}).get("mesh")]
     if not budgets:
         return {"level": None, "why": "no error budget (no P1 solution on this mesh): no mesh size can be proposed"}
     e0 = budgets[0]["mesh"]
@@ -157,7 +156,7 @@ def propose_mesh(scene: Scene, rows: list[dict], metric: str, tol: float, rate: 
             why=f"even {MAX_LEVEL} refinements (8^{MAX_LEVEL} times the tetrahedra) leave every model above "
             f"{metric} {tol:g}: the mesh's part would be {e1 / 2.0 ** (order * (MAX_LEVEL - 1)):.3g} at order "
             f"{order:.2f} and the models' own parts are at least "
-            f"{min((r.get('error_budget') or {}).get('model') or 0.0 for r in rows if r['status'] == 'ok'):.3g}",
+            f"{min((r.error_budget or {}).get('model') or 0.0 for r in rows if r.status == 'ok'):.3g}",
         )
         return out
     plans.sort(
@@ -172,7 +171,7 @@ def propose_mesh(scene: Scene, rows: list[dict], metric: str, tol: float, rate: 
     return out
 
 
-def _plans(scene: Scene, rows: list[dict], e1: float, order: float, tol: float, rate: float) -> list[dict]:
+def _plans(scene: Scene, rows: list[Row], e1: float, order: float, tol: float, rate: float) -> list[dict]:
     """For each candidate row, the levels to try it on: from where its predicted total (the mesh's part
     at ``order`` from ``e1`` on one refinement, and its own) likely meets ``tol`` up to where it surely
     does, with its predicted frame budget, memory and build time."""
@@ -181,7 +180,7 @@ def _plans(scene: Scene, rows: list[dict], e1: float, order: float, tol: float, 
     n, surface = scene.mesh.n_vertices, len(scene.mesh.surface_vertices)
     plans = []
     for r in rows:
-        if r["status"] != "ok" or r["model"] in OWN_MESH:
+        if r.status != "ok" or r.model in OWN_MESH:
             continue
         own = _own(r)
         for level in range(1, MAX_LEVEL + 1):
@@ -197,8 +196,8 @@ def _plans(scene: Scene, rows: list[dict], e1: float, order: float, tol: float, 
             # a level-0 timing scaled by 8^L carries its noise 8^L-fold: a candidate a little over the
             # budget by prediction is still worth a run, which decides
             hopeful = predict(r, level, dynamic, rate, share=FRAME_SHARE * OPTIMISM)["holds"]
-            need = memory_bytes(r["model"], n * 8**level, surface * 4**level)
-            build = (r.get("build_s") or 0.0) * BUILD_GROWTH**level if r["integrator"] == "quasi-static" else 0.0
+            need = memory_bytes(r.model, n * 8**level, surface * 4**level)
+            build = (r.build_s or 0.0) * BUILD_GROWTH**level if r.integrator == "quasi-static" else 0.0
             plans.append(
                 {
                     "row": r,
@@ -267,22 +266,22 @@ def advise(
     tried = []
     if choice is None:
         blocked_by_mesh = any(
-            r["status"] == "ok" and (r.get("error_budget") or {}).get("mesh", 0.0) > tol - _own(r) for r in rows
+            r.status == "ok" and (r.error_budget or {}).get("mesh", 0.0) > tol - _own(r) for r in rows
         )
         if blocked_by_mesh:
             proposal = propose_mesh(scene, rows, metric, tol, rate, use_cache)
             choice, tried = _run_plans(scene, proposal, metric, tol, rate, use_cache)
-    ranked = sorted((r for r in rows if r["status"] == "ok"), key=lambda r: cost(r, dynamic))
+    ranked = sorted((r for r in rows if r.status == "ok"), key=lambda r: cost(r, dynamic))
     rejected = [verdict(r, metric, tol)[1] for r in rows if not verdict(r, metric, tol)[0]]
     out["proposal"] = _proposal_summary(proposal, tried)
     if choice is None:
         why = _why_none(rows, metric, tol, rate, proposal, tried)
         out.update(model=None, integrator=None, dt=None, why=f"{why}; {physics}", rejected=rejected, runner_up=None)
         return out
-    level = choice.get("level", 0)
+    level = choice.level
     target = scene.refined(level) if level else scene
     cheaper = [verdict(r, metric, tol)[1] for r in ranked if cost(r, dynamic) < cost(choice, dynamic)]
-    cheaper += [verdict(r, metric, tol)[1] for r in rows if r["status"] != "ok"]  # unstable or unsettled
+    cheaper += [verdict(r, metric, tol)[1] for r in rows if r.status != "ok"]  # unstable or unsettled
     if level:
         cheaper = [f"on the scene's mesh: {line}" for line in rejected]
     runner = None if level else _runner_up(ranked, choice, metric, tol)
@@ -291,29 +290,29 @@ def advise(
         why = (
             f"the mesh's part of the error ({proposal['mesh_part'][0]:.3g}) stops every model on the scene's mesh; "
             f"refined {refined_times(level)} (observed order {proposal['observed_order']:.2f}) it is "
-            f"{(choice.get('error_budget') or {}).get('mesh', float('nan')):.3g}, and {why}"
+            f"{(choice.error_budget or {}).get('mesh', float('nan')):.3g}, and {why}"
         )
     out.update(
-        model=choice["model"],
-        integrator=choice["integrator"],
-        dt=choice["dt"],
-        dt_fraction=choice.get("fraction"),
-        value=choice[metric],
-        error_budget=choice.get("error_budget"),
-        step_us=choice["step_us"],
-        rate_hz=choice["rate_hz"],
-        frame=choice["frame"],
+        model=choice.model,
+        integrator=choice.integrator,
+        dt=choice.dt,
+        dt_fraction=choice.fraction,
+        value=getattr(choice, metric),
+        error_budget=choice.error_budget,
+        step_us=choice.step_us,
+        rate_hz=choice.rate_hz,
+        frame=choice.frame,
         refine=level,
         mesh=_mesh_summary(target),
         why=why,
         runner_up=None
         if runner is None
         else {
-            "model": runner["model"],
-            "integrator": runner["integrator"],
-            "dt": runner["dt"],
-            "value": runner[metric],
-            "frame": runner["frame"],
+            "model": runner.model,
+            "integrator": runner.integrator,
+            "dt": runner.dt,
+            "value": getattr(runner, metric),
+            "frame": runner.frame,
         },
         cheaper_failed=cheaper,
         command=_command(scene, choice, level, rate),
@@ -321,19 +320,17 @@ def advise(
     return out
 
 
-def _runner_up(ranked: list[dict], choice: dict, metric: str, tol: float) -> dict | None:
+def _runner_up(ranked: list[Row], choice: Row, metric: str, tol: float) -> Row | None:
     """The cheapest qualifying row of another model than the pick's."""
-    return next(
-        (r for r in ranked if r is not choice and r["model"] != choice["model"] and verdict(r, metric, tol)[0]), None
-    )
+    return next((r for r in ranked if r is not choice and r.model != choice.model and verdict(r, metric, tol)[0]), None)
 
 
-def _why_none(rows: list[dict], metric: str, tol: float, rate: float, proposal, tried: list) -> str:
+def _why_none(rows: list[Row], metric: str, tol: float, rate: float, proposal, tried: list) -> str:
     """Why no candidate qualified: the most accurate, and what the mesh proposal found."""
-    best = min((r for r in rows if r["status"] == "ok"), key=lambda r: r[metric], default=None)
+    best = min((r for r in rows if r.status == "ok"), key=lambda r: getattr(r, metric), default=None)
     why = f"no model meets {metric} <= {tol:g} at {rate:g} Hz on this mesh"
     if best is not None:
-        why += f": the most accurate is {label(best)} with {best[metric]:.3g}"
+        why += f": the most accurate is {label(best)} with {getattr(best, metric):.3g}"
     if proposal is not None and proposal.get("level") is None:
         why += f"; {proposal['why']}"
     elif proposal is not None and tried:
@@ -354,32 +351,34 @@ def _why_none(rows: list[dict], metric: str, tol: float, rate: float, proposal, 
     return why
 
 
-def _why_pick(choice: dict, rows: list[dict], metric: str, tol: float, dynamic: bool, level: int, physics: str) -> str:
+def _why_pick(choice: Row, rows: list[Row], metric: str, tol: float, dynamic: bool, level: int, physics: str) -> str:
     """Why the pick: linear is enough, or what the linear models lack (their error, or the rate)."""
-    if choice["model"] in LINEAR_MODELS:
-        why = f"linear is enough: {physics}, and {choice['model']} meets {metric} <= {tol:g} ({choice[metric]:.3g})"
+    if choice.model in LINEAR_MODELS:
+        why = (
+            f"linear is enough: {physics}, and {choice.model} meets {metric} <= {tol:g} ({getattr(choice, metric):.3g})"
+        )
     elif level:
         # on the scene's mesh the linear models' totals carry the mesh's part; their own part does not
-        own = [_own(r) for r in rows if r["status"] == "ok" and r["model"] in LINEAR_MODELS and r.get("error_budget")]
-        why = f"{choice['model']} is the first candidate that qualifies there: {physics}" + (
+        own = [_own(r) for r in rows if r.status == "ok" and r.model in LINEAR_MODELS and r.error_budget]
+        why = f"{choice.model} is the first candidate that qualifies there: {physics}" + (
             f"; the linear models' own part of the error (against P1 on the same mesh) is at least {min(own):.3g}"
             if own
             else ""
         )
     else:
-        linear = [r for r in rows if r["status"] == "ok" and r["model"] in LINEAR_MODELS]
-        accurate = [r for r in linear if r[metric] <= tol]
+        linear = [r for r in rows if r.status == "ok" and r.model in LINEAR_MODELS]
+        accurate = [r for r in linear if getattr(r, metric) <= tol]
         if not linear:
-            why = f"{choice['model']} is the cheapest that qualifies: {physics}"
+            why = f"{choice.model} is the cheapest that qualifies: {physics}"
         elif not accurate:
             why = f"needs a rotation-invariant model: {physics}; the linear models' {metric} is at least " + format(
-                min(r[metric] for r in linear), ".3g"
+                min(getattr(r, metric) for r in linear), ".3g"
             )
         elif any(verdict(r, metric, tol)[0] for r in accurate):
             best = min((r for r in accurate if verdict(r, metric, tol)[0]), key=lambda r: cost(r, dynamic))
             why = (
-                f"{choice['model']} is the cheapest that qualifies; linear is accurate enough too ({physics}): "
-                f"{label(best)} meets {metric} {best[metric]:.3g} but costs more"
+                f"{choice.model} is the cheapest that qualifies; linear is accurate enough too ({physics}): "
+                f"{label(best)} meets {metric} {getattr(best, metric):.3g} but costs more"
             )
         else:
             why = f"the linear models accurate enough do not hold the rate ({physics}): " + "; ".join(
@@ -388,8 +387,8 @@ def _why_pick(choice: dict, rows: list[dict], metric: str, tol: float, dynamic: 
     return why
 
 
-def _own(r: dict) -> float:
-    b = r.get("error_budget") or {}
+def _own(r: Row) -> float:
+    b = r.error_budget or {}
     return (b.get("model") or 0.0) + (b.get("time") or 0.0)
 
 
@@ -406,20 +405,12 @@ def _run_plans(scene: Scene, proposal: dict, metric: str, tol: float, rate: floa
     for p in plans:
         r0 = p["row"]
         level_scene = scene.refined(p["level"])
-        fraction = (
-            None
-            if r0.get("dt") is None or r0["integrator"] == "implicit-euler"
-            else min(r0.get("fraction") or 0.9, 0.9)
-        )
-        row = _compare_or_unsettled(level_scene, r0["model"], r0["integrator"], fraction, use_cache)
-        progress.step(f"{r0['model']} level {p['level']}")
-        if row["status"] == "ok":
-            row["frame"] = frame_budget(row, rate, dynamic)
-        row["level"] = p["level"]
+        fraction = None if r0.dt is None or r0.integrator == "implicit-euler" else min(r0.fraction or 0.9, 0.9)
+        row = _compare_or_unsettled(level_scene, r0.model, r0.integrator, fraction, use_cache)
+        progress.step(f"{r0.model} level {p['level']}")
+        row = row.replace(frame=frame_budget(row, rate, dynamic) if row.ok else None, level=p["level"])
         ok, line = verdict(row, metric, tol)
-        tried.append(
-            {"level": p["level"], "model": row["model"], "integrator": row["integrator"], "ok": ok, "why": line}
-        )
+        tried.append({"level": p["level"], "model": row.model, "integrator": row.integrator, "ok": ok, "why": line})
         if ok:
             return row, tried
     return None, tried
@@ -432,8 +423,8 @@ def _proposal_summary(proposal: dict | None, tried: list) -> dict | None:
     out["tried"] = tried
     out["predicted"] = [
         {
-            "model": p["row"]["model"],
-            "integrator": p["row"]["integrator"],
+            "model": p["row"].model,
+            "integrator": p["row"].integrator,
             "level": p["level"],
             "predicted_error": p["predicted_error"],
             "error_bound": p["error_bound"],
@@ -462,11 +453,11 @@ def _mesh_summary(scene: Scene) -> dict:
 def _command(scene: Scene, row: dict, level: int, rate: float) -> str:
     builtin = builtin_scenes().get(scene.name) == scene.path
     parts = ["tissuebench compare", scene.name if builtin else str(scene.path)]
-    parts.append(f"--model {row['model']}")
-    if row.get("dt") is not None:
-        parts.append(f"--integrator {row['integrator']}")
-        if row["integrator"] != "implicit-euler":
-            parts.append(f"--dt {row['dt']:.6g}")
+    parts.append(f"--model {row.model}")
+    if row.dt is not None:
+        parts.append(f"--integrator {row.integrator}")
+        if row.integrator != "implicit-euler":
+            parts.append(f"--dt {row.dt:.6g}")
     # the scene's file may refine its mesh already ([mesh] refine); --mesh-refine adds to it
     in_file = (scene.base or scene).raw.get("mesh", {}).get("refine", 0)
     extra = scene.level + level - in_file
@@ -496,7 +487,7 @@ def format_advice(out: dict) -> str:
         lines.append(f"why: {out['why']}")
         if out.get("runner_up"):
             r = out["runner_up"]
-            lines.append(f"runner-up: {r['model']} ({out['metric']} {r['value']:.3g}; {r['frame']['why']})")
+            lines.append(f"runner-up: {r.model} ({out['metric']} {r['value']:.3g}; {r.frame['why']})")
         lines.append(f"check it: {out['command']}")
     if prop and prop.get("mesh_part"):
         lines.append(

@@ -9,6 +9,8 @@ import math
 import os
 from pathlib import Path
 
+from verification.runs.row import Row
+
 #: The share of a frame a candidate may use: the rest is margin for timing noise between this run and
 #: the simulator's (the spread of repeated timings on a loaded 2-core machine reaches 10-20%).
 FRAME_SHARE = 0.8
@@ -18,7 +20,7 @@ FRAME_SHARE = 0.8
 SAME_ANSWER = 1e-6
 
 
-def frame_budget(row: dict, rate: float, dynamic: bool, share: float = FRAME_SHARE) -> dict:
+def frame_budget(row: Row, rate: float, dynamic: bool, share: float = FRAME_SHARE) -> dict:
     """Whether a run (a ``compare`` row) holds ``rate`` frames per second on this machine, using at
     most ``share`` of each frame (FRAME_SHARE for every command, so that ``compare --rate`` and
     ``advise`` decide alike), and what reaching its answer costs.
@@ -37,9 +39,9 @@ def frame_budget(row: dict, rate: float, dynamic: bool, share: float = FRAME_SHA
     """
     frame_us = 1e6 / rate
     budget_us = share * frame_us
-    step_us = row["step_us"]
+    step_us = row.step_us
     out = {"frame_us": frame_us, "share": share, "step_us": step_us}
-    if row.get("dt") is None:  # quasi-static: one update per frame
+    if row.dt is None:  # quasi-static: one update per frame
         holds = step_us <= budget_us
         out.update(
             steps_per_frame=1,
@@ -49,7 +51,7 @@ def frame_budget(row: dict, rate: float, dynamic: bool, share: float = FRAME_SHA
             why=f"one update of {step_us:.3g} us per frame of {frame_us:.3g} us",
         )
         return out
-    dt_us = row["dt"] * 1e6
+    dt_us = row.dt * 1e6
     if dynamic:
         n = max(1, math.ceil(frame_us / dt_us * (1.0 - 1e-12)))
         work = n * step_us
@@ -65,7 +67,7 @@ def frame_budget(row: dict, rate: float, dynamic: bool, share: float = FRAME_SHA
         out.update(steps_per_frame=n, work_us=work, time_to_answer_s=None, holds=holds, why=why)
         return out
     n = int(budget_us // step_us)
-    settle = row.get("settle_steps") or 1
+    settle = row.settle_steps or 1
     if n < 1:
         out.update(
             steps_per_frame=0,
@@ -86,28 +88,29 @@ def frame_budget(row: dict, rate: float, dynamic: bool, share: float = FRAME_SHA
     return out
 
 
-def cost(row: dict, dynamic: bool) -> float:
+def cost(row: Row, dynamic: bool) -> float:
     """What the advisor minimises: on a static scene the wall time to the answer, on a dynamic one the
     work per frame (the share of the machine a candidate takes)."""
-    b = row["frame"]
+    b = row.frame
     return b["work_us"] if dynamic else b["time_to_answer_s"]
 
 
-def merge_same_answers(rows: list[dict], metric: str, dynamic: bool) -> list[dict]:
+def merge_same_answers(rows: list[Row], metric: str, dynamic: bool) -> list[Row]:
     """One row per model and integrator among runs whose ``metric`` values agree within SAME_ANSWER
     (relative): a step that changes nothing is not a choice. The row kept is the cheapest (``cost``);
     it lists the steps merged into it (``merged_dt``). Rows that diverged are kept apart."""
-    groups: list[list[dict]] = []
+    groups: list[list[Row]] = []
     for r in rows:
-        if r["status"] != "ok":
+        if r.status != "ok":
             groups.append([r])
             continue
         for g in groups:
             h = g[0]
             if (
-                h["status"] == "ok"
-                and (h["model"], h["integrator"]) == (r["model"], r["integrator"])
-                and abs(h[metric] - r[metric]) <= SAME_ANSWER * max(abs(h[metric]), abs(r[metric]), 1e-300)
+                h.status == "ok"
+                and (h.model, h.integrator) == (r.model, r.integrator)
+                and abs(getattr(h, metric) - getattr(r, metric))
+                <= SAME_ANSWER * max(abs(getattr(h, metric)), abs(getattr(r, metric)), 1e-300)
             ):
                 g.append(r)
                 break
@@ -115,36 +118,36 @@ def merge_same_answers(rows: list[dict], metric: str, dynamic: bool) -> list[dic
             groups.append([r])
     out = []
     for g in groups:
-        best = min(g, key=lambda r: cost(r, dynamic)) if g[0]["status"] == "ok" else g[0]
-        out.append({**best, "merged_dt": sorted(r["dt"] for r in g if r.get("dt") is not None)})
+        best = min(g, key=lambda r: cost(r, dynamic)) if g[0].ok else g[0]
+        out.append(best.replace(merged_dt=tuple(sorted(r.dt for r in g if r.dt is not None))))
     return out
 
 
-def label(r: dict) -> str:
-    if r.get("dt") is None:
-        return f"{r['model']} ({r['integrator']})"
-    return f"{r['model']} ({r['integrator']}, dt {r['dt']:.3g} s)"
+def label(r: Row) -> str:
+    if r.dt is None:
+        return f"{r.model} ({r.integrator})"
+    return f"{r.model} ({r.integrator}, dt {r.dt:.3g} s)"
 
 
-def verdict(r: dict, metric: str, tol: float) -> tuple[bool, str]:
+def verdict(r: Row, metric: str, tol: float) -> tuple[bool, str]:
     """Whether a candidate qualifies, and a line saying why or why not."""
-    if r["status"] == "diverged":
-        ratio = f", {r['dt'] / r['dt_crit']:.2f} x its critical step" if r.get("dt_crit") else ""
-        return False, f"{label(r)}: unstable, diverged at step {r.get('step')}{ratio}"
-    if r["status"] != "ok":
-        return False, f"{label(r)}: {r['status']} ({r.get('message', '')})"
-    value = r.get(metric)
+    if r.status == "diverged":
+        ratio = f", {r.dt / r.dt_crit:.2f} x its critical step" if r.dt_crit else ""
+        return False, f"{label(r)}: unstable, diverged at step {r.step}{ratio}"
+    if r.status != "ok":
+        return False, f"{label(r)}: {r.status} ({r.message or ''})"
+    value = getattr(r, metric)
     bad = []
     if value is None or value > tol:
-        b = r.get("error_budget") or {}
+        b = r.error_budget or {}
         parts = ", ".join(f"{k} {b[k]:.3g}" for k in ("mesh", "model", "time") if b.get(k) is not None)
         bad.append(f"{metric} {value:.3g} > {tol:g}" + (f" ({parts})" if parts else ""))
-    if not r["frame"]["holds"]:
-        bad.append(r["frame"]["why"])
-    without = "".join(f"; ran without {term}" for term in r.get("unrepresented") or [])
+    if not r.frame["holds"]:
+        bad.append(r.frame["why"])
+    without = "".join(f"; ran without {term}" for term in r.unrepresented or [])
     if bad:
         return False, f"{label(r)}: {'; '.join(bad)}{without}"
-    return True, f"{label(r)}: {metric} {value:.3g} <= {tol:g}; {r['frame']['why']}{without}"
+    return True, f"{label(r)}: {metric} {value:.3g} <= {tol:g}; {r.frame['why']}{without}"
 
 
 def memory_bytes(model: str, n_vertices: int, n_surface: int) -> float:
@@ -170,15 +173,17 @@ def available_memory() -> float:
     return 0.5 * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
-def predict(r: dict, levels: int, dynamic: bool, rate: float, share: float = FRAME_SHARE) -> dict:
+def predict(r: Row, levels: int, dynamic: bool, rate: float, share: float = FRAME_SHARE) -> dict:
     """A level-0 row's frame budget on a mesh refined ``levels`` times: a step costs 8^levels times as
     much (the element loops), and an explicit step is 2^levels times shorter (dt_crit is proportional
     to h), so a static scene settles in 2^levels times the steps and a dynamic frame needs 2^levels
     times the steps. Implicit Euler's step (a sparse solve) is taken to grow like the elements too."""
     grow = 8.0**levels
-    row = {**r, "step_us": r["step_us"] * grow}
-    if r.get("dt") is not None:
-        if r["integrator"] != "implicit-euler":
-            row["dt"] = r["dt"] / 2.0**levels
-        row["settle_steps"] = (r.get("settle_steps") or 1) * (2**levels if r["integrator"] != "implicit-euler" else 1)
+    row = r.replace(step_us=r.step_us * grow)
+    if r.dt is not None:
+        explicit = r.integrator != "implicit-euler"
+        row = row.replace(
+            dt=r.dt / 2.0**levels if explicit else r.dt,
+            settle_steps=(r.settle_steps or 1) * (2**levels if explicit else 1),
+        )
     return frame_budget(row, rate, dynamic, share)

@@ -81,11 +81,11 @@ def run_gates(
         r = cached_compare(
             scene, g["model"], g.get("integrator", "symplectic-euler"), None, g.get("fraction"), use_cache=use_cache
         )
-        value = r.get(g["metric"]) if r["status"] == "ok" else None
+        value = getattr(r, g["metric"]) if r.ok else None
         mesh_sha = scene.mesh.sha256()
         why = []
         if value is None:
-            why.append(f"no value ({r['status']})")
+            why.append(f"no value ({r.status})")
         elif value > g["bound"]:
             why.append(f"{value:.4g} exceeds the bound {g['bound']:.4g}")
         base = g.get("baseline") or {}
@@ -98,7 +98,7 @@ def run_gates(
                     f"more than the {100 * drift:g}% allowed"
                 )
         if baselines and base:
-            why += stale(base, mesh_sha, scene.sha256(), _solver(r.get("reference")))
+            why += stale(base, mesh_sha, scene.sha256(), _solver(r.reference))
         passed = not why
         rows.append(
             {
@@ -108,15 +108,15 @@ def run_gates(
                 "metric": g["metric"],
                 "bound": g["bound"],
                 "value": value,
-                "status": r["status"],
+                "status": r.status,
                 "passed": passed,
                 "why": "; ".join(why),
                 "baseline": g.get("baseline"),
                 "mesh_sha256": mesh_sha,
                 "scene_sha256": scene.sha256(),
-                "dt": r.get("dt"),
-                "integrator": r.get("integrator"),
-                "reference": r.get("reference"),
+                "dt": r.dt,
+                "integrator": r.integrator,
+                "reference": r.reference,
             }
         )
     return rows

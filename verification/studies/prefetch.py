@@ -158,7 +158,7 @@ SETTLED_AHEAD: set = set()
 
 
 def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...], runs: tuple = ()) -> int:
-    """(In a worker process.) Settle ``scene`` with ``model_name`` into the caches that ``runner.settled``
+    """(In a worker process.) Settle ``scene`` with ``model_name`` into the caches that ``engines.builtin.settled``
     and ``runs.largest_stable_fraction`` read, as a sweep and its advice would: with symplectic Euler at
     each of ``fractions`` of its critical step and at its largest stable fraction, and with implicit Euler
     at its default step if the advisor tries it (``advise.IMPLICIT_MODELS``); none of these when

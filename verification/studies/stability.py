@@ -108,30 +108,30 @@ def _cell(scene: Scene, model: str, integrator: str, tol: float, baseline: float
         return _alone(scene, model, integrator, f"no reference ({exc})")
     except NotConvergedError as exc:
         return {"status": "not settled", "detail": str(exc)}
-    if row["status"] != "ok":
+    if row.status != "ok":
         return {
             "status": "diverged",
-            "detail": f"at step {row['step']} (dt {row['dt']:.3g} s, critical {row['dt_crit']:.3g} s)",
-            "dt": row["dt"],
-            "dt_crit": row["dt_crit"],
+            "detail": f"at step {row.step} (dt {row.dt:.3g} s, critical {row.dt_crit:.3g} s)",
+            "dt": row.dt,
+            "dt_crit": row.dt_crit,
         }
-    status = "ok" if row["rel_l2"] <= tol else "inaccurate"
-    ref = row.get("reference", {})
+    status = "ok" if row.rel_l2 <= tol else "inaccurate"
+    ref = row.reference or {}
     out = {
         "status": status,
-        "rel_l2": row["rel_l2"],
+        "rel_l2": row.rel_l2,
         # the extremes are where a reference is least reliable: say what is known of it
         "reference": "verified" if ref.get("verified") else "reference unverified",
         "ref_err_estimate": ref.get("ref_err_estimate"),
         "ref_min_det_F": ref.get("min_det_F"),
-        "dt": row["dt"],
-        "dt_crit": row["dt_crit"],
-        "step_us": row["step_us"],
-        "settle_steps": row.get("settle_steps"),
-        "settle_ms": row.get("settle_ms"),
+        "dt": row.dt,
+        "dt_crit": row.dt_crit,
+        "step_us": row.step_us,
+        "settle_steps": row.settle_steps,
+        "settle_ms": row.settle_ms,
     }
     if baseline:
-        out["vs_baseline"] = row["rel_l2"] / baseline
+        out["vs_baseline"] = row.rel_l2 / baseline
     return out
 
 

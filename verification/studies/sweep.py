@@ -12,6 +12,7 @@ from realtime.models import QUASI_STATIC
 from reference.errors import ReferenceSolveError
 from verification.progress import Progress
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
+from verification.runs.row import Row
 from verification.runs.store import cached_compare, largest_stable_fraction
 from verification.scene import Scene, SceneError
 
@@ -74,7 +75,7 @@ def _run_plan(scene: Scene, plan: list[dict], ref, integrator: str, use_cache: b
             row = cached_compare(
                 scene, item["model"], integrator, None, fraction, ref, use_cache=use_cache, float32=float32
             )
-            row["largest_stable"] = True
+            row = row.replace(largest_stable=True)
         else:
             row = cached_compare(
                 scene,
@@ -86,7 +87,7 @@ def _run_plan(scene: Scene, plan: list[dict], ref, integrator: str, use_cache: b
                 use_cache=use_cache,
                 float32=float32,
             )
-        rows.append({**row, "plan_index": k})
+        rows.append(row.replace(plan_index=k))
         if progress:
             progress.step(f"{item['model']} {fraction}")
     return rows
@@ -107,7 +108,7 @@ def sweep(
 
     Default: every model at ``default_fractions(scene)`` of its critical step, plus (``largest_stable``) each
     explicit model at the largest stable fraction that ``largest_stable_fraction`` finds. ``float32``:
-    each row of a model that runs in float32 also carries its float32 twin (``runner.compare``), whose
+    each row of a model that runs in float32 also carries its float32 twin (``runs.compare.float32_twin``), whose
     distance from the float64 run stands beside the model's error.
     """
     models = list(models or MODELS)
@@ -136,11 +137,10 @@ def sweep(
         if rank != 0:
             return {}
         rows = [r for part in gathered for r in part]
-    rows.sort(key=lambda r: r["plan_index"])
-    ok = [i for i, r in enumerate(rows) if r["status"] == "ok"]
-    front = [ok[i] for i in pareto_front([(rows[i]["step_us"], rows[i]["rel_l2"]) for i in ok])]
-    for i, r in enumerate(rows):
-        r["pareto"] = i in front
+    rows.sort(key=lambda r: r.plan_index)
+    ok = [i for i, r in enumerate(rows) if r.status == "ok"]
+    front = [ok[i] for i in pareto_front([(rows[i].step_us, rows[i].rel_l2) for i in ok])]
+    rows = [r.replace(pareto=i in front) for i, r in enumerate(rows)]
     return {
         "scene": scene.name,
         "scene_sha256": scene.sha256(),
@@ -149,9 +149,9 @@ def sweep(
             k: ref.meta.get(k) for k in ("law", "degree", "refine", "ref_err_estimate", "min_det_F", "cache_key")
         },
         "rows": rows,
-        "pareto": [rows[i]["model"] + (f"@{rows[i]['dt']:.3g}s" if rows[i]["dt"] else "") for i in front],
-        "computed": sum(not r.get("cached") for r in rows),
-        "cached": sum(bool(r.get("cached")) for r in rows),
+        "pareto": [rows[i].model + (f"@{rows[i].dt:.3g}s" if rows[i].dt else "") for i in front],
+        "computed": sum(not r.cached for r in rows),
+        "cached": sum(bool(r.cached) for r in rows),
     }
 
 
@@ -179,18 +179,18 @@ def sweep_csv(result: dict) -> str:
     single = ("rel_l2_vs_float64", "rel_l2", "step_us")
     lines = [",".join(cols + [f"budget_{p}" for p in parts] + [f"float32_{c}" for c in single] + ["unrepresented"])]
     for r in result["rows"]:
-        budget = r.get("error_budget") or {}
-        twin = r.get("float32") or {}
-        values = [r.get(c) for c in cols] + [budget.get(p) for p in parts] + [twin.get(c) for c in single]
-        values.append(" and ".join(r.get("unrepresented") or []).replace(",", ";") or None)
+        budget = r.error_budget or {}
+        twin = r.float32 or {}
+        values = [getattr(r, c) for c in cols] + [budget.get(p) for p in parts] + [twin.get(c) for c in single]
+        values.append(" and ".join(r.unrepresented or []).replace(",", ";") or None)
         lines.append(",".join("" if v is None else str(v) for v in values))
     return "\n".join(lines) + "\n"
 
 
-def _float32_cells(r: dict) -> str:
+def _float32_cells(r: Row) -> str:
     """A row's float32 columns: its twin's distance from the float64 run and its step time; '-' where
     the row has no twin (that model or integrator runs in float64 only)."""
-    twin = r.get("float32")
+    twin = r.float32
     if not twin:
         return f" {'-':>10} {'-':>9}"
     return f" {twin['rel_l2_vs_float64']:>10.2g} {twin['step_us']:>9.1f}"
@@ -198,7 +198,7 @@ def _float32_cells(r: dict) -> str:
 
 def format_sweep(result: dict) -> str:
     est = result["reference"].get("ref_err_estimate")
-    twins = any(r.get("float32") for r in result["rows"])
+    twins = any(r.float32 for r in result["rows"])
     out = [
         f"sweep {result['scene']}: reference {result['reference']['law']} P{result['reference']['degree']}, "
         f"own error estimate {est:.3g}"
@@ -208,18 +208,18 @@ def format_sweep(result: dict) -> str:
     head = f"{'model':<16} {'dt (s)':>10} {'dt/crit':>8} {'rel_l2':>10} {'reaction':>9} {'step us':>9} {'Hz':>9}"
     out.append(head + (f" {'f32 vs f64':>10} {'f32 us':>9}" if twins else "") + "  ")
     for r in result["rows"]:
-        if r["status"] != "ok":
-            out.append(f"{r['model']:<16} {r['dt']:>10.3g} {r['dt'] / r['dt_crit']:>8.2f} diverged at step {r['step']}")
+        if r.status != "ok":
+            out.append(f"{r.model:<16} {r.dt:>10.3g} {r.dt / r.dt_crit:>8.2f} diverged at step {r.step}")
             continue
-        ratio = "-" if r["dt"] is None or not r["dt_crit"] else f"{r['dt'] / r['dt_crit']:.2f}"
-        dt = "-" if r["dt"] is None else f"{r['dt']:.3g}"
-        reaction = "-" if r["reaction_rel_err"] is None else f"{r['reaction_rel_err']:.3g}"
-        flag = " pareto" if r["pareto"] else ""
-        flag += " (at reference accuracy)" if r["at_reference_accuracy"] else ""
-        flag += "".join(f" (without {term})" for term in r.get("unrepresented") or [])
+        ratio = "-" if r.dt is None or not r.dt_crit else f"{r.dt / r.dt_crit:.2f}"
+        dt = "-" if r.dt is None else f"{r.dt:.3g}"
+        reaction = "-" if r.reaction_rel_err is None else f"{r.reaction_rel_err:.3g}"
+        flag = " pareto" if r.pareto else ""
+        flag += " (at reference accuracy)" if r.at_reference_accuracy else ""
+        flag += "".join(f" (without {term})" for term in r.unrepresented or [])
         out.append(
-            f"{r['model']:<16} {dt:>10} {ratio:>8} {r['rel_l2']:>10.4g} {reaction:>9} {r['step_us']:>9.1f} "
-            f"{r['rate_hz']:>9.0f}{_float32_cells(r) if twins else ''} {flag}"
+            f"{r.model:<16} {dt:>10} {ratio:>8} {r.rel_l2:>10.4g} {reaction:>9} {r.step_us:>9.1f} "
+            f"{r.rate_hz:>9.0f}{_float32_cells(r) if twins else ''} {flag}"
         )
     out.append(f"Pareto front (error against step time): {', '.join(result['pareto'])}")
     out.append(f"{result['computed']} runs computed, {result['cached']} from the cache")

@@ -155,7 +155,7 @@ def _read_settled(path: Path) -> tuple[np.ndarray, dict]:
 
 def _step_time(scene: Scene, model: str, options: dict | None) -> dict:
     """The step time of a run that did not settle: symplectic Euler at 0.9 of the rest critical step,
-    timed from rest like every run (``runner.time_steps``)."""
+    timed from rest like every run (``runs.simulate.time_steps``)."""
     from verification.engines import engine_for
     from verification.inputs import scene_inputs
     from verification.runs.simulate import EXPLICIT_FRACTION, time_steps

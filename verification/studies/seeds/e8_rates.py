@@ -10,6 +10,7 @@ from realtime.models import QUASI_STATIC
 from verification.metrics import rel_l2
 from verification.progress import log
 from verification.report.plots import png
+from verification.runs.row import Row
 from verification.scene import Scene
 from verification.studies.frame import FRAME_SHARE, available_memory, frame_budget, memory_bytes
 from verification.studies.seeds.common import Size, _finding, _ref, _reference_info, _settled, seed_scene
@@ -128,11 +129,10 @@ def _rate_row(scene: Scene, m: str, ref, size: Size, built: dict) -> dict:
     settled = u is not None
     if settled and m in QUASI_STATIC:
         built.setdefault(m, []).append((mesh.n_vertices, meta["build_s"]))
-    run = {
-        "step_us": meta["step_us"],
-        "dt": meta["dt"],
-        "settle_steps": meta["static"]["steps"] if settled else 1,
-    }
+    settle_steps = meta["static"]["steps"] if settled else 1
+    run = Row(
+        scene.name, m, meta["integrator"], "ok", dt=meta["dt"], step_us=meta["step_us"], settle_steps=settle_steps
+    )
     row.update(
         status="ok" if settled else f"did not settle: {meta['unsettled']}",
         step_us=meta["step_us"],
