@@ -92,6 +92,24 @@ def test_reference_that_cannot_converge_fails_with_one_line(tmp_path, capsys):
     assert reached * 0.5 == pytest.approx(1.0 / (3.0 * math.sqrt(3.0)), abs=2e-4)
 
 
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["compare", "manufactured", "--model", "condensed"],  # condensed's Cholesky failed on it with a traceback
+        ["run", "manufactured", "--model", "linear-tm"],
+        ["reference", "manufactured", "--no-cache"],
+        ["sweep", "manufactured"],
+    ],
+)
+def test_a_manufactured_scene_is_for_converge_only(args, capsys):
+    """The manufactured-solution scene has no constraints or loads of its own (converge poses its
+    problem on the unit cube): a command that would solve the scene's problem refuses it, naming the
+    command to run instead, before any work."""
+    code, _, err = run(args, capsys)
+    assert code == 2
+    assert_one_line(err, "manufactured.toml: [manufactured]", f"for {args[0]}", "tissuebench converge manufactured")
+
+
 def test_model_that_does_not_settle_fails_with_one_line(capsys):
     code, _, err = run(["run", "cantilever-pull", "--model", "linear-tm", "--max-steps", "50"], capsys)
     assert code == 2

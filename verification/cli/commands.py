@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from verification.inputs import check_held
-from verification.scene import implausible
+from verification.scene import SceneError, implausible
 from verification.scene_file import builtin_scenes, load_scene
 
 
@@ -52,10 +52,18 @@ def cmd_scenes(args) -> int:
     return 0
 
 
-def _scene(args, warn: bool = True):
+def _scene(args, warn: bool = True, solves: bool = True):
     """The command's scene, cut ``--mesh-refine`` more times than its file says; with ``warn``, what
-    no soft tissue has (scene.implausible) goes to stderr before any work."""
+    no soft tissue has (scene.implausible) goes to stderr before any work. A command that ``solves``
+    the scene's own problem refuses a manufactured-solution scene: it has no constraints or loads (its
+    problem is the manufactured one on the unit cube, which only ``converge`` poses)."""
     scene = load_scene(args.scene, refine=getattr(args, "mesh_refine", 0))
+    if solves and scene.manufactured:
+        raise SceneError(
+            f"{scene.path}: [manufactured]: this scene poses the manufactured solution on the unit cube, which "
+            f"only converge solves; it has no constraints or loads of its own for {args.command} (run "
+            f"tissuebench converge {args.scene})"
+        )
     check_held(scene)
     if warn:
         from verification.progress import log
@@ -99,7 +107,7 @@ def cmd_check(args) -> int:
     import realtime
     from verification.inputs import build_loading
 
-    scene = _scene(args, warn=False)  # check prints them with the rest
+    scene = _scene(args, warn=False, solves=False)  # check prints them with the rest
     mesh = scene.mesh
     loading = build_loading(mesh, scene.densities(), scene.problem)
     lo, hi = mesh.bounding_box()
@@ -364,7 +372,7 @@ def cmd_sweep(args) -> int:
 def cmd_converge(args) -> int:
     from verification.studies.converge import converge_manufactured, converge_space, converge_time, format_converge
 
-    scene = _scene(args)
+    scene = _scene(args, solves=False)
     if scene.manufactured:
         out = converge_manufactured(scene)
     elif args.in_ == "time":
