@@ -20,6 +20,8 @@ from ..progress import _rank
 from ..scene import Scene
 from .results import Result
 
+#: A static run's default tolerance (its residual against the load) and its most steps to settle.
+SETTLE_RTOL, SETTLE_MAX_STEPS = 1e-10, 2_000_000
 #: The default time step of an explicit integrator, and of implicit Euler on a dynamic scene, as
 #: fractions of the explicit critical step.
 EXPLICIT_FRACTION, IMPLICIT_FRACTION = 0.9, 10.0
@@ -58,8 +60,8 @@ def run_model(
     dt: float | None = None,
     dt_fraction: float | None = None,
     integrator: str = "symplectic-euler",
-    rtol: float = 1e-10,
-    max_steps: int = 2_000_000,
+    rtol: float = SETTLE_RTOL,
+    max_steps: int = SETTLE_MAX_STEPS,
     options: dict | None = None,
     engine=None,
 ) -> Result:

@@ -158,21 +158,21 @@ SETTLED_AHEAD: set = set()
 
 
 def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...], runs: tuple = ()) -> int:
-    """(In a worker process.) Settle ``scene`` with ``model_name`` into the caches that ``engines.builtin.settled``
-    and ``runs.largest_stable_fraction`` read, as a sweep and its advice would: with symplectic Euler at
+    """(In a worker process.) Settle ``scene`` with ``model_name`` through the engine seam
+    (``Simulation.settle``), into the caches its engine and ``runs.largest_stable_fraction`` read, as a sweep and its advice would: with symplectic Euler at
     each of ``fractions`` of its critical step and at its largest stable fraction, and with implicit Euler
     at its default step if the advisor tries it (``advise.IMPLICIT_MODELS``); none of these when
     ``fractions`` is empty. Then each of ``runs`` ((integrator, max_steps) at the default step: the
     stability study's cells, ``stability.settle_cells``). Returns how many settled (a run that diverges
     or does not settle is left to the study, which reports it)."""
     from realtime import DivergenceError, NotConvergedError
-    from verification.engines.builtin import model_for, settled
+    from verification.engines import engine_for
     from verification.inputs import scene_inputs
+    from verification.runs.simulate import SETTLE_MAX_STEPS, SETTLE_RTOL
     from verification.runs.store import largest_stable_fraction
     from verification.studies.advise import IMPLICIT_MODELS
 
-    inputs = scene_inputs(scene)
-    model = model_for(inputs, model_name)
+    inputs, engine = scene_inputs(scene), engine_for(model_name)
     todo = []
     if fractions:
         stable = largest_stable_fraction(scene, model_name)["stable"]
@@ -182,7 +182,8 @@ def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...], r
     done = 0
     for integrator, fraction, max_steps in todo:
         try:
-            settled(inputs, model, integrator, None, fraction, **({"max_steps": max_steps} if max_steps else {}))
+            sim = engine.build(inputs, model_name, integrator, {})
+            sim.settle(SETTLE_RTOL, max_steps or SETTLE_MAX_STEPS, None, fraction)
             done += 1
         except (DivergenceError, NotConvergedError):
             pass
