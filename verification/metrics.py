@@ -9,6 +9,8 @@ from realtime.geometry import signed_volumes
 #: An error below this multiple of the reference's own error estimate is "at reference accuracy": the
 #: reference cannot tell it from zero.
 REFERENCE_ACCURACY_FACTOR = 10.0
+#: The errors ``compute`` measures, in the order tables print them.
+METRICS = ("rel_l2", "surface_rel_l2", "max_err", "reaction_rel_err", "volume_err")
 
 
 def rel_l2(u: np.ndarray, ref: np.ndarray) -> float:

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from verification.inputs import check_held
+from verification.metrics import METRICS
 from verification.scene import SceneError, implausible
 from verification.scene_file import builtin_scenes, load_scene
 
@@ -275,17 +276,7 @@ def _print_row(scene, args, row) -> None:
     acc = " (at reference accuracy)" if row.at_reference_accuracy else ""
     at = "its quasi-static update" if row.dt is None else f"dt = {row.dt:.3g} s"
     print(f"{scene.name} / {args.model} at {at}:")
-    for k in (
-        "rel_l2",
-        "surface_rel_l2",
-        "max_err",
-        "reaction_rel_err",
-        "volume_err",
-        "ref_err_estimate",
-        "step_us",
-        "realtime_factor",
-        "rate_hz",
-    ):
+    for k in (*METRICS, "ref_err_estimate", "step_us", "realtime_factor", "rate_hz"):
         v = getattr(row, k)
         print(f"  {k:<18} {'-' if v is None else f'{v:.4g}'}{acc if k == 'rel_l2' else ''}")
     b = row.error_budget or {}

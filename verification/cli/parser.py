@@ -92,7 +92,6 @@ class _Merge(argparse.Action):
 
 
 def _scenes(sub) -> None:
-
     s = sub.add_parser("scenes", help="list built-in scenes")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_scenes)

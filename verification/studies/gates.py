@@ -22,13 +22,13 @@ from pathlib import Path
 
 from realtime import INTEGRATORS, MODELS
 from verification.cache import git_commit
+from verification.metrics import METRICS
 from verification.runs.results import atomic_write_text
 from verification.runs.store import cached_compare
 from verification.scene import SceneError
 from verification.scene_file import load_scene
 
 DEFAULT_CONFIG = Path(__file__).parent / "gates.toml"
-METRICS = ("rel_l2", "surface_rel_l2", "max_err", "reaction_rel_err", "volume_err")
 KEYS = ("scene", "model", "integrator", "fraction", "metric", "bound", "drift", "quick", "note", "baseline")
 #: How far (relative) a measured value may move from its baseline before the gate fails.
 DEFAULT_DRIFT = 0.1

@@ -10,6 +10,7 @@ import math
 from realtime import MODELS
 from realtime.models import QUASI_STATIC
 from reference.errors import ReferenceSolveError
+from verification.metrics import METRICS
 from verification.progress import Progress
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
@@ -163,11 +164,7 @@ def sweep_csv(result: dict) -> str:
         "fraction",
         "dt",
         "dt_crit",
-        "rel_l2",
-        "surface_rel_l2",
-        "max_err",
-        "reaction_rel_err",
-        "volume_err",
+        *METRICS,
         "ref_err_estimate",
         "step_us",
         "step_us_min",
