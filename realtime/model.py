@@ -333,14 +333,14 @@ class Model:
         return self.eigenvalue_bound_of(self)
 
     def check_current(self) -> None:
-        """Raise InputError if this model's mesh was changed since it was built (``realtime.models.cut``,
+        """Raise InputError if this model's mesh was changed since it was built (``realtime.registry.cut``,
         ``realtime.topology.slit`` or ``suture`` returned its successor, which shares and has changed its
         stiffness tensors)."""
         tensors = self.extra.get("tensors")
         if tensors is not None and tensors.generation != self.extra.get("generation", tensors.generation):
             raise InputError(
                 f"{self.name}: this model's mesh was changed {tensors.generation - self.extra['generation']} time(s) "
-                "since it was built (cut, slit or sutured); step the model realtime.models.cut or realtime.topology "
+                "since it was built (cut, slit or sutured); step the model realtime.registry.cut or realtime.topology "
                 "returned"
             )
 

@@ -38,7 +38,7 @@ def jobs() -> list[tuple[str, str, int]]:
     """What each job builds: (model, precision, threads), for every model, every precision it has and
     threads for those with a threaded kernel; the most expensive to compile first, so that the pool's
     processes end together."""
-    from .models import FLOAT32_MODELS, MODELS
+    from .registry import FLOAT32_MODELS, MODELS
 
     out = []
     for name, builder in MODELS.items():
@@ -79,8 +79,8 @@ def compile_job(job: tuple[str, str, int]) -> float:
     from .integrators import INTEGRATORS, ImplicitEuler
     from .material import Material
     from .model import TOOL_ROTATION, TOOL_TRANSLATION, Loading
-    from .models import QUASI_STATIC, build_model
     from .quasistatic import QuasiStatic
+    from .registry import QUASI_STATIC, build_model
     from .spectra import element_critical_dt
     from .statics import solve_static
 

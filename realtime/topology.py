@@ -1,6 +1,6 @@
 """Topology changes of a linear tensor-mass model besides cutting: slitting and suturing.
 
-``realtime.models.cut`` removes tetrahedra (Cotin et al. 2000). A scalpel that leaves no gap is a
+``realtime.registry.cut`` removes tetrahedra (Cotin et al. 2000). A scalpel that leaves no gap is a
 *slit*: the mesh separates along interior triangles, each vertex on them split into one copy per side,
 so that the tetrahedra on either side no longer share it. *Suturing* is its inverse: joining two
 vertex sets that sit at the same place (the two lips of a slit) back into one. Both are local

@@ -52,7 +52,7 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     """A short benchmark on the stored beam: the rows whose work is a fixed count (linear-tm, stvk-tm,
     mass-spring, scipy's product) carry their flops, bytes, bound and achieved fraction, and the table
     prints them beside the measured ceilings; the others carry none."""
-    from realtime.models import FLOAT32_MODELS
+    from realtime.registry import FLOAT32_MODELS
     from verification.bench.suite import CALL_ROW, CALLS, format_table, run
 
     out = run(meshes=("beam",), repeats=1, steps=2)

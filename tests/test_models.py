@@ -9,7 +9,7 @@ import pytest
 
 from meshes import stored_mesh, structured_box
 from realtime import MODELS, InputError, Material, Materials, State, build_model
-from realtime.models import GEOMETRIC, QUASI_STATIC, cut
+from realtime.registry import GEOMETRIC, QUASI_STATIC, cut
 from reference.fem import ElasticityProblem
 from reference.problem import Problem
 
@@ -606,11 +606,11 @@ def test_a_model_on_the_renumbered_mesh_is_the_same_model(model_name, rng):
 
 @pytest.mark.parametrize("name", [m for m in MODELS if m not in GEOMETRIC and m not in QUASI_STATIC])
 def test_what_a_model_claims_to_represent_changes_its_force_and_nothing_else_does(name):
-    """realtime.models.REPRESENTS is what every result says a model ran without: checked here by the
+    """realtime.registry.REPRESENTS is what every result says a model ran without: checked here by the
     force itself. At a compressed, sheared state, adding the volume penalty (or fibres) to the material
     changes the force of a model that claims the term and leaves it bit for bit the same in one that
     does not (the quasi-static models are linear-tm's tensors). corotational-tm refuses fibres."""
-    from realtime.models import REPRESENTS, unrepresented
+    from realtime.registry import REPRESENTS, unrepresented
 
     mesh = structured_box((0.02, 0.01, 0.01), (2, 1, 1))
     x = mesh.points

@@ -48,7 +48,7 @@ def test_pareto_front_keeps_one_of_duplicates():
 @pytest.mark.slow
 def test_sweep_json_lists_every_model(capsys):
     from realtime import MODELS
-    from realtime.models import QUASI_STATIC
+    from realtime.registry import QUASI_STATIC
 
     assert main(["sweep", "cantilever-pull", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)

@@ -41,8 +41,8 @@ from meshes.store import RENUMBERED, STORED
 from realtime import Loading, Material, State, SymplecticEuler, build_model
 from realtime.blocks import BLOCK, GEO_ROWS_U, HOT, gather, scatter_block
 from realtime.geometry import unique_edges
-from realtime.models import FLOAT32_MODELS, nonlinear_fraction
 from realtime.quasistatic import QuasiStatic
+from realtime.registry import FLOAT32_MODELS, nonlinear_fraction
 from realtime.stvk import stvk_block
 from verification.bench import codegen
 from verification.bench.roofline import Roofline, bsr_work, step_work, stvk_phase_work, thread_loops, thread_scaling

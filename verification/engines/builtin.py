@@ -19,8 +19,8 @@ import numpy as np
 import realtime
 from meshes.io import atomic_savez
 from realtime import DivergenceError, ImplicitEuler, State, SymplecticEuler, build_model, make_integrator, solve_static
-from realtime.models import MODELS, QUASI_STATIC
 from realtime.quasistatic import QuasiStatic
+from realtime.registry import MODELS, QUASI_STATIC
 from realtime.spectra import max_eigenvalue, min_eigenvalue
 from realtime.statics import solve_static_implicit
 from reference.progress import Progress

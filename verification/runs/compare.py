@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from realtime import DivergenceError
-from realtime.models import FLOAT32_MODELS, QUASI_STATIC, unrepresented
+from realtime.registry import FLOAT32_MODELS, QUASI_STATIC, unrepresented
 from verification.engines.builtin import BUILTIN, UnboundedAnswerError
 from verification.inputs import scene_inputs
 from verification.metrics import compute, rel_l2
@@ -100,7 +100,7 @@ def compare(
 
     A diverging run gives a row of status "diverged" with the step, dt and dt_crit instead of errors.
     ``unrepresented`` lists what the material asks that the model does not represent (fibres, the
-    volume penalty: realtime.models.unrepresented): it ran without it, and its errors measure the cost.
+    volume penalty: realtime.registry.unrepresented): it ran without it, and its errors measure the cost.
     ``vtk`` (a directory or a .pvd path) also writes both displacements and the pointwise error at every
     output time as one ParaView series. ``budget`` adds ``error_budget`` (see ``error_budget``).
     ``float32``: for a model of FLOAT32_MODELS under an explicit integrator, the row's ``float32`` holds

@@ -201,7 +201,7 @@ def settle_ahead(
     only time its steps, on a quiet machine: nothing is timed here. With one worker, one job or under
     mpirun nothing is settled here and each settles as it goes."""
     from realtime import MODELS
-    from realtime.models import QUASI_STATIC
+    from realtime.registry import QUASI_STATIC
     from verification.engines.builtin import settled_path
     from verification.inputs import scene_inputs
 

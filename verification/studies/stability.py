@@ -10,7 +10,7 @@ import json
 import numpy as np
 
 from realtime import MODELS
-from realtime.models import QUASI_STATIC
+from realtime.registry import QUASI_STATIC
 from verification.progress import Progress
 from verification.runs.store import cached_compare, largest_stable_fraction
 from verification.scene import Scene, SceneError

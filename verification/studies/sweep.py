@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 
 from realtime import MODELS
-from realtime.models import QUASI_STATIC
+from realtime.registry import QUASI_STATIC
 from reference.errors import ReferenceSolveError
 from verification.metrics import METRICS
 from verification.progress import Progress

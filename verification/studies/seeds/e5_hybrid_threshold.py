@@ -5,7 +5,7 @@ from __future__ import annotations
 import matplotlib.pyplot as plt
 import numpy as np
 
-from realtime.models import nonlinear_fraction
+from realtime.registry import nonlinear_fraction
 from verification.metrics import rel_l2
 from verification.progress import log
 from verification.report.plots import png

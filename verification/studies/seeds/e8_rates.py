@@ -6,7 +6,7 @@ import math
 
 import matplotlib.pyplot as plt
 
-from realtime.models import QUASI_STATIC
+from realtime.registry import QUASI_STATIC
 from verification.metrics import rel_l2
 from verification.progress import log
 from verification.report.plots import png
