@@ -221,7 +221,7 @@ def test_internal_errors_are_not_disguised_as_bad_input(monkeypatch):
     def broken(args):
         raise ValueError("an internal bug")
 
-    monkeypatch.setattr(cli, "cmd_scenes", broken)
+    monkeypatch.setattr(cli.parser, "cmd_scenes", broken)  # the function the parser binds to the command
     with pytest.raises(ValueError, match="an internal bug"):
         main(["scenes"])
 
