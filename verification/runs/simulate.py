@@ -12,6 +12,8 @@ import time
 
 import numpy as np
 
+from reference.progress import Progress
+
 from ..cache import git_commit, versions
 from ..engines import engine_for
 from ..engines.protocol import Simulation
@@ -113,11 +115,9 @@ def _run_static(scene: Scene, sim: Simulation, dt, dt_fraction, rtol, max_steps,
 
 
 def trajectory(sim: Simulation, times: np.ndarray, label: str = "") -> tuple[np.ndarray, np.ndarray]:
-    """From rest, the simulation sampled at ``times`` (T,) s: displacement (T, N, 3) m of the scene's
-    vertices and the tools' force (T, 3) N."""
+    """The simulation, started at rest (``Simulation.start``), sampled at ``times`` (T,) s: displacement
+    (T, N, 3) m of the scene's vertices and the tools' force (T, 3) N."""
     out_u, out_r = [], []
-    from reference.progress import Progress
-
     ticker = Progress(f"run: {sim.model}{label}, output", len(times), _rank())
     for k, t_out in enumerate(times):
         ticker.tick(k, f", t = {t_out:.4g} s")
