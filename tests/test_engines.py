@@ -37,7 +37,7 @@ class _DirectSimulation:
     def critical_dt(self):
         return None
 
-    def start(self, dt, dt_crit=None):
+    def start(self, dt):
         self.u[:] = 0.0
 
     def advance_to(self, t):

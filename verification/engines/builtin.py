@@ -262,10 +262,10 @@ class BuiltinSimulation:
             self.model_obj, omega2_rest(self.inputs, self.model_obj, self.options)
         )
 
-    def start(self, dt: float | None, dt_crit: float | None = None) -> None:
-        """Rest, stepping with dt (s); ``dt_crit`` (s) arms the integrator's blow-up guard with it."""
+    def start(self, dt: float | None) -> None:
+        """Rest, stepping with dt (s), the integrator's blow-up guard armed with the critical step."""
         self.state = self.model_obj.rest_state()
-        self.dt, self.dt_step_crit, self._sample = dt, dt_crit, None
+        self.dt, self.dt_step_crit, self._sample = dt, self.critical_dt(), None
 
     def advance_to(self, t: float) -> None:
         """Step until the step that passes t, holding the state at t by linear interpolation between the

@@ -137,7 +137,7 @@ def _run_dynamic(scene: Scene, sim: Simulation, dt, dt_fraction, build_s: float)
     elif dt is None:
         default = IMPLICIT_FRACTION if sim.integrator == "implicit-euler" else EXPLICIT_FRACTION
         dt = (default if dt_fraction is None else dt_fraction) * dt_crit
-    sim.start(dt, dt_crit)
+    sim.start(dt)
     label = "" if dt_crit is None else f" ({sim.integrator}, dt = {dt:.3g} s)"
     t1 = time.perf_counter()
     u, reaction = trajectory(sim, times, label)
