@@ -65,7 +65,7 @@ class _DirectSimulation:
 def test_the_builtin_engine_answers_the_protocol():
     scene = load_scene("cantilever")
     inputs = scene_inputs(scene)
-    assert isinstance(BUILTIN, Engine) and set(engines.ENGINES) == {"tissuebench"}
+    assert isinstance(BUILTIN, Engine) and set(engines.ENGINES) == {"realtime"}
     sim = BUILTIN.build(inputs, "linear-tm", "symplectic-euler", {})
     assert isinstance(sim, Simulation)
     # the scene's arrays as the protocol documents them
@@ -86,7 +86,8 @@ def test_a_plug_in_engine_is_run_and_judged_through_the_seam(monkeypatch):
     monkeypatch.setitem(engines.ENGINES, "direct-p1", DirectP1())
     scene = load_scene("cantilever").with_material(law="linear")
     res = run_model(scene, "direct-p1")
-    assert res.meta["model"] == "direct-p1" and res.meta["integrator"] == "sparse LU"
+    assert res.meta["solver"] == "direct-p1" and res.meta["model"] == "direct-p1"
+    assert res.meta["integrator"] == "sparse LU"
     assert res.meta["static"]["method"] == "sparse LU" and res.meta["step_us"] > 0.0
     ours = compare(scene, "linear-tm", degree=1, budget=False)
     theirs = compare(scene, "direct-p1", degree=1, budget=False)

@@ -341,7 +341,7 @@ class BuiltinSimulation:
 class BuiltinEngine:
     """``realtime``'s models (docs/models.md) as an Engine."""
 
-    name = "tissuebench"
+    name = "realtime"
     models = tuple(MODELS)
 
     def build(self, inputs: SceneInputs, model: str, integrator: str = "symplectic-euler", options: dict | None = None):

@@ -71,7 +71,7 @@ def float32_twin(scene: Scene, res: Result) -> dict:
     sim = BUILTIN.build(scene_inputs(scene), m["model"], m["integrator"], {"precision": "float32"})
     build_s = time.perf_counter() - t0
     if scene.time.mode == "dynamic":
-        twin = _run_dynamic(scene, sim, m["dt"], None, build_s)
+        twin = _run_dynamic(scene, sim, m["dt"], None, build_s, BUILTIN.name)
         return {"displacement": twin.displacement, "dt": m["dt"], "settle_steps": None, **_timing(twin.meta)}
     sim.settle_steps(m["dt"], m["static"]["steps"])
     u = sim.displacement().astype(np.float64)[None]

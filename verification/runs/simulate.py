@@ -79,14 +79,14 @@ def run_model(
     sim = engine.build(inputs, model_name, integrator, dict(options or {}))
     build_s = time.perf_counter() - t0
     if scene.time.mode == "dynamic":
-        return _run_dynamic(scene, sim, dt, dt_fraction, build_s)
-    return _run_static(scene, sim, dt, dt_fraction, rtol, max_steps, build_s)
+        return _run_dynamic(scene, sim, dt, dt_fraction, build_s, engine.name)
+    return _run_static(scene, sim, dt, dt_fraction, rtol, max_steps, build_s, engine.name)
 
 
-def _meta(scene: Scene, sim: Simulation, dt, dt_crit, build_s: float, timing: dict) -> dict:
-    """The meta every run carries (docs/architecture.md section 4)."""
+def _meta(scene: Scene, sim: Simulation, solver: str, dt, dt_crit, build_s: float, timing: dict) -> dict:
+    """The meta every run carries (docs/architecture.md section 4); ``solver``: the engine's name."""
     return {
-        "solver": "realtime",
+        "solver": solver,
         "model": sim.model,
         "integrator": sim.integrator,
         "dt": dt,
@@ -103,12 +103,12 @@ def _meta(scene: Scene, sim: Simulation, dt, dt_crit, build_s: float, timing: di
     }
 
 
-def _run_static(scene: Scene, sim: Simulation, dt, dt_fraction, rtol, max_steps, build_s: float) -> Result:
+def _run_static(scene: Scene, sim: Simulation, dt, dt_fraction, rtol, max_steps, build_s: float, solver: str) -> Result:
     """Equilibrium, read, then the steps timed from it."""
     s = sim.settle(rtol, max_steps, dt, dt_fraction)
     u, reaction = sim.displacement().copy(), np.array(sim.tool_force(), dtype=float)
     timing = time_steps(sim, *sim.timing)
-    meta = _meta(scene, sim, s.dt, s.dt_crit, build_s, timing)
+    meta = _meta(scene, sim, solver, s.dt, s.dt_crit, build_s, timing)
     meta.update(s.meta, static=s.static, settle_ms=s.steps * timing["step_us"] * 1e-3)
     mesh = scene.mesh
     return Result(mesh.points, mesh.tets, np.zeros(1), u[None], reaction[None], meta)
@@ -127,7 +127,7 @@ def trajectory(sim: Simulation, times: np.ndarray, label: str = "") -> tuple[np.
     return np.array(out_u), np.array(out_r)
 
 
-def _run_dynamic(scene: Scene, sim: Simulation, dt, dt_fraction, build_s: float) -> Result:
+def _run_dynamic(scene: Scene, sim: Simulation, dt, dt_fraction, build_s: float, solver: str) -> Result:
     """A dynamic scene: the trajectory from rest at the scene's output times, then steps timed."""
     ts = scene.time
     times = output_times(scene)
@@ -143,7 +143,7 @@ def _run_dynamic(scene: Scene, sim: Simulation, dt, dt_fraction, build_s: float)
     u, reaction = trajectory(sim, times, label)
     run_s = time.perf_counter() - t1
     timing = time_steps(sim, sim.timing[0], 7)
-    meta = _meta(scene, sim, dt, dt_crit, build_s, timing)
+    meta = _meta(scene, sim, solver, dt, dt_crit, build_s, timing)
     meta.update(
         dt_crit_rest=dt_crit,
         mode="dynamic",
