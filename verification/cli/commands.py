@@ -290,6 +290,28 @@ def _print_row(scene, args, row) -> None:
         print(f"  {'not represented':<18} {term}: ran without it, and the errors above include what that costs")
 
 
+def cmd_export(args) -> int:
+    from reference.problem import Gravity
+    from verification.engines.export import export
+    from verification.inputs import scene_inputs
+
+    scene = _scene(args)
+    gravity = next((tuple(ld.value) for ld in scene.problem.loads if isinstance(ld, Gravity)), (0.0, 0.0, 0.0))
+    path = export(scene_inputs(scene), gravity, args.directory)
+    out = {"scene": scene.name, "written": str(path.parent), "files": sorted(p.name for p in path.parent.iterdir())}
+    _emit(args, out, lambda o: f"{o['scene']}: {', '.join(o['files'])} in {o['written']}")
+    return 0
+
+
+def cmd_judge(args) -> int:
+    from verification.studies.judge import format_judgement, judge
+
+    scene = _scene(args)
+    out = judge(scene, args.result, scale=args.scale, outside=args.outside, step_us=args.step_us)
+    _emit(args, out, format_judgement)
+    return 0
+
+
 def cmd_report(args) -> int:
     from verification.report.page import write_report
     from verification.report.seeds_page import seeds_report_dir, write_seeds_report

@@ -13,7 +13,9 @@ from verification.cli.commands import (
     cmd_check,
     cmd_compare,
     cmd_converge,
+    cmd_export,
     cmd_gate,
+    cmd_judge,
     cmd_reference,
     cmd_report,
     cmd_run,
@@ -277,6 +279,31 @@ def _bench(sub) -> None:
     s.set_defaults(func=cmd_bench)
 
 
+def _export(sub) -> None:
+    s = sub.add_parser("export", help="write a scene as data any engine can read (JSON, arrays, VTU and gmsh 2.2)")
+    s.add_argument("scene")
+    s.add_argument("directory", help="where scene.json, arrays.npz, mesh.vtu and mesh.msh go")
+    s.add_argument("--mesh-refine", type=_level, default=0, metavar="K", help=MESH_REFINE_HELP)
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_export)
+
+
+def _judge(sub) -> None:
+    s = sub.add_parser("judge", help="what another engine wrote, against the scene's reference")
+    s.add_argument("scene")
+    s.add_argument("result", help="its displacement: .npz, .vtu/.vtk, a ParaView .pvd series or .xdmf")
+    s.add_argument("--scale", type=_positive, default=1.0, help="metres per unit of the result (0.001: mm)")
+    s.add_argument(
+        "--outside",
+        type=_positive,
+        default=1e-3,
+        help="how far outside the body, relative to its size, a result point may lie (judged at the surface)",
+    )
+    s.add_argument("--step-us", type=_positive, help="the engine's own step time, us (reported as the engine's)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_judge)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="tissuebench", description="What real-time soft-tissue models give up for their speed.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -285,6 +312,8 @@ def build_parser() -> argparse.ArgumentParser:
         _check,
         _reference,
         _run_compare,
+        _export,
+        _judge,
         _report,
         _seeds,
         _sweep,

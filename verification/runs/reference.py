@@ -176,8 +176,11 @@ def reference_result(
     return res
 
 
-def _solve_dynamic(scene: Scene, solved: Scene, degree: int, refine: int, estimate: bool, petsc_options) -> dict:
-    """The dynamic reference of ``solved`` (the scene, or its base) at ``scene``'s vertices."""
+def _solve_dynamic(
+    scene: Scene, solved: Scene, degree: int, refine: int, estimate: bool, petsc_options, points=None
+) -> dict:
+    """The dynamic reference of ``solved`` (the scene, or its base) at ``points`` (K, 3) m (default
+    ``scene``'s vertices)."""
     from reference.driver import solve_dynamic
 
     ts = scene.time
@@ -191,15 +194,18 @@ def _solve_dynamic(scene: Scene, solved: Scene, degree: int, refine: int, estima
         degree=degree,
         refine=refine,
         estimate=estimate,
-        points=scene.mesh.points,
+        points=scene.mesh.points if points is None else points,
         petsc_options=petsc_options,
     )
 
 
-def _solve_static(scene: Scene, solved: Scene, degree, refine, estimate, newton: tuple, petsc_options, use_cache):
-    """The static reference of ``solved`` (the scene, or its base) at ``scene``'s vertices: the same
-    problem solved before in this process (``_SOLVED``) or kept beside its cached result evaluated
-    there, else solved (and kept)."""
+def _solve_static(
+    scene: Scene, solved: Scene, degree, refine, estimate, newton: tuple, petsc_options, use_cache, points=None
+):
+    """The static reference of ``solved`` (the scene, or its base) at ``points`` (default ``scene``'s
+    vertices): the same problem solved before in this process (``_SOLVED``) or kept beside its cached
+    result evaluated there, else solved (and kept)."""
+    at = scene.mesh.points if points is None else points
     from mpi4py import MPI
 
     from reference.driver import evaluate_static, solve_static
@@ -214,7 +220,7 @@ def _solve_static(scene: Scene, solved: Scene, degree, refine, estimate, newton:
         _restore_solved(memo, fields, solved, solved.body_material(), degree, refine)
     if use_cache and memo in _SOLVED:  # use_cache=False asks for a solve (the benchmarks time it)
         log("reference: the same problem was solved before: evaluated at these vertices")
-        return evaluate_static(*_SOLVED[memo], scene.mesh.points)
+        return evaluate_static(*_SOLVED[memo], at)
     sol = solve_static(
         solved.mesh,
         solved.body_material(),
@@ -224,7 +230,7 @@ def _solve_static(scene: Scene, solved: Scene, degree, refine, estimate, newton:
         estimate=estimate,
         newton_steps=newton_steps,
         min_increment=min_increment,
-        points=scene.mesh.points,
+        points=at,
         petsc_options=petsc_options,
     )
     problems = sol.pop("problems")
@@ -235,3 +241,44 @@ def _solve_static(scene: Scene, solved: Scene, degree, refine, estimate, newton:
     while len(_SOLVED) > SOLVED_KEPT:
         _SOLVED.pop(next(iter(_SOLVED)))
     return sol
+
+
+def reference_at(scene: Scene, points: np.ndarray, **options) -> Result:
+    """The scene's reference (``reference_result`` with ``options``) evaluated at ``points`` (K, 3) m
+    instead of the scene mesh's vertices: where another engine, on a mesh of its own, wrote its answer.
+    A static reference is the same solve (kept in this process or beside its cached result) evaluated
+    there; a dynamic one is solved again, evaluating those points at every output, and cached under the
+    points' hash. Every point must lie in the body (ReferenceSolveError naming the first that does not)."""
+    import hashlib
+
+    from reference.driver import evaluate_static
+
+    options = {**REFERENCE_DEFAULTS, **options}
+    points = np.ascontiguousarray(points, dtype=float)
+    base = reference_result(scene, **options)  # solved (and kept) at the vertices first
+    if np.array_equal(points, scene.mesh.points):
+        return base
+    empty = np.zeros((0, 4), dtype=np.int64)
+    if scene.time.mode == "dynamic":
+        key = digest({"reference": base.meta["cache_key"], "points": hashlib.sha256(points.tobytes()).hexdigest()})
+        path = cache_dir() / "reference" / f"{scene.name}-at-{key}.npz"
+        cached = read_cached(path, Result.load)
+        if cached is not None:
+            return cached
+        sol = _solve_dynamic(scene, scene, options["degree"], options["refine"], options["estimate"], None, points)
+        res = Result(points, empty, sol["times"], sol["displacement"], sol["reaction"], {**base.meta, **sol["meta"]})
+        res.save(path)
+        return res
+    memo = (scene.sha256(), options["degree"], options["refine"], options["estimate"], 1, 1e-4, json.dumps({}))
+    fields = _fields_path(reference_path(scene, options["degree"], options["refine"], options["estimate"]))
+    if memo not in _SOLVED and fields.exists():
+        _restore_solved(memo, fields, scene, scene.body_material(), options["degree"], options["refine"])
+    if memo not in _SOLVED:  # nothing kept to evaluate: solve again there
+        sol = _solve_static(
+            scene, scene, options["degree"], options["refine"], options["estimate"], (1, 1e-4), None, False, points
+        )
+    else:
+        sol = evaluate_static(*_SOLVED[memo], points)
+    return Result(
+        points, empty, np.zeros(1), sol["displacement"][None], sol["reaction"][None], {**base.meta, **sol["meta"]}
+    )

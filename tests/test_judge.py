@@ -1,0 +1,122 @@
+"""Any engine's answer, judged (``tissuebench export`` and ``judge``): the scene written as data, and a
+result written by other code, on other points, in other units, scored against the same reference."""
+
+import json
+
+import meshio
+import numpy as np
+import pytest
+
+from meshes.io import read_mesh
+from verification.cli import main
+from verification.inputs import build_loading
+from verification.report.vtk import write_series
+from verification.runs.compare import compare
+from verification.runs.reference import reference_result
+from verification.runs.simulate import run_model
+from verification.scene_file import load_scene
+
+
+def _judge(capsys, *args) -> tuple[int, dict | str]:
+    code = main(["judge", *args, "--json"])
+    out = capsys.readouterr()
+    return code, (json.loads(out.out) if code == 0 else out.err)
+
+
+def test_export_writes_the_problem_as_data(tmp_path, capsys):
+    """The arrays are the ones both solvers take (the P1 load vector, the held components, the tools'
+    prescribed displacement), and both mesh files read back as the scene's mesh."""
+    scene = load_scene("cantilever-pull")
+    assert main(["export", "cantilever-pull", str(tmp_path / "x"), "--json"]) == 0
+    described = json.loads((tmp_path / "x" / "scene.json").read_text())
+    assert described["format"] == "tissuebench-scene" and described["version"] == 1
+    assert described["materials"][0]["mu_pa"] == scene.material.mu and described["time"]["mode"] == "static"
+    with np.load(tmp_path / "x" / "arrays.npz") as z:
+        loading = build_loading(scene.mesh, scene.densities(), scene.problem)
+        assert np.array_equal(z["points"], scene.mesh.points) and np.array_equal(z["tets"], scene.mesh.tets)
+        assert np.array_equal(z["free"], loading.free)
+        assert np.array_equal(z["external_force"], loading.external_force)
+        # the tool's final place: 1 cm down at every vertex it drives
+        assert np.allclose(z["tool_displacement"][-1], [0.0, 0.0, -0.01], rtol=0, atol=1e-15)
+    for name in ("mesh.vtu", "mesh.msh"):
+        back = read_mesh(tmp_path / "x" / name)
+        assert np.array_equal(back.points, scene.mesh.points) and np.array_equal(back.tets, scene.mesh.tets)
+    capsys.readouterr()
+
+
+def test_a_result_on_the_scene_mesh_is_judged_as_compare_judges_the_run(tmp_path, capsys):
+    """linear-tm's run written as a .vtu by meshio: the same rel_l2 as compare gives that run (the same
+    reference at the same points), to round-off."""
+    scene = load_scene("cantilever-pull")
+    row = compare(scene, "linear-tm", budget=False)
+    u = run_model(scene, "linear-tm").displacement[0]
+    path = tmp_path / "linear.vtu"
+    meshio.write(path, meshio.Mesh(scene.mesh.points, [("tetra", scene.mesh.tets)], point_data={"displacement": u}))
+    code, out = _judge(capsys, "cantilever-pull", str(path))
+    assert code == 0, out
+    assert out["rel_l2"] == pytest.approx(row.rel_l2, rel=1e-12) and out["n_points"] == scene.mesh.n_vertices
+    assert out["surface_rel_l2"] == pytest.approx(row.surface_rel_l2, rel=1e-12)
+
+
+def test_a_result_on_another_mesh_in_mm_is_judged_at_its_own_points(tmp_path, capsys):
+    """Another mesh of the same body (the scene's refined once), in millimetres, 2% off the truth: the
+    judge evaluates the reference at its points, so rel_l2 is 0.02, which the refined scene's own
+    reference (the base solve evaluated there, another path) confirms, to 1e-6."""
+    scene = load_scene("cantilever-pull")
+    fine = scene.refined(1)
+    truth = reference_result(fine).displacement[0]
+    path = tmp_path / "other.npz"
+    np.savez(path, points=fine.mesh.points * 1e3, displacement=1.02 * truth * 1e3, tets=fine.mesh.tets)
+    code, out = _judge(capsys, "cantilever-pull", str(path), "--scale", "0.001")
+    assert code == 0, out
+    independent = float(np.linalg.norm(1.02 * truth - truth) / np.linalg.norm(truth))
+    assert out["rel_l2"] == pytest.approx(independent, rel=1e-6) and independent == pytest.approx(0.02)
+    assert out["n_points"] == fine.mesh.n_vertices and out["moved_onto_surface"] == 0
+
+
+def test_a_dynamic_result_is_a_series_at_the_output_instants(tmp_path, capsys):
+    """A ParaView series of linear-tm's trajectory: compare's rel_l2, every instant matched."""
+    scene = load_scene("cantilever-dynamic")
+    row = compare(scene, "linear-tm", budget=False)
+    run = run_model(scene, "linear-tm")
+    pvd = write_series(
+        tmp_path, "run", scene.mesh.points, scene.mesh.tets, run.times, {"displacement": run.displacement}
+    )
+    code, out = _judge(capsys, "cantilever-dynamic", str(pvd))
+    assert code == 0, out
+    assert out["n_times"] == len(run.times) and out["rel_l2"] == pytest.approx(row.rel_l2, rel=1e-9)
+
+
+@pytest.mark.parametrize(
+    "defect, needles",
+    [
+        ("outside", ("point 7", "outside the body", "--scale")),
+        ("nan", ("displacement[0, 7, 2] is nan", "not a finite number")),  # time, point, component
+        ("shape", ("displacement must be",)),
+        ("field", ("no displacement field", "stress")),
+        ("time", ("time 0.0123 s is not one of the scene's output instants",)),
+    ],
+)
+def test_a_result_that_cannot_be_judged_is_one_line_naming_it(tmp_path, capsys, defect, needles):
+    scene = load_scene("cantilever-dynamic" if defect == "time" else "cantilever-pull")
+    pts, u = scene.mesh.points.copy(), np.zeros((scene.mesh.n_vertices, 3))
+    path = tmp_path / ("r.vtu" if defect == "field" else "r.npz")
+    if defect == "outside":
+        pts[7] += [0.0, 0.0, 0.05]  # 5 cm off a 10 cm beam
+        np.savez(path, points=pts, displacement=u)
+    elif defect == "nan":
+        u[7, 2] = np.nan
+        np.savez(path, points=pts, displacement=u)
+    elif defect == "shape":
+        np.savez(path, points=pts, displacement=u[:-1])
+    elif defect == "field":
+        mesh = meshio.Mesh(pts, [("tetra", scene.mesh.tets)], point_data={"stress": np.zeros((len(pts), 6))})
+        meshio.write(path, mesh)
+    else:
+        np.savez(path, displacement=np.zeros((2, len(pts), 3)), times=np.array([0.0, 0.0123]))
+    code, err = _judge(capsys, scene.name, str(path))
+    assert code == 2 and "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.startswith("tissuebench")]
+    assert len(lines) == 1 and str(path) in lines[0], err
+    for n in needles:
+        assert n in lines[0], lines[0]

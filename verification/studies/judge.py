@@ -1,0 +1,175 @@
+"""What any engine wrote, judged against the scene's reference (``tissuebench judge SCENE RESULT``).
+
+The result's points need not be the scene mesh's: the reference is evaluated at each of them
+(``runs.reference.reference_at``). A point outside the body by less than ``outside`` (relative to the
+body's size: a tessellation of a curved surface lies a hair off another's) is judged at the nearest
+point of the body's surface; one farther is an error naming it. A dynamic result's times must be the
+scene's output instants (the reference is known there). The metrics are ``compare``'s: rel_l2 over all
+points and times, max_err, and with the result's tetrahedra surface_rel_l2 and volume_err; the tool
+force's error when the result carries it. A step time the user gives (``step_us``) is the engine's own,
+labelled so.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from meshes import TetMesh
+from meshes.regions import locate
+from verification.engines.foreign import EngineResultError, read_result
+from verification.metrics import REFERENCE_ACCURACY_FACTOR, compute, rel_l2
+from verification.runs.reference import REFERENCE_DEFAULTS, reference_at
+from verification.runs.simulate import output_times
+from verification.scene import Scene
+
+#: How far outside the body (relative to its largest extent) a result's point may lie and be judged at
+#: the nearest point of the body's surface.
+OUTSIDE = 1e-3
+#: Result times within this (relative to the output interval) are the scene's output instants.
+TIME_MATCH = 1e-6
+
+
+def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The closest point (K, 3) of each triangle (a, b, c) (K, 3) to p (K, 3) (Ericson, Real-Time
+    Collision Detection, 5.1.5): the region of the triangle's plane p projects into decides."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    bp, cp = p - b, p - c
+    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = 1.0 / (va + vb + vc)
+        v, w = vb * denom, vc * denom
+        out = a + ab * v[:, None] + ac * w[:, None]  # inside the face
+        edges = (
+            (vc <= 0) & (d1 >= 0) & (d3 <= 0),  # edge ab
+            (vb <= 0) & (d2 >= 0) & (d6 <= 0),  # edge ac
+            (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),  # edge bc
+        )
+        t_ab, t_ac = d1 / (d1 - d3), d2 / (d2 - d6)
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+    out = np.where(edges[0][:, None], a + ab * t_ab[:, None], out)
+    out = np.where(edges[1][:, None], a + ac * t_ac[:, None], out)
+    out = np.where(edges[2][:, None], b + (c - b) * t_bc[:, None], out)
+    for corner, test in ((a, (d1 <= 0) & (d2 <= 0)), (b, (d3 >= 0) & (d4 <= d3)), (c, (d6 >= 0) & (d5 <= d6))):
+        out = np.where(test[:, None], corner, out)
+    return out
+
+
+def onto_body(mesh: TetMesh, points: np.ndarray, outside: float, source: str) -> tuple[np.ndarray, int]:
+    """``points`` (K, 3) m with each one outside the body moved to the nearest point of its surface
+    (the nearest of its 8 nearest boundary triangles by centroid), and how many moved; EngineResultError
+    naming the first point farther than ``outside`` times the body's size."""
+    inside = locate(mesh, points) >= 0
+    if inside.all():
+        return points, 0
+    out = np.flatnonzero(~inside)
+    tri = mesh.points[mesh.boundary]
+    k = min(8, len(tri))
+    _, near = cKDTree(tri.mean(axis=1)).query(points[out], k=k)
+    near = near.reshape(len(out), k)
+    best, dist = np.zeros((len(out), 3)), np.full(len(out), np.inf)
+    for j in range(k):
+        t = tri[near[:, j]]
+        q = _closest_on_triangles(points[out], t[:, 0], t[:, 1], t[:, 2])
+        d = np.linalg.norm(q - points[out], axis=1)
+        better = d < dist
+        best[better], dist[better] = q[better], d[better]
+    size = float(np.ptp(mesh.points, axis=0).max())
+    far = np.flatnonzero(dist > outside * size)
+    if len(far):
+        i = out[far[0]]
+        raise EngineResultError(
+            f"{source}: point {i} {points[i].tolist()} m lies {dist[far[0]]:.3g} m outside the body (more than "
+            f"{outside:g} of its {size:.3g} m): is the result in the scene's units (--scale) and frame?"
+        )
+    moved = points.copy()
+    moved[out] = best
+    return moved, len(out)
+
+
+def _times(scene: Scene, result) -> np.ndarray:
+    """Which of the reference's output instants each result field is at (indices (T,))."""
+    if scene.time.mode == "static":
+        if len(result.displacement) != 1:
+            raise EngineResultError(
+                f"{result.source}: a static scene's result is one field, got {len(result.displacement)}"
+            )
+        return np.zeros(1, dtype=np.int64)
+    instants = output_times(scene)
+    times = (
+        result.times if result.times is not None else (instants if len(result.displacement) == len(instants) else None)
+    )
+    if times is None:
+        raise EngineResultError(
+            f"{result.source}: {len(result.displacement)} fields without their times, and the scene has "
+            f"{len(instants)} output instants: give the times (a .pvd's timestep, an .npz's times)"
+        )
+    step = scene.time.output_every
+    index = np.rint(np.asarray(times) / step).astype(np.int64)
+    bad = np.flatnonzero((np.abs(index * step - times) > TIME_MATCH * step) | (index < 0) | (index >= len(instants)))
+    if len(bad):
+        raise EngineResultError(
+            f"{result.source}: time {times[bad[0]]:.6g} s is not one of the scene's output instants (every "
+            f"{step:g} s from 0 to {scene.time.end:g} s), where the reference is known"
+        )
+    return index
+
+
+def judge(scene: Scene, path: str, scale: float = 1.0, outside: float = OUTSIDE, step_us: float | None = None) -> dict:
+    """The metrics of the result in ``path`` (``engines.foreign.read_result``, its lengths times
+    ``scale``) against the scene's reference, with the reference's own estimate (module docstring)."""
+    result = read_result(path, scene.mesh.points, scale)
+    at, moved = onto_body(scene.mesh, result.points, outside, result.source)
+    which = _times(scene, result)
+    ref = reference_at(scene, at, **REFERENCE_DEFAULTS)
+    ref_u = ref.displacement[which]
+    tools = bool(scene.problem.tools) and result.reaction is not None
+    est = ref.meta.get("ref_err_estimate")
+    tets = result.tets
+    if tets is None and np.array_equal(result.points, scene.mesh.points):
+        tets = scene.mesh.tets  # an .npz on the scene mesh's own vertices
+    if tets is not None:
+        surface = np.unique(TetMesh(result.points, tets).boundary)
+        reactions = (result.reaction, ref.reaction[which]) if tools else (None, None)
+        metrics = compute(result.points, tets, surface, result.displacement, ref_u, *reactions, est)
+    else:  # points alone: no surface, no volume
+        metrics = {
+            "rel_l2": rel_l2(result.displacement, ref_u),
+            "surface_rel_l2": None,
+            "max_err": float(np.linalg.norm(result.displacement - ref_u, axis=2).max()),
+            "volume_err": None,
+            "reaction_rel_err": None,
+            "ref_err_estimate": est,
+        }
+        if tools:
+            rr = ref.reaction[which]
+            metrics["reaction_rel_err"] = float(np.linalg.norm(result.reaction - rr) / max(np.linalg.norm(rr), 1e-300))
+        metrics["at_reference_accuracy"] = bool(est is not None and metrics["rel_l2"] < REFERENCE_ACCURACY_FACTOR * est)
+    return {
+        "scene": scene.name,
+        "result": result.source,
+        "scale": scale,
+        "n_points": len(result.points),
+        "n_times": len(which),
+        "moved_onto_surface": moved,
+        **metrics,
+        "engine_step_us": step_us,
+        "reference": {k: ref.meta.get(k) for k in ("law", "degree", "refine", "ref_err_estimate", "cache_key")},
+    }
+
+
+def format_judgement(out: dict) -> str:
+    est = out["reference"].get("ref_err_estimate")
+    lines = [f"{out['scene']}: {out['result']} ({out['n_points']} points, {out['n_times']} time(s))"]
+    for k in ("rel_l2", "surface_rel_l2", "max_err", "reaction_rel_err", "volume_err"):
+        v = out[k]
+        lines.append(f"  {k:<18} {'-' if v is None else f'{v:.4g}'}")
+    lines.append(f"  {'reference':<18} P{out['reference']['degree']}, estimate {'-' if est is None else f'{est:.2g}'}")
+    if out["moved_onto_surface"]:
+        lines.append(f"  {out['moved_onto_surface']} points a hair outside the body were judged at its surface")
+    if out["engine_step_us"] is not None:
+        lines.append(f"  {'step (engine)':<18} {out['engine_step_us']:.4g} us, as the engine reports it")
+    return "\n".join(lines)
