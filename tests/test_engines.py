@@ -1,6 +1,8 @@
 """The engine seam (docs/architecture.md section 11): the built-in engine answers the protocol, and an
 engine no study knows, registered beside it, is run and judged by the same calls."""
 
+import json
+
 import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
@@ -8,6 +10,7 @@ import scipy.sparse.linalg as spla
 from realtime import build_model
 from realtime.errors import InputError
 from verification import engines
+from verification.cli import main
 from verification.engines.builtin import BUILTIN
 from verification.engines.protocol import Engine, SceneInputs, Settling, Simulation
 from verification.inputs import scene_inputs
@@ -93,3 +96,83 @@ def test_a_plug_in_engine_is_run_and_judged_through_the_seam(monkeypatch):
     theirs = compare(scene, "direct-p1", degree=1, budget=False)
     assert theirs.status == "ok" and theirs.rel_l2 > 0.0
     assert theirs.rel_l2 == pytest.approx(ours.rel_l2, rel=1e-7)
+
+
+class _Spoilt(DirectP1):
+    """DirectP1 whose answer a subclass spoils, as a faulty engine would."""
+
+    name = "spoilt"
+    models = ("spoilt",)
+
+    def build(self, inputs, model, integrator, options):
+        sim = super().build(inputs, model, integrator, options)
+        settle = sim.settle
+
+        def spoilt(*args):
+            out = settle(*args)
+            sim.u = self.spoil(sim.u)
+            return out
+
+        sim.settle = spoilt
+        return sim
+
+
+class Crashes(_Spoilt):
+    def spoil(self, u):
+        raise ZeroDivisionError("the plug-in's own bug")
+
+
+class WritesNaN(_Spoilt):
+    def spoil(self, u):
+        u = u.copy()
+        u[3, 1] = np.nan
+        return u
+
+
+class WrongShape(_Spoilt):
+    def spoil(self, u):
+        return u[:-1]
+
+
+class InMillimetres(_Spoilt):
+    def spoil(self, u):
+        return u * 1e3
+
+
+class NotAnEngine:
+    name = "not-an-engine"
+
+
+def test_a_plug_in_engine_named_on_the_command_line(monkeypatch, capsys):
+    """--engine MODULE:CLASS makes its models runnable by every model command, judged as the built-in ones."""
+    monkeypatch.setattr(engines, "ENGINES", dict(engines.ENGINES))
+    args = ["compare", "cantilever", "--degree", "1", "--json"]  # gravity: the direct solve's load
+    assert main([*args, "--engine", "tests.test_engines:DirectP1", "--model", "direct-p1"]) == 0
+    theirs = json.loads(capsys.readouterr().out)
+    assert main([*args, "--model", "linear-tm"]) == 0
+    ours = json.loads(capsys.readouterr().out)
+    # the direct solve and linear-tm settled are one linear system: the same error against the same truth
+    assert theirs["status"] == "ok" and theirs["rel_l2"] == pytest.approx(ours["rel_l2"], rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    "spec, needles",
+    [
+        ("nosuch.module:Engine", ("--engine nosuch.module:Engine: cannot import nosuch.module",)),
+        ("tests.test_engines:Nope", ("tests.test_engines has no Nope",)),
+        ("tests.test_engines:NotAnEngine", ("NotAnEngine is not an engine: it has no models, build",)),
+        ("tests.test_engines:Crashes", ("engine spoilt, model spoilt: ZeroDivisionError: the plug-in's own bug",)),
+        ("tests.test_engines:WritesNaN", ("engine spoilt, model spoilt: its displacement[0, 3, 1] is nan",)),
+        ("tests.test_engines:WrongShape", ("its displacement is (1, 553, 3), not (1, 554, 3)",)),
+        ("tests.test_engines:InMillimetres", ("over 10 times the body", "is it in metres?")),
+    ],
+)
+def test_a_faulty_plug_in_is_one_line_and_exit_2(monkeypatch, capsys, spec, needles):
+    monkeypatch.setattr(engines, "ENGINES", dict(engines.ENGINES))
+    code = main(["run", "cantilever", "--engine", spec, "--model", "spoilt"])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.startswith("tissuebench")]
+    assert len(lines) == 1, err
+    for n in needles:
+        assert n in lines[0], lines[0]

@@ -204,7 +204,7 @@ def test_text_files_as_editors_save_them(tmp_path, capsys):
 
 def test_options_are_checked_on_one_line(capsys):
     for args, needle in (
-        (["run", "cantilever", "--model", "fem-magic"], "invalid choice"),
+        (["run", "cantilever", "--model", "fem-magic"], "model: no engine offers 'fem-magic'; the models are"),
         (["run", "cantilever", "--model", "linear-tm", "--dt", "nan"], "finite number > 0"),
         (["run", "cantilever", "--model", "linear-tm", "--dt=-1e-4"], "finite number > 0"),
         (["reference", "cantilever", "--refine", "9"], "0 to 4"),

@@ -13,6 +13,7 @@ from realtime import DivergenceError, InputError, NotConvergedError
 from reference.errors import ReferenceSolveError
 from verification.cli.commands import _fail, _one_line
 from verification.cli.parser import build_parser
+from verification.engines import engine_for, load_engine
 from verification.engines.builtin import UnboundedAnswerError
 
 
@@ -20,6 +21,10 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     where = f"{args.scene}: " if isinstance(getattr(args, "scene", None), str) else ""
     try:
+        for spec in getattr(args, "engine", None) or ():
+            load_engine(spec)
+        if getattr(args, "model", None):
+            engine_for(args.model)  # an unknown model is named before any work
         return args.func(args)
     except InputError as exc:  # the project's own input errors name the file, key or element themselves
         return _fail(f"tissuebench: {_one_line(exc)}", 2)

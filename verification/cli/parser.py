@@ -25,6 +25,7 @@ from verification.cli.commands import (
     cmd_sweep,
 )
 
+ENGINE_HELP = "a plug-in engine (package.module:Class or file.py:Class) whose models --model may name; repeatable"
 VTK_HELP = "also write the displacements (and, for compare, the error) at every output time for ParaView: DIR or F.pvd"
 
 
@@ -136,7 +137,8 @@ def _run_compare(sub) -> None:
         s = sub.add_parser(name, help=helptext)
         s.add_argument("scene")
         s.add_argument("--mesh-refine", type=_level, default=0, metavar="K", help=MESH_REFINE_HELP)
-        s.add_argument("--model", required=True, choices=sorted(MODELS))
+        s.add_argument("--model", required=True, help=f"a built-in model ({', '.join(sorted(MODELS))}) or a plug-in's")
+        s.add_argument("--engine", action="append", metavar="MODULE:CLASS", help=ENGINE_HELP)
         s.add_argument("--dt", type=_positive, help="time step, s (default 0.9 x the critical one)")
         s.add_argument("--integrator", default="symplectic-euler", choices=sorted(INTEGRATORS))
         s.add_argument("--max-steps", type=_count, default=2_000_000, help="steps a static scene may take to settle")

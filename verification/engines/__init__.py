@@ -20,3 +20,44 @@ def engine_for(model: str):
             return engine
     offered = sorted(m for e in ENGINES.values() for m in e.models)
     raise InputError(f"model: no engine offers {model!r}; the models are {', '.join(offered)}")
+
+
+def load_engine(spec: str):
+    """The engine named by ``spec`` ("package.module:Class", or "path/to/file.py:Class"), made and
+    registered in ENGINES for this process; InputError naming the spec and what is wrong (the module
+    does not import, has no such class, or the class is no engine: a name, its models and build)."""
+    import importlib
+    import importlib.util
+    from pathlib import Path
+
+    where, _, name = spec.rpartition(":")
+    if not where or not name:
+        raise InputError(f"--engine {spec!r}: give MODULE:CLASS or FILE.py:CLASS")
+    try:
+        if where.endswith(".py"):
+            loader = importlib.util.spec_from_file_location(Path(where).stem, where)
+            if loader is None or not Path(where).is_file():
+                raise ImportError(f"no file {where}")
+            module = importlib.util.module_from_spec(loader)
+            loader.loader.exec_module(module)
+        else:
+            module = importlib.import_module(where)
+    except Exception as exc:  # the user's module: any error in it is its own, named here in one line
+        raise InputError(f"--engine {spec}: cannot import {where}: {type(exc).__name__}: {exc}") from None
+    cls = getattr(module, name, None)
+    if cls is None:
+        raise InputError(f"--engine {spec}: {where} has no {name}")
+    try:
+        engine = cls()
+    except Exception as exc:
+        raise InputError(f"--engine {spec}: {name}() failed: {type(exc).__name__}: {exc}") from None
+    missing = [a for a in ("name", "models", "build") if not hasattr(engine, a)]
+    if missing:
+        raise InputError(
+            f"--engine {spec}: {name} is not an engine: it has no {', '.join(missing)} (docs/contributing.md)"
+        )
+    taken = {m for e in ENGINES.values() if e.name != engine.name for m in e.models} & set(engine.models)
+    if taken:
+        raise InputError(f"--engine {spec}: model {sorted(taken)[0]!r} is another engine's already")
+    ENGINES[engine.name] = engine
+    return engine

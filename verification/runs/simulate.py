@@ -12,10 +12,13 @@ import time
 
 import numpy as np
 
+from realtime import DivergenceError, NotConvergedError
+from realtime.errors import InputError
 from reference.progress import Progress
 
 from ..cache import git_commit, versions
 from ..engines import engine_for
+from ..engines.builtin import BUILTIN
 from ..engines.protocol import Simulation
 from ..inputs import scene_inputs
 from ..progress import _rank
@@ -74,6 +77,12 @@ def run_model(
     engine's critical step. A diverging run raises DivergenceError. ``options`` go to the model's
     builder (hybrid-tm's ``threshold``, m). ``engine`` defaults to the one offering ``model_name``."""
     engine = engine if engine is not None else engine_for(model_name)
+    if engine is not BUILTIN:
+        return _plug_in(scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options)
+    return _run(scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options)
+
+
+def _run(scene: Scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options) -> Result:
     inputs = scene_inputs(scene)
     t0 = time.perf_counter()
     sim = engine.build(inputs, model_name, integrator, dict(options or {}))
@@ -81,6 +90,38 @@ def run_model(
     if scene.time.mode == "dynamic":
         return _run_dynamic(scene, sim, dt, dt_fraction, build_s, engine.name)
     return _run_static(scene, sim, dt, dt_fraction, rtol, max_steps, build_s, engine.name)
+
+
+class PlugInError(InputError):
+    """A plug-in engine that failed: it raised, or answered with an array that is not a displacement of
+    the scene's vertices in metres; ``str()`` names the engine, the model and what went wrong."""
+
+
+def _plug_in(scene: Scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options) -> Result:
+    """A plug-in's run, as ``_run``, with whatever it raises or writes wrong said in one line: the
+    harness judges other people's code and keeps going (a study records the failure)."""
+    what = f"engine {engine.name}, model {model_name}"
+    try:
+        res = _run(scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options)
+    except (DivergenceError, NotConvergedError, InputError):
+        raise
+    except Exception as exc:  # the plug-in's own code: named, never a traceback of ours
+        raise PlugInError(f"{what}: {type(exc).__name__}: {' '.join(str(exc).split())}") from None
+    expected = (len(res.times), scene.mesh.n_vertices, 3)
+    if res.displacement.shape != expected:
+        raise PlugInError(
+            f"{what}: its displacement is {res.displacement.shape}, not {expected} (times, vertices, xyz)"
+        )
+    if not np.all(np.isfinite(res.displacement)):
+        bad = tuple(int(i) for i in np.argwhere(~np.isfinite(res.displacement))[0])
+        raise PlugInError(f"{what}: its displacement{list(bad)} is {res.displacement[bad]} (time, vertex, component)")
+    size = float(np.ptp(scene.mesh.points, axis=0).max())
+    reach = float(np.abs(res.displacement).max())
+    if reach > 10.0 * size:
+        raise PlugInError(
+            f"{what}: its displacement reaches {reach:.3g} m, over 10 times the body ({size:.3g} m): is it in metres?"
+        )
+    return res
 
 
 def _meta(scene: Scene, sim: Simulation, solver: str, dt, dt_crit, build_s: float, timing: dict) -> dict:
