@@ -2,6 +2,8 @@
 engine no study knows, registered beside it, is run and judged by the same calls."""
 
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -57,6 +59,9 @@ class _DirectSimulation:
 
     def step(self, n):
         pass
+
+    def step_us(self):
+        return None  # timed by the harness
 
     def displacement(self):
         return self.u
@@ -170,6 +175,46 @@ def test_a_plug_in_engine_named_on_the_command_line(monkeypatch, capsys):
 def test_a_faulty_plug_in_is_one_line_and_exit_2(monkeypatch, capsys, spec, needles):
     monkeypatch.setattr(engines, "ENGINES", dict(engines.ENGINES))
     code = main(["run", "cantilever", "--engine", spec, "--model", "spoilt"])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.startswith("tissuebench")]
+    assert len(lines) == 1, err
+    for n in needles:
+        assert n in lines[0], lines[0]
+
+
+DIRECT_P1 = f"{sys.executable} {Path(__file__).parent / 'engines' / 'direct_p1.py'} {{scene}} {{result}}"
+
+
+def test_an_engine_in_another_process_is_judged_through_the_seam(capsys):
+    """A command that reads the exported scene and writes its answer (tests/engines/direct_p1.py: P1
+    assembled and solved with numpy and scipy, nothing of the project imported): on cantilever-pull, a
+    tool-driven static scene, its error against the reference is linear-tm's settled one (one linear
+    system, to the settling's 1e-10 of the load), and its own step time is reported as the engine's."""
+    args = ["compare", "cantilever-pull", "--degree", "1", "--json"]
+    assert main([*args, "--engine-cmd", DIRECT_P1, "--model", "numpy-p1"]) == 0
+    theirs = json.loads(capsys.readouterr().out)
+    assert main([*args, "--model", "linear-tm"]) == 0
+    ours = json.loads(capsys.readouterr().out)
+    assert theirs["status"] == "ok" and theirs["rel_l2"] == pytest.approx(ours["rel_l2"], rel=1e-6)
+    assert theirs["step_us"] > 0.0 and theirs["integrator"] == "the command's own"
+
+
+@pytest.mark.parametrize(
+    "command, needles",
+    [
+        ("no-such-program {scene}", ("no such program 'no-such-program'",)),
+        (f"{sys.executable} -c 'import sys; sys.exit(\"it broke\")'", ("exited with status 1: it broke",)),
+        (f"{sys.executable} -c 'import time; time.sleep(30)'", ("still running after 1 s, stopped",)),
+        (f"{sys.executable} -c 'pass'", ("wrote no {result} file",)),
+        (
+            f"{sys.executable} -c 'import numpy, sys; numpy.savez(sys.argv[1], displacement=numpy.zeros((3, 3)))' {{result}}",
+            ("result.npz: displacement must be (554, 3) or (T, 554, 3) for its 554 points, got (1, 3, 3)",),
+        ),
+    ],
+)
+def test_a_failing_command_engine_is_one_line_and_exit_2(capsys, command, needles):
+    code = main(["run", "cantilever", "--engine-cmd", command, "--engine-timeout", "1", "--model", "cmd-model"])
     err = capsys.readouterr().err
     assert code == 2 and "Traceback" not in err
     lines = [line for line in err.splitlines() if line.startswith("tissuebench")]

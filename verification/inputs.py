@@ -152,6 +152,7 @@ def scene_inputs(scene) -> SceneInputs:
         material=scene.body_material(),
         loading=build_loading(mesh, scene.densities(), scene.problem),
         time=TimeMode(ts.mode, ts.end, ts.output_every, ts.damping_mass, ts.damping_stiffness),
+        gravity=next((tuple(ld.value) for ld in scene.problem.loads if isinstance(ld, Gravity)), (0.0, 0.0, 0.0)),
         loading_on=_loading_on(scene),
     )
 

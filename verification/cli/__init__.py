@@ -13,7 +13,7 @@ from realtime import DivergenceError, InputError, NotConvergedError
 from reference.errors import ReferenceSolveError
 from verification.cli.commands import _fail, _one_line
 from verification.cli.parser import build_parser
-from verification.engines import engine_for, load_engine
+from verification.engines import ENGINES, engine_for, load_engine
 from verification.engines.builtin import UnboundedAnswerError
 
 
@@ -23,6 +23,11 @@ def main(argv=None) -> int:
     try:
         for spec in getattr(args, "engine", None) or ():
             load_engine(spec)
+        if getattr(args, "engine_cmd", None):
+            from verification.engines.command import CommandEngine
+
+            command = CommandEngine(args.engine_cmd, args.model, args.engine_timeout)
+            ENGINES[command.name] = command
         if getattr(args, "model", None):
             engine_for(args.model)  # an unknown model is named before any work
         return args.func(args)

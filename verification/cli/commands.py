@@ -291,13 +291,11 @@ def _print_row(scene, args, row) -> None:
 
 
 def cmd_export(args) -> int:
-    from reference.problem import Gravity
     from verification.engines.export import export
     from verification.inputs import scene_inputs
 
     scene = _scene(args)
-    gravity = next((tuple(ld.value) for ld in scene.problem.loads if isinstance(ld, Gravity)), (0.0, 0.0, 0.0))
-    path = export(scene_inputs(scene), gravity, args.directory)
+    path = export(scene_inputs(scene), args.directory)
     out = {"scene": scene.name, "written": str(path.parent), "files": sorted(p.name for p in path.parent.iterdir())}
     _emit(args, out, lambda o: f"{o['scene']}: {', '.join(o['files'])} in {o['written']}")
     return 0

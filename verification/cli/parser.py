@@ -26,6 +26,10 @@ from verification.cli.commands import (
 )
 
 ENGINE_HELP = "a plug-in engine (package.module:Class or file.py:Class) whose models --model may name; repeatable"
+ENGINE_CMD_HELP = (
+    "an engine in its own process: a command that reads the exported scene at {scene} and writes its answer "
+    "to {result} (.npz); --model names what it runs"
+)
 VTK_HELP = "also write the displacements (and, for compare, the error) at every output time for ParaView: DIR or F.pvd"
 
 
@@ -139,6 +143,10 @@ def _run_compare(sub) -> None:
         s.add_argument("--mesh-refine", type=_level, default=0, metavar="K", help=MESH_REFINE_HELP)
         s.add_argument("--model", required=True, help=f"a built-in model ({', '.join(sorted(MODELS))}) or a plug-in's")
         s.add_argument("--engine", action="append", metavar="MODULE:CLASS", help=ENGINE_HELP)
+        s.add_argument("--engine-cmd", metavar="COMMAND", help=ENGINE_CMD_HELP)
+        s.add_argument(
+            "--engine-timeout", type=_positive, default=600.0, metavar="S", help="seconds the command may run"
+        )
         s.add_argument("--dt", type=_positive, help="time step, s (default 0.9 x the critical one)")
         s.add_argument("--integrator", default="symplectic-euler", choices=sorted(INTEGRATORS))
         s.add_argument("--max-steps", type=_count, default=2_000_000, help="steps a static scene may take to settle")

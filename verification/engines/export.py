@@ -76,7 +76,7 @@ def _tools(inputs: SceneInputs) -> tuple[list[dict], np.ndarray]:
     return tools, out
 
 
-def describe(inputs: SceneInputs, gravity) -> dict:
+def describe(inputs: SceneInputs) -> dict:
     """``scene.json``'s content."""
     mats = Materials.of(inputs.material, len(inputs.tets))
     tools, _ = _tools(inputs)
@@ -96,7 +96,7 @@ def describe(inputs: SceneInputs, gravity) -> dict:
             "damping_mass_per_s": ts.damping_mass,
             "damping_stiffness_s": ts.damping_stiffness,
         },
-        "gravity_m_s2": list(gravity),
+        "gravity_m_s2": list(inputs.gravity),
         "tools": tools,
         "mesh": {"vtu": "mesh.vtu", "gmsh22": "mesh.msh", "n_vertices": len(inputs.points), "n_tets": len(inputs.tets)},
         "arrays": {
@@ -115,7 +115,7 @@ def describe(inputs: SceneInputs, gravity) -> dict:
     }
 
 
-def export(inputs: SceneInputs, gravity, directory: str | Path) -> Path:
+def export(inputs: SceneInputs, directory: str | Path) -> Path:
     """Write the scene as data into ``directory`` (created); returns ``scene.json``'s path."""
     import meshio
 
@@ -144,5 +144,5 @@ def export(inputs: SceneInputs, gravity, directory: str | Path) -> Path:
         cell_data={"gmsh:physical": [mats.index + 1], "gmsh:geometrical": [mats.index + 1]},
     )
     atomic_write(out / "mesh.msh", lambda tmp: meshio.write(tmp, msh, file_format="gmsh22", binary=False))
-    text = json.dumps(describe(inputs, gravity), indent=1)
+    text = json.dumps(describe(inputs), indent=1)
     return atomic_write(out / "scene.json", lambda tmp: Path(tmp).write_text(text))

@@ -53,6 +53,8 @@ class SceneInputs:
             (N, 3) N, the P1 nodal vector of gravity, forces and tractions; the tools' vertices and
             their prescribed motion with its ramp in time.
         time: the TimeMode.
+        gravity: (3,) m/s^2, the scene's gravity (already in ``loading.external_force``; for an engine that
+            applies its own body force).
         loading_on: for an engine in this process that runs on a mesh of its own whose vertices lie on
             the scene mesh's (adaptive refinement), the loading of the same scene on that mesh
             (a function of its points (V, 3) m, tetrahedra (K, 4) and densities (K,) kg/m^3);
@@ -67,6 +69,7 @@ class SceneInputs:
     material: Material | Materials
     loading: Loading
     time: TimeMode
+    gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
     loading_on: Callable | None = field(default=None, repr=False, compare=False)
 
     @property
@@ -101,8 +104,9 @@ class Simulation(Protocol):
     #: The model's name, and what advances it ("symplectic-euler", "quasi-static", an engine's solver).
     model: str
     integrator: str
-    #: (n, repeats): how many steps the harness times in one call to ``step``, and how often.
-    timing: tuple[int, int]
+    #: (n, repeats): how many steps the harness times in one call to ``step``, and how often; None for an
+    #: engine that times itself (in a process of its own): the harness then asks ``step_us()``.
+    timing: tuple[int, int] | None
 
     def critical_dt(self) -> float | None:
         """The largest stable step at rest, s, of an explicit integrator; None where the engine has no
@@ -122,6 +126,9 @@ class Simulation(Protocol):
 
     def step(self, n: int) -> None:
         """n steps of the chosen dt (what the harness times)."""
+
+    def step_us(self) -> float | None:
+        """Only where ``timing`` is None: the engine's own time per step, us, or None if it reports none."""
 
     def displacement(self) -> np.ndarray:
         """(N, 3) float64, m: the displacement of the scene's N vertices now."""

@@ -131,7 +131,7 @@ def compare(
         else None
     )
     return Row(
-        **base,
+        **{**base, "integrator": m["integrator"]},  # what stepped it: a plug-in's own solver
         status="ok",
         error_budget=parts,
         float32=single,
