@@ -221,3 +221,22 @@ def test_a_failing_command_engine_is_one_line_and_exit_2(capsys, command, needle
     assert len(lines) == 1, err
     for n in needles:
         assert n in lines[0], lines[0]
+
+
+def test_the_advisor_judges_a_plug_in_as_it_judges_the_built_in_models(monkeypatch):
+    """advise with a plug-in engine: the plug-in is a candidate like a built-in model, named with its
+    measured step, its error and why it qualifies or not; its runs are not cached (their code is not in
+    the key)."""
+    from verification.studies.advise import advise
+
+    monkeypatch.setattr(engines, "ENGINES", dict(engines.ENGINES))
+    engines.ENGINES["direct-p1"] = DirectP1()
+    scene = load_scene("cantilever")
+    out = advise(scene, tol=0.5, rate=60.0, models=("direct-p1",))  # a tolerance its P1 error meets
+    (plug,) = [c for c in out["candidates"] if c["model"] == "direct-p1"]
+    assert plug["step_us"] > 0.0 and plug["why"].startswith("direct-p1 (sparse LU)")
+    ours = compare(scene, "linear-tm", budget=False)  # one linear system: the same error
+    assert plug["rel_l2"] == pytest.approx(ours.rel_l2, rel=1e-6)
+    # its step (a no-op: the answer came from one solve) fits any frame, so the tolerance alone decides
+    assert plug["qualifies"] == (plug["rel_l2"] <= 0.5) and plug["qualifies"], plug["why"]
+    assert out["model"] == "direct-p1" and out["refine"] == 0 and "--engine" not in out["command"]

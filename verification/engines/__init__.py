@@ -13,6 +13,16 @@ from .builtin import BUILTIN
 ENGINES = {BUILTIN.name: BUILTIN}
 
 
+def offered() -> tuple[str, ...]:
+    """Every model some engine offers: the built-in ones, then the plug-ins' in the order they came."""
+    return tuple(m for e in ENGINES.values() for m in e.models)
+
+
+def plug_in(model: str) -> bool:
+    """Whether ``model`` is a plug-in engine's (not the built-in engine's)."""
+    return model not in BUILTIN.models
+
+
 def engine_for(model: str):
     """The engine that offers ``model``; InputError naming the models there are."""
     for engine in ENGINES.values():
@@ -59,5 +69,9 @@ def load_engine(spec: str):
     taken = {m for e in ENGINES.values() if e.name != engine.name for m in e.models} & set(engine.models)
     if taken:
         raise InputError(f"--engine {spec}: model {sorted(taken)[0]!r} is another engine's already")
+    try:
+        engine.spec = spec  # how to name it again (the advisor's command that re-runs its pick)
+    except AttributeError:
+        pass
     ENGINES[engine.name] = engine
     return engine

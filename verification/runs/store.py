@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 
 from verification.cache import RUN_CODE, cache_dir, code_digest, digest, machine_id, read_cached
+from verification.engines import plug_in
 from verification.engines.builtin import STABLE_STEPS
 from verification.runs.compare import compare
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
@@ -61,8 +62,10 @@ def cached_compare(
     budget: bool = True,
     float32: bool = False,
 ) -> Row:
-    """``runs.compare.compare`` through the run cache. The row says whether it came from the cache."""
+    """``runs.compare.compare`` through the run cache. The row says whether it came from the cache. A
+    plug-in engine's runs are never cached: their code is not in the key."""
     ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
+    use_cache = use_cache and not plug_in(model)  # a key holds our code's digest, not a plug-in's
     key = run_key(scene, model, integrator, dt, fraction, ref_opts, budget, {"float32": True} if float32 else None)
     path = cache_dir() / "runs" / f"{scene.name}-{key}.json"
     row = read_cached(path, _read_row) if use_cache else None

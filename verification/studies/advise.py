@@ -22,7 +22,8 @@ import math
 
 import numpy as np
 
-from realtime import MODELS, NotConvergedError
+from realtime import NotConvergedError
+from verification.engines import engine_for, offered
 from verification.progress import Progress
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
@@ -103,7 +104,7 @@ def _candidates(
         res = comm.bcast(res, root=0)
     rows = list(res["rows"])
     if not dynamic:
-        extra = [m for m in IMPLICIT_MODELS if m in (models or MODELS)]
+        extra = [m for m in IMPLICIT_MODELS if m in (models or offered())]
         progress = Progress(len(extra), progress_label)
         for m in extra:
             rows.append(_compare_or_unsettled(scene, m, "implicit-euler", None, use_cache))
@@ -248,7 +249,8 @@ def advise(
 ) -> dict:
     """The cheapest (model, integrator, dt, mesh) whose ``metric`` is at most ``tol`` while a simulator
     holds ``rate`` frames per second on this machine (``frame_budget`` with FRAME_SHARE of each frame),
-    with the runner-up and why every cheaper option failed; on a refined mesh when the mesh's own error
+    with the runner-up and why every cheaper option failed, and every candidate on the scene's mesh with
+    its step, its error and why it qualifies or not (``candidates``); on a refined mesh when the mesh's own error
     stops every model on the scene's (module docstring). ``models``: the ones to choose from (default
     all: a simulator may have only some). ``command`` re-runs the pick with compare."""
     if metric == "reaction_rel_err" and not scene.problem.tools:
@@ -274,6 +276,7 @@ def advise(
     ranked = sorted((r for r in rows if r.status == "ok"), key=lambda r: cost(r, dynamic))
     rejected = [verdict(r, metric, tol)[1] for r in rows if not verdict(r, metric, tol)[0]]
     out["proposal"] = _proposal_summary(proposal, tried)
+    out["candidates"] = [_candidate(r, metric, tol) for r in rows]
     if choice is None:
         why = _why_none(rows, metric, tol, rate, proposal, tried)
         out.update(model=None, integrator=None, dt=None, why=f"{why}; {physics}", rejected=rejected, runner_up=None)
@@ -318,6 +321,13 @@ def advise(
         command=_command(scene, choice, level, rate),
     )
     return out
+
+
+def _candidate(r: Row, metric: str, tol: float) -> dict:
+    """One candidate of the scene's mesh, whatever engine ran it: its step, error and verdict."""
+    ok, why = verdict(r, metric, tol)
+    return {"model": r.model, "integrator": r.integrator, "dt": r.dt, "step_us": r.step_us,
+            metric: getattr(r, metric), "qualifies": ok, "why": why}  # fmt: skip
 
 
 def _runner_up(ranked: list[Row], choice: Row, metric: str, tol: float) -> Row | None:
@@ -450,9 +460,13 @@ def _mesh_summary(scene: Scene) -> dict:
     return {"level": scene.level, "n_vertices": m.n_vertices, "n_tets": m.n_tets, "mean_edge_m": m.mean_edge()}
 
 
-def _command(scene: Scene, row: dict, level: int, rate: float) -> str:
+def _command(scene: Scene, row: Row, level: int, rate: float) -> str:
+    """The compare command that re-runs the pick (with its plug-in engine, where it is one)."""
     builtin = builtin_scenes().get(scene.name) == scene.path
     parts = ["tissuebench compare", scene.name if builtin else str(scene.path)]
+    spec = getattr(engine_for(row.model), "spec", None)
+    if spec:
+        parts.append(f"--engine {spec}")
     parts.append(f"--model {row.model}")
     if row.dt is not None:
         parts.append(f"--integrator {row.integrator}")

@@ -25,7 +25,8 @@ def frame_budget(row: Row, rate: float, dynamic: bool, share: float = FRAME_SHAR
     most ``share`` of each frame (FRAME_SHARE for every command, so that ``compare --rate`` and
     ``advise`` decide alike), and what reaching its answer costs.
 
-    - A quasi-static model (precomputed, condensed) updates once per frame: the update must fit.
+    - A quasi-static model (precomputed, condensed) updates once per frame: the update must fit; so
+      does a plug-in engine's step, which it times itself (a run without a time does not hold).
     - On a dynamic scene a time-stepping model must keep up with the wall clock: a frame of 1/rate s
       advances it by 1/rate s, ceil(1 / (rate dt)) steps, which must fit in the frame (a real-time
       factor of at least one, rounding included), and dt must not exceed the frame, or the state
@@ -41,6 +42,10 @@ def frame_budget(row: Row, rate: float, dynamic: bool, share: float = FRAME_SHAR
     budget_us = share * frame_us
     step_us = row.step_us
     out = {"frame_us": frame_us, "share": share, "step_us": step_us}
+    if step_us is None:  # an engine in its own process that reports no time: nothing says it holds
+        out.update(steps_per_frame=None, work_us=None, time_to_answer_s=None, holds=False)
+        out["why"] = "the engine reports no step time"
+        return out
     if row.dt is None:  # quasi-static: one update per frame
         holds = step_us <= budget_us
         out.update(

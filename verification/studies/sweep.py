@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import math
 
-from realtime import MODELS
 from realtime.registry import QUASI_STATIC
 from reference.errors import ReferenceSolveError
+from verification.engines import offered, plug_in
 from verification.metrics import METRICS
 from verification.progress import Progress
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
@@ -54,6 +54,9 @@ def sweep_plan(models, fractions, dts, integrator: str) -> list[dict]:
     for m in models:
         if m in QUASI_STATIC:
             plan.append({"model": m, "integrator": "quasi-static", "dt": None, "fraction": None})
+            continue
+        if plug_in(m):  # its steps are its own: one run
+            plan.append({"model": m, "integrator": integrator, "dt": None, "fraction": None})
             continue
         for f in fractions or []:
             plan.append({"model": m, "integrator": integrator, "dt": None, "fraction": float(f)})
@@ -107,17 +110,18 @@ def sweep(
 ) -> dict:
     """Models x time steps -> rows of metrics and the Pareto front of error (rel_l2) against step_us.
 
-    Default: every model at ``default_fractions(scene)`` of its critical step, plus (``largest_stable``) each
+    Default: every model (the plug-ins' too: each runs once, at its own step) at
+    ``default_fractions(scene)`` of its critical step, plus (``largest_stable``) each
     explicit model at the largest stable fraction that ``largest_stable_fraction`` finds. ``float32``:
     each row of a model that runs in float32 also carries its float32 twin (``runs.compare.float32_twin``), whose
     distance from the float64 run stands beside the model's error.
     """
-    models = list(models or MODELS)
+    models = list(models or offered())
     if fractions is None and dts is None:
         fractions = list(default_fractions(scene))
-    unknown = [m for m in models if m not in MODELS]
+    unknown = [m for m in models if m not in offered()]
     if unknown:
-        raise SceneError(f"model = {unknown[0]!r}: must be one of {', '.join(MODELS)}")
+        raise SceneError(f"model = {unknown[0]!r}: must be one of {', '.join(offered())}")
     rank, size = (comm.rank, comm.size) if comm is not None else (0, 1)
     ref = reference_result(scene, **REFERENCE_DEFAULTS)  # collective under MPI; cached afterwards
     # the error budget's P1 solution too, before the runs are spread over the ranks: a solve is collective
@@ -130,7 +134,7 @@ def sweep(
     plan = sweep_plan(models, fractions, dts, integrator)
     if largest_stable:
         for m in models:
-            if m not in QUASI_STATIC and integrator != "implicit-euler":
+            if m not in QUASI_STATIC and integrator != "implicit-euler" and not plug_in(m):
                 plan.append({"model": m, "integrator": integrator, "dt": None, "fraction": "largest-stable"})
     rows = _run_plan(scene, plan, ref, integrator, use_cache, float32, rank, size)
     if comm is not None and size > 1:
