@@ -240,3 +240,41 @@ def test_the_advisor_judges_a_plug_in_as_it_judges_the_built_in_models(monkeypat
     # its step (a no-op: the answer came from one solve) fits any frame, so the tolerance alone decides
     assert plug["qualifies"] == (plug["rel_l2"] <= 0.5) and plug["qualifies"], plug["why"]
     assert out["model"] == "direct-p1" and out["refine"] == 0 and "--engine" not in out["command"]
+
+
+def test_gates_hold_a_plug_in_engine_and_a_result_file(tmp_path, monkeypatch):
+    """A gate on a plug-in engine's model and one on a result file another code wrote: both measured
+    (the same error as linear-tm's, one linear system), and a bound below it fails, saying by how much."""
+    from verification.studies.gates import run_gates
+
+    monkeypatch.setattr(engines, "ENGINES", dict(engines.ENGINES))
+    scene = load_scene("cantilever")
+    np.savez(tmp_path / "theirs.npz", displacement=run_model(scene, "linear-tm").displacement[0])
+    (tmp_path / "gates.toml").write_text(
+        """
+[[gate]]
+scene = "cantilever"
+model = "direct-p1"
+engine = "tests.test_engines:DirectP1"
+metric = "rel_l2"
+bound = 1.0
+
+[[gate]]
+scene = "cantilever"
+model = "their-code"
+result = "theirs.npz"
+metric = "rel_l2"
+bound = 1.0
+
+[[gate]]
+scene = "cantilever"
+model = "their-code"
+result = "theirs.npz"
+metric = "rel_l2"
+bound = 1e-9
+"""
+    )
+    plug, result, strict = run_gates(tmp_path / "gates.toml", use_cache=False, baselines=False)
+    assert plug["passed"] and result["passed"] and not strict["passed"]
+    assert plug["value"] == pytest.approx(result["value"], rel=1e-6) and result["integrator"] == "result file"
+    assert "exceeds the bound 1e-09" in strict["why"]

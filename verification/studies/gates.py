@@ -21,15 +21,22 @@ import tomllib
 from pathlib import Path
 
 from realtime import INTEGRATORS, MODELS
+from realtime.errors import InputError
 from verification.cache import git_commit
+from verification.engines import load_engine
 from verification.metrics import METRICS
 from verification.runs.results import atomic_write_text
+from verification.runs.row import Row
 from verification.runs.store import cached_compare
 from verification.scene import SceneError
 from verification.scene_file import load_scene
+from verification.studies.judge import judge
 
 DEFAULT_CONFIG = Path(__file__).parent / "gates.toml"
-KEYS = ("scene", "model", "integrator", "fraction", "metric", "bound", "drift", "quick", "note", "baseline")
+KEYS = (
+    "scene", "model", "integrator", "fraction", "metric", "bound", "drift", "quick", "note", "baseline", "engine",
+    "result",
+)  # fmt: skip
 #: How far (relative) a measured value may move from its baseline before the gate fails.
 DEFAULT_DRIFT = 0.1
 
@@ -50,9 +57,10 @@ def load_gates(path: Path) -> list[dict]:
             if k not in g:
                 raise SceneError(f"{path}: gate[{i}].{k}: missing key")
         where = f"{path}: gate[{i}]"
+        models = _models(g, where, Path(path))
         for k, allowed in (
             ("metric", METRICS),
-            ("model", tuple(MODELS)),
+            ("model", models),
             ("integrator", tuple(INTEGRATORS)),
         ):
             if k in g and g[k] not in allowed:
@@ -61,7 +69,7 @@ def load_gates(path: Path) -> list[dict]:
             v = g.get(k, 1.0)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise SceneError(f"{where}.{k}: must be a finite number > 0, got {v!r}")
-        for k, kind in (("scene", str), ("note", str), ("quick", bool), ("baseline", dict)):
+        for k, kind in (("scene", str), ("note", str), ("quick", bool), ("baseline", dict), ("result", str)):
             if k in g and not isinstance(g[k], kind):
                 raise SceneError(f"{where}.{k}: must be a {kind.__name__}, got {g[k]!r}")
         load_scene(g["scene"])  # a scene that does not exist or does not load fails here, before any run
@@ -78,9 +86,7 @@ def run_gates(
         if quick and not g.get("quick", False):
             continue
         scene = load_scene(g["scene"])
-        r = cached_compare(
-            scene, g["model"], g.get("integrator", "symplectic-euler"), None, g.get("fraction"), use_cache=use_cache
-        )
+        r = _measured(scene, g, Path(path), use_cache)
         value = getattr(r, g["metric"]) if r.ok else None
         mesh_sha = scene.mesh.sha256()
         why = []
@@ -120,6 +126,34 @@ def run_gates(
             }
         )
     return rows
+
+
+def _models(g: dict, where: str, path: Path) -> tuple[str, ...]:
+    """The models a gate may name: the built-in ones, a plug-in ``engine``'s (loaded now), or, for a
+    gate on a ``result`` file (relative to the gates file), any label."""
+    if "result" in g:
+        result = path.parent / g["result"]
+        if not result.is_file():
+            raise SceneError(f"{where}.result: no file {result}")
+        return (g.get("model"),)
+    if "engine" in g:
+        try:
+            return tuple(load_engine(g["engine"]).models)
+        except InputError as exc:
+            raise SceneError(f"{where}.engine: {exc}") from None
+    return tuple(MODELS)
+
+
+def _measured(scene, g: dict, path: Path, use_cache: bool) -> Row:
+    """A gate's run: a result file judged (``studies.judge``), or a model (a plug-in's too) through the
+    run cache."""
+    if "result" in g:
+        out = judge(scene, str(path.parent / g["result"]))
+        fields = {k: out[k] for k in (*METRICS, "ref_err_estimate", "at_reference_accuracy")}
+        return Row(scene.name, g["model"], "result file", "ok", reference=out["reference"], **fields)
+    return cached_compare(
+        scene, g["model"], g.get("integrator", "symplectic-euler"), None, g.get("fraction"), use_cache=use_cache
+    )
 
 
 def _solver(ref: dict | None) -> str:
@@ -190,7 +224,19 @@ def update_baselines(path: Path, rows: list[dict]) -> None:
     ]
     for g in gates:
         lines.append("[[gate]]")
-        for k in ("scene", "model", "integrator", "fraction", "metric", "bound", "drift", "quick", "note"):
+        for k in (
+            "scene",
+            "model",
+            "engine",
+            "result",
+            "integrator",
+            "fraction",
+            "metric",
+            "bound",
+            "drift",
+            "quick",
+            "note",
+        ):
             if k in g:
                 lines.append(f"{k} = {_toml(g[k])}")
         if g.get("baseline"):
