@@ -189,7 +189,7 @@ def _unfolded():
             os.environ["COLUMNS"] = before
 
 
-def _quiet_meshio_read(path: Path, file_format: str | None = None):
+def quiet_meshio_read(path: Path, file_format: str | None = None):
     """meshio.read, with what it prints (and warns) kept from the terminal: for a .msh it tries the
     ANSYS reader first and prints that reader's (empty) error on stdout, a blank line in the middle of
     ``tissuebench check``; for a file no reader takes it prints an "Error:" line and calls
@@ -215,7 +215,7 @@ def _quiet_meshio_read(path: Path, file_format: str | None = None):
 
 
 def _read_meshio(path: Path, file_format: str | None = None) -> _Cells:
-    m = _quiet_meshio_read(path, file_format)
+    m = quiet_meshio_read(path, file_format)
     tets, tet_tags, tris, tri_tags = [], [], [], []
     phys = m.cell_data.get("gmsh:physical") or m.cell_data.get("medit:ref")
     for i, cells in enumerate(m.cells):

@@ -95,12 +95,13 @@ def test_a_dynamic_result_is_a_series_at_the_output_instants(tmp_path, capsys):
         ("shape", ("displacement must be",)),
         ("field", ("no displacement field", "stress")),
         ("time", ("time 0.0123 s is not one of the scene's output instants",)),
+        ("xdmf", ("cannot read it as a mesh with a field",)),  # its .h5 went elsewhere: meshio exits
     ],
 )
-def test_a_result_that_cannot_be_judged_is_one_line_naming_it(tmp_path, capsys, defect, needles):
+def test_a_result_that_cannot_be_judged_is_one_line_naming_it(tmp_path, capsys, monkeypatch, defect, needles):
     scene = load_scene("cantilever-dynamic" if defect == "time" else "cantilever-pull")
     pts, u = scene.mesh.points.copy(), np.zeros((scene.mesh.n_vertices, 3))
-    path = tmp_path / ("r.vtu" if defect == "field" else "r.npz")
+    path = tmp_path / {"field": "r.vtu", "xdmf": "r.xdmf"}.get(defect, "r.npz")
     if defect == "outside":
         pts[7] += [0.0, 0.0, 0.05]  # 5 cm off a 10 cm beam
         np.savez(path, points=pts, displacement=u)
@@ -112,6 +113,12 @@ def test_a_result_that_cannot_be_judged_is_one_line_naming_it(tmp_path, capsys, 
     elif defect == "field":
         mesh = meshio.Mesh(pts, [("tetra", scene.mesh.tets)], point_data={"stress": np.zeros((len(pts), 6))})
         meshio.write(path, mesh)
+    elif defect == "xdmf":
+        (tmp_path / "elsewhere").mkdir()
+        monkeypatch.chdir(tmp_path / "elsewhere")  # meshio writes the .h5 into the working directory
+        with meshio.xdmf.TimeSeriesWriter(path) as writer:
+            writer.write_points_cells(pts, [("tetra", scene.mesh.tets)])
+            writer.write_data(0.0, point_data={"displacement": u})
     else:
         np.savez(path, displacement=np.zeros((2, len(pts), 3)), times=np.array([0.0, 0.0123]))
     code, err = _judge(capsys, scene.name, str(path))
@@ -120,3 +127,20 @@ def test_a_result_that_cannot_be_judged_is_one_line_naming_it(tmp_path, capsys, 
     assert len(lines) == 1 and str(path) in lines[0], err
     for n in needles:
         assert n in lines[0], lines[0]
+
+
+def test_an_xdmf_time_series_is_judged_like_a_paraview_one(tmp_path, capsys, monkeypatch):
+    """meshio's XDMF time series (the format FEniCS and many codes write) of linear-tm's trajectory:
+    compare's rel_l2, every instant matched."""
+    scene = load_scene("cantilever-dynamic")
+    row = compare(scene, "linear-tm", budget=False)
+    run = run_model(scene, "linear-tm")
+    path = tmp_path / "run.xdmf"
+    monkeypatch.chdir(tmp_path)  # meshio writes the series' .h5 into the working directory
+    with meshio.xdmf.TimeSeriesWriter(path) as writer:
+        writer.write_points_cells(scene.mesh.points, [("tetra", scene.mesh.tets)])
+        for t, u in zip(run.times, run.displacement, strict=True):
+            writer.write_data(float(t), point_data={"displacement": u})
+    code, out = _judge(capsys, "cantilever-dynamic", str(path))
+    assert code == 0, out
+    assert out["n_times"] == len(run.times) and out["rel_l2"] == pytest.approx(row.rel_l2, rel=1e-9)

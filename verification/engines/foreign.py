@@ -66,14 +66,13 @@ def _tets(mesh) -> np.ndarray | None:
 
 
 def _read_mesh_file(path: Path):
-    import meshio
+    """meshio's reading of ``path``, what it prints kept off the terminal (``meshes.io.quiet_meshio_read``)."""
+    from meshes.io import quiet_meshio_read
 
     try:
-        return meshio.read(path)
-    except Exception as exc:  # meshio raises its own errors, ValueError, KeyError...: all say "not readable"
-        raise EngineResultError(
-            f"{path}: cannot read it as a mesh with a field: {' '.join(str(exc).split())}"
-        ) from None
+        return quiet_meshio_read(path)
+    except Exception as exc:  # its reason, from meshio's exception or its last "Error:" line
+        raise EngineResultError(f"{path}: cannot read it as a mesh with a field: {exc}") from None
 
 
 def _read_pvd(path: Path) -> tuple:
@@ -97,10 +96,13 @@ def _read_pvd(path: Path) -> tuple:
 
 
 def _read_xdmf(path: Path) -> tuple:
+    import contextlib
+    import io
+
     import meshio
 
     try:
-        with meshio.xdmf.TimeSeriesReader(str(path)) as reader:
+        with contextlib.redirect_stdout(io.StringIO()), meshio.xdmf.TimeSeriesReader(str(path)) as reader:
             points, cells = reader.read_points_cells()
             times, fields = [], []
             for k in range(reader.num_steps):
@@ -111,7 +113,7 @@ def _read_xdmf(path: Path) -> tuple:
         return points, np.array(times), np.array(fields), (np.concatenate(tets) if tets else None), None
     except EngineResultError:
         raise
-    except Exception:  # not a time series: one field
+    except (Exception, SystemExit):  # not a time series (meshio says so and exits): one field
         m = _read_mesh_file(path)
         return m.points, None, _field(path, m.point_data, len(m.points))[None], _tets(m), None
 
