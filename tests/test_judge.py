@@ -66,12 +66,14 @@ def test_a_result_on_another_mesh_in_mm_is_judged_at_its_own_points(tmp_path, ca
     fine = scene.refined(1)
     truth = reference_result(fine).displacement[0]
     path = tmp_path / "other.npz"
-    np.savez(path, points=fine.mesh.points * 1e3, displacement=1.02 * truth * 1e3, tets=fine.mesh.tets)
+    flipped = fine.mesh.tets[:, [0, 1, 3, 2]]  # another code's orientation convention
+    np.savez(path, points=fine.mesh.points * 1e3, displacement=1.02 * truth * 1e3, tets=flipped)
     code, out = _judge(capsys, "cantilever-pull", str(path), "--scale", "0.001")
     assert code == 0, out
     independent = float(np.linalg.norm(1.02 * truth - truth) / np.linalg.norm(truth))
     assert out["rel_l2"] == pytest.approx(independent, rel=1e-6) and independent == pytest.approx(0.02)
     assert out["n_points"] == fine.mesh.n_vertices and out["moved_onto_surface"] == 0
+    assert out["surface_rel_l2"] == pytest.approx(0.02, rel=1e-6) and out["volume_err"] is not None
 
 
 def test_a_dynamic_result_is_a_series_at_the_output_instants(tmp_path, capsys):

@@ -17,6 +17,8 @@ from scipy.spatial import cKDTree
 
 from meshes import TetMesh
 from meshes.regions import locate
+from realtime.errors import InputError
+from realtime.geometry import signed_volumes
 from verification.engines.foreign import EngineResultError, read_result
 from verification.metrics import REFERENCE_ACCURACY_FACTOR, compute, rel_l2
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_at
@@ -90,6 +92,21 @@ def onto_body(mesh: TetMesh, points: np.ndarray, outside: float, source: str) ->
     return moved, len(out)
 
 
+def _own_mesh(points: np.ndarray, tets):
+    """The result's tetrahedra, each turned positive (another code's convention may be the other), and
+    its surface vertices; (None, None) where it has none or they are degenerate (then no surface or
+    volume metric: the displacement is still judged at every point)."""
+    if tets is None:
+        return None, None
+    tets = np.array(tets, dtype=np.int64)
+    negative = signed_volumes(points, tets) < 0.0
+    tets[negative] = tets[negative][:, [0, 1, 3, 2]]
+    try:
+        return tets, np.unique(TetMesh(points, tets).boundary)
+    except InputError:
+        return None, None
+
+
 def _times(scene: Scene, result) -> np.ndarray:
     """Which of the reference's output instants each result field is at (indices (T,))."""
     if scene.time.mode == "static":
@@ -131,8 +148,8 @@ def judge(scene: Scene, path: str, scale: float = 1.0, outside: float = OUTSIDE,
     tets = result.tets
     if tets is None and np.array_equal(result.points, scene.mesh.points):
         tets = scene.mesh.tets  # an .npz on the scene mesh's own vertices
+    tets, surface = _own_mesh(result.points, tets)
     if tets is not None:
-        surface = np.unique(TetMesh(result.points, tets).boundary)
         reactions = (result.reaction, ref.reaction[which]) if tools else (None, None)
         metrics = compute(result.points, tets, surface, result.displacement, ref_u, *reactions, est)
     else:  # points alone: no surface, no volume
