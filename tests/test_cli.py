@@ -91,9 +91,13 @@ def test_scenes_lists_builtins(capsys):
 
 
 @pytest.mark.slow
-def test_report_has_plots_and_data(tmp_path):
+def test_report_has_plots_and_data(tmp_path, monkeypatch):
+    from tests.test_engines import DirectP1
+    from verification import engines
     from verification.report.page import write_report
 
+    # a plug-in engine beside the built-in models: on the same plot and in the same tables
+    monkeypatch.setattr(engines, "ENGINES", {**engines.ENGINES, "direct-p1": DirectP1()})
     path = write_report(["cantilever-pull"], out=tmp_path / "r", fractions=(0.9, 1.1))  # 0.9: the advisor's too
     text = path.read_text()
     assert text.count("data:image/png;base64,") >= 2  # the error/speed plot and a deformation picture
@@ -106,6 +110,9 @@ def test_report_has_plots_and_data(tmp_path):
     budget = data["scenes"][0]["budget"]
     assert budget["rows"] and budget["verdict"].startswith("The P1 finite-element solution on this mesh is")
     assert (tmp_path / "r" / "runs.csv").read_text().startswith("scene,model")
+    plug = [r for r in data["scenes"][0]["sweep"]["rows"] if r["model"] == "direct-p1"]
+    assert len(plug) == 1 and plug[0]["status"] == "ok" and "<td>direct-p1</td>" in text
+    assert any(c["model"] == "direct-p1" for c in data["scenes"][0]["advice"]["candidates"])
     # the first screen answers: the pick's table comes before any section, names the advisor's pick with its
     # error and the interval the reference's bar allows; the runs that blew up on purpose are folded
     first = text.index("<table class='first'>")

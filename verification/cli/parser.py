@@ -181,6 +181,7 @@ def _report(sub) -> None:
         "dynamic scene and 0.9 on a static one, and 1.1 to show the limit)",
     )
     s.add_argument("--seeds", action="store_true", help="the page of the seeds experiments (reports/seeds)")
+    s.add_argument("--engine", action="append", metavar="MODULE:CLASS", help=ENGINE_HELP)
     s.set_defaults(func=cmd_report)
 
 

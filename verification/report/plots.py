@@ -64,14 +64,15 @@ def _legend_beside(ax) -> None:
 
 
 def plot_error_vs_speed(rows: list[Row], ref_est: float | None, title: str) -> str:
-    """Log-log rel_l2 against step_us, one series per model, the Pareto front as a staircase."""
+    """Log-log rel_l2 against step_us, one series per model (the plug-in engines' beside the built-in
+    ones), the Pareto front as a staircase."""
     fig, ax = plt.subplots(figsize=(7.2, 4.6))
-    ok = [r for r in rows if r.status == "ok"]
+    ok = [r for r in rows if r.ok and r.step_us is not None]  # timed: a plug-in may report no step time
     for model in sorted({r.model for r in ok}):
         pts = sorted((r for r in ok if r.model == model), key=lambda r: r.step_us)
         ax.loglog([r.step_us for r in pts], [max(r.rel_l2, 1e-16) for r in pts], "o", label=model, alpha=0.8)
         for r in pts:
-            label = "q-s" if not r.dt_crit else f"{r.dt / r.dt_crit:.2g}"
+            label = f"{r.dt / r.dt_crit:.2g}" if r.dt_crit else ("q-s" if r.integrator == "quasi-static" else "own")
             ax.annotate(label, (r.step_us, max(r.rel_l2, 1e-16)), textcoords="offset points", xytext=(4, 3), fontsize=7)
     front = sorted((r for r in ok if r.pareto), key=lambda r: r.step_us)
     if front:
@@ -92,7 +93,7 @@ def plot_error_vs_speed(rows: list[Row], ref_est: float | None, title: str) -> s
     ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.3g"))
     ax.set_xlabel("median wall time of one step (us)")
     ax.set_ylabel("relative L2 displacement error (fraction)")
-    ax.set_title(title + "  (labels: dt / dt_crit; q-s: quasi-static)", fontsize=9)
+    ax.set_title(title + "  (labels: dt / dt_crit; q-s: quasi-static; own: a plug-in's own step)", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     _legend_beside(ax)
     return png(fig)

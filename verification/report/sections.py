@@ -74,7 +74,7 @@ def _sweep_table(rows: list[Row]) -> str:
     )
     out = [head]
     for r in rows:
-        ratio = "quasi-static" if not r.dt_crit else fmt(r.dt / r.dt_crit, ".2f")
+        ratio = fmt(r.dt / r.dt_crit, ".2f") if r.dt_crit else r.integrator
         if r.largest_stable:
             ratio += " (largest stable)"
         if r.status != "ok":

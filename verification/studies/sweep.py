@@ -143,7 +143,7 @@ def sweep(
             return {}
         rows = [r for part in gathered for r in part]
     rows.sort(key=lambda r: r.plan_index)
-    ok = [i for i, r in enumerate(rows) if r.status == "ok"]
+    ok = [i for i, r in enumerate(rows) if r.ok and r.step_us is not None]  # timed: a plug-in may report none
     front = [ok[i] for i in pareto_front([(rows[i].step_us, rows[i].rel_l2) for i in ok])]
     rows = [r.replace(pareto=i in front) for i, r in enumerate(rows)]
     return {
@@ -219,9 +219,14 @@ def format_sweep(result: dict) -> str:
         flag += " (at reference accuracy)" if r.at_reference_accuracy else ""
         flag += "".join(f" (without {term})" for term in r.unrepresented or [])
         out.append(
-            f"{r.model:<16} {dt:>10} {ratio:>8} {r.rel_l2:>10.4g} {reaction:>9} {r.step_us:>9.1f} "
-            f"{r.rate_hz:>9.0f}{_float32_cells(r) if twins else ''} {flag}"
+            f"{r.model:<16} {dt:>10} {ratio:>8} {r.rel_l2:>10.4g} {reaction:>9} {fmt(r.step_us, '.1f'):>9} "
+            f"{fmt(r.rate_hz, '.0f'):>9}{_float32_cells(r) if twins else ''} {flag}"
         )
     out.append(f"Pareto front (error against step time): {', '.join(result['pareto'])}")
     out.append(f"{result['computed']} runs computed, {result['cached']} from the cache")
     return "\n".join(out)
+
+
+def fmt(v, spec: str) -> str:
+    """A number formatted, "-" for None (a plug-in that reports no step time)."""
+    return "-" if v is None else format(v, spec)
