@@ -3,6 +3,7 @@ engine no study knows, registered beside it, is run and judged by the same calls
 
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +69,15 @@ class _DirectSimulation:
 
     def tool_force(self):
         return self.reaction
+
+
+def test_a_command_leaves_no_plug_in_behind():
+    """The plug-ins a command names are registered for that command only: the next one, in the same
+    process (a test, a notebook), sees the built-in engine alone, and the default time bound."""
+    from verification.runs import simulate
+
+    main(["run", "cantilever", "--engine", "tests.test_engines:DirectP1", "--engine-timeout", "5", "--model", "nope"])
+    assert set(engines.ENGINES) == {"realtime"} and simulate.PLUG_IN_TIMEOUT == 600.0
 
 
 def test_the_builtin_engine_answers_the_protocol():
@@ -144,6 +154,12 @@ class InMillimetres(_Spoilt):
         return u * 1e3
 
 
+class Hangs(_Spoilt):
+    def spoil(self, u):
+        time.sleep(60)  # past any bound a test gives it
+        return u
+
+
 class NotAnEngine:
     name = "not-an-engine"
 
@@ -170,11 +186,12 @@ def test_a_plug_in_engine_named_on_the_command_line(monkeypatch, capsys):
         ("tests.test_engines:WritesNaN", ("engine spoilt, model spoilt: its displacement[0, 3, 1] is nan",)),
         ("tests.test_engines:WrongShape", ("its displacement is (1, 553, 3), not (1, 554, 3)",)),
         ("tests.test_engines:InMillimetres", ("over 10 times the body", "is it in metres?")),
+        ("tests.test_engines:Hangs", ("engine spoilt, model spoilt: still running after 1 s, stopped",)),
     ],
 )
 def test_a_faulty_plug_in_is_one_line_and_exit_2(monkeypatch, capsys, spec, needles):
     monkeypatch.setattr(engines, "ENGINES", dict(engines.ENGINES))
-    code = main(["run", "cantilever", "--engine", spec, "--model", "spoilt"])
+    code = main(["run", "cantilever", "--engine", spec, "--engine-timeout", "1", "--model", "spoilt"])
     err = capsys.readouterr().err
     assert code == 2 and "Traceback" not in err
     lines = [line for line in err.splitlines() if line.startswith("tissuebench")]

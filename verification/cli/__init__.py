@@ -19,10 +19,28 @@ from verification.engines.builtin import UnboundedAnswerError
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    from verification.runs import simulate
+
+    # the plug-ins this command names, and their time bound, for this command only
+    engines, timeout = dict(ENGINES), simulate.PLUG_IN_TIMEOUT
+    try:
+        return _run(args)
+    finally:
+        ENGINES.clear()
+        ENGINES.update(engines)
+        simulate.PLUG_IN_TIMEOUT = timeout
+
+
+def _run(args) -> int:
+    """The command, its plug-ins registered first; its errors mapped to exit statuses (module docstring)."""
+    from verification.runs import simulate
+
     where = f"{args.scene}: " if isinstance(getattr(args, "scene", None), str) else ""
     try:
         for spec in getattr(args, "engine", None) or ():
             load_engine(spec)
+        if getattr(args, "engine_timeout", None):
+            simulate.PLUG_IN_TIMEOUT = args.engine_timeout
         if getattr(args, "engine_cmd", None):
             from verification.engines.command import CommandEngine
 

@@ -145,7 +145,7 @@ def _run_compare(sub) -> None:
         s.add_argument("--engine", action="append", metavar="MODULE:CLASS", help=ENGINE_HELP)
         s.add_argument("--engine-cmd", metavar="COMMAND", help=ENGINE_CMD_HELP)
         s.add_argument(
-            "--engine-timeout", type=_positive, default=600.0, metavar="S", help="seconds the command may run"
+            "--engine-timeout", type=_positive, default=600.0, metavar="S", help="seconds a plug-in's run may take"
         )
         s.add_argument("--dt", type=_positive, help="time step, s (default 0.9 x the critical one)")
         s.add_argument("--integrator", default="symplectic-euler", choices=sorted(INTEGRATORS))

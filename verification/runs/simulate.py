@@ -8,6 +8,9 @@ it samples between steps) is behind ``Engine.build``.
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import threading
 import time
 
 import numpy as np
@@ -103,6 +106,32 @@ def _run(scene: Scene, engine, model_name, dt, dt_fraction, integrator, rtol, ma
     return _run_static(scene, sim, dt, dt_fraction, rtol, max_steps, build_s, engine.name)
 
 
+#: Seconds a plug-in engine's run may take (the command line's --engine-timeout sets it).
+PLUG_IN_TIMEOUT = 600.0
+
+
+@contextlib.contextmanager
+def _bounded(seconds: float, what: str):
+    """Stop the code inside after ``seconds`` with a PlugInError naming ``what``: a plug-in that hangs
+    in Python code (a loop, a sleep) is interrupted by SIGALRM. Only in the main thread, where signals
+    are delivered; elsewhere, and inside a C call that does not return, it cannot be (a command engine
+    runs in its own process, with its own timeout)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def expired(signum, frame):
+        raise PlugInError(f"{what}: still running after {seconds:g} s, stopped")
+
+    previous = signal.signal(signal.SIGALRM, expired)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0.0)
+        signal.signal(signal.SIGALRM, previous)
+
+
 class PlugInError(InputError):
     """A plug-in engine that failed: it raised, or answered with an array that is not a displacement of
     the scene's vertices in metres; ``str()`` names the engine, the model and what went wrong."""
@@ -113,7 +142,8 @@ def _plug_in(scene: Scene, engine, model_name, dt, dt_fraction, integrator, rtol
     harness judges other people's code and keeps going (a study records the failure)."""
     what = f"engine {engine.name}, model {model_name}"
     try:
-        res = _run(scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options)
+        with _bounded(PLUG_IN_TIMEOUT, what):
+            res = _run(scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options)
     except (DivergenceError, NotConvergedError, InputError):
         raise
     except Exception as exc:  # the plug-in's own code: named, never a traceback of ours
