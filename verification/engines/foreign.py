@@ -118,7 +118,7 @@ def _read_xdmf(path: Path) -> tuple:
         return m.points, None, _field(path, m.point_data, len(m.points))[None], _tets(m), None
 
 
-def _read_npz(path: Path, default_points: np.ndarray) -> tuple:
+def _read_npz(path: Path) -> tuple:
     try:
         with np.load(path) as z:
             data = {k: z[k] for k in z.files}
@@ -129,7 +129,7 @@ def _read_npz(path: Path, default_points: np.ndarray) -> tuple:
     u = np.asarray(data["displacement"], dtype=float)
     u = u[None] if u.ndim == 2 else u
     times = data.get("times")
-    return data.get("points", default_points), times, u, data.get("tets"), data.get("reaction")
+    return data.get("points"), times, u, data.get("tets"), data.get("reaction")
 
 
 def read_result(path: str | Path, default_points: np.ndarray, scale: float = 1.0) -> EngineResult:
@@ -140,7 +140,7 @@ def read_result(path: str | Path, default_points: np.ndarray, scale: float = 1.0
         raise EngineResultError(f"{path}: no such file")
     suffix = path.suffix.lower()
     if suffix == ".npz":
-        points, times, u, tets, reaction = _read_npz(path, np.asarray(default_points) / scale)
+        points, times, u, tets, reaction = _read_npz(path)
     elif suffix == ".pvd":
         points, times, u, tets, reaction = _read_pvd(path)
     elif suffix in (".xdmf", ".xmf"):
@@ -156,12 +156,14 @@ def read_result(path: str | Path, default_points: np.ndarray, scale: float = 1.0
         )
     else:
         raise EngineResultError(f"{path}: unknown result format {suffix!r}: give .npz, .vtu, .vtk, .pvd or .xdmf")
-    return _checked(path, points, times, u, tets, reaction, scale)
+    return _checked(path, points, times, u, tets, reaction, scale, default_points)
 
 
-def _checked(path: Path, points, times, u, tets, reaction, scale: float) -> EngineResult:
-    """Shapes and finiteness checked, lengths scaled to metres."""
-    points = np.asarray(points, dtype=float)
+def _checked(path: Path, points, times, u, tets, reaction, scale: float, default_points) -> EngineResult:
+    """Shapes and finiteness checked, lengths scaled to metres; no points: ``default_points`` (m), as
+    they are (not scaled, so that they stay the scene's vertices exactly)."""
+    given = points is not None
+    points = np.asarray(points if given else default_points, dtype=float)
     if points.ndim != 2 or points.shape[1] != 3:
         raise EngineResultError(f"{path}: points must be (N, 3), got {points.shape}")
     n = len(points)
@@ -183,4 +185,4 @@ def _checked(path: Path, points, times, u, tets, reaction, scale: float) -> Engi
         tets = np.asarray(tets, dtype=np.int64)
         if tets.ndim != 2 or tets.shape[1] != 4 or (len(tets) and (tets.min() < 0 or tets.max() >= n)):
             raise EngineResultError(f"{path}: tets must be (M, 4) indices of its {n} points")
-    return EngineResult(str(path), points * scale, times, u * scale, tets, reaction)
+    return EngineResult(str(path), points * scale if given else points, times, u * scale, tets, reaction)

@@ -199,6 +199,11 @@ def _solve_dynamic(
     )
 
 
+def _memo(solved: Scene, degree, refine, estimate, newton_steps, min_increment, petsc_options) -> tuple:
+    """The key of a static solve kept in this process (``_SOLVED``)."""
+    return (solved.sha256(), degree, refine, estimate, newton_steps, min_increment, json.dumps(petsc_options or {}))
+
+
 def _solve_static(
     scene: Scene, solved: Scene, degree, refine, estimate, newton: tuple, petsc_options, use_cache, points=None
 ):
@@ -211,7 +216,7 @@ def _solve_static(
     from reference.driver import evaluate_static, solve_static
 
     newton_steps, min_increment = newton
-    memo = (solved.sha256(), degree, refine, estimate, newton_steps, min_increment, json.dumps(petsc_options or {}))
+    memo = _memo(solved, degree, refine, estimate, newton_steps, min_increment, petsc_options)
     serial = MPI.COMM_WORLD.size == 1
     fields = _fields_path(
         reference_path(solved, degree, refine, estimate, newton_steps, min_increment, False, petsc_options)
@@ -269,7 +274,7 @@ def reference_at(scene: Scene, points: np.ndarray, **options) -> Result:
         res = Result(points, empty, sol["times"], sol["displacement"], sol["reaction"], {**base.meta, **sol["meta"]})
         res.save(path)
         return res
-    memo = (scene.sha256(), options["degree"], options["refine"], options["estimate"], 1, 1e-4, json.dumps({}))
+    memo = _memo(scene, options["degree"], options["refine"], options["estimate"], 1, 1e-4, None)
     fields = _fields_path(reference_path(scene, options["degree"], options["refine"], options["estimate"]))
     if memo not in _SOLVED and fields.exists():
         _restore_solved(memo, fields, scene, scene.body_material(), options["degree"], options["refine"])
