@@ -1,0 +1,361 @@
+"""What every adapter shares: an exported scene read with numpy alone, the loop that drives an engine
+through it, and the result written as the harness reads it (docs/engines.md).
+
+An adapter runs in the engines' own venv (``.venv-engines``, made by ``make engines``), which has its own
+numpy and none of the project: it reads only the files ``tissuebench export`` wrote (``scene.json`` and
+``arrays.npz``, docs/scenes.md "Exported scenes"), and writes one ``.npz``. The engine behind it is
+reached through ``Stepper``, a handful of calls every engine here offers: step by dt, read and write
+positions and velocities of the vertices.
+
+A static scene is solved as these engines solve statics: by dynamic relaxation. The tools move to their
+final place over ``ramp_steps`` steps, then the run goes on with kinetic damping (every velocity set to
+zero when the kinetic energy passes a peak, Cundall's scheme for explicit relaxation, Topping & Khan,
+"Parallel finite element computations", 1996, ch. 4) until the largest displacement change over
+the last quarter of the run is below ``rtol`` times the largest displacement (or the engine's round-off in a position,
+8 ulp of the largest coordinate, if that is larger), twice in a row, or until that change stops shrinking below ``STALLED``; the state is then released
+from rest and must stay where it is (``HOLD``). A dynamic scene is run
+from rest to its end, and sampled at its output instants; the tools' prescribed displacements come from
+the export at those instants, linearly interpolated in between.
+
+The result's keys: ``displacement`` (T, N, 3) m at the scene's vertices; ``step_us`` (us per step of the
+engine's own step call, median over the run's batches); ``dt`` s; ``steps``; ``diverged`` (1 when the run
+blew up, and ``diverged_at`` s); ``settled`` (0 when a static run hit its step limit); ``law`` (the
+engine's law the scene's was mapped to, in words); ``engine`` (name and version).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+#: The export's format and the versions an adapter reads.
+FORMAT, VERSIONS = "tissuebench-scene", (1,)
+
+
+#: A relaxation whose relative change has stopped shrinking (by half over the last half of the run) below
+#: this is settled at its engine's round-off (float32 engines random-walk at about 1e-4 of the
+#: displacement: measured 1.6e-4 with newton's semi-implicit solver on the built-in cantilever).
+STALLED = 1e-3
+
+
+#: The fraction of ``Exported.wave_step`` an explicit engine relaxes with by default. Kinetic damping
+#: zeroes the velocities at every peak of the kinetic energy, which makes some steps gradient descent,
+#: stable only below sqrt(2) / omega_max instead of 2 / omega_max; and the wave step overestimates the
+#: critical step by up to 2 on well-shaped tetrahedra (structured cube: wave step 8.1e-4 s, critical
+#: 9.0e-4 s for P1, and the relaxation unstable at 4e-4 s, stable at 3e-4 s). Hence a quarter.
+RELAX_FRACTION = 0.25
+
+#: A relaxed state is an equilibrium when, released from rest, it moves by at most HOLD of its largest
+#: displacement in HOLD_STEPS steps. Measured on the built-in cantilever: newton's VBD at 1 ms and 10
+#: iterations leaves the equilibrium the other engines agree on by 15% in 10 steps; at 0.1 ms it stays
+#: within 4e-4 in 10 steps, the semi-implicit solver within float32 round-off.
+HOLD, HOLD_STEPS = 1e-2, 50
+
+
+class AdapterError(Exception):
+    """A scene an adapter cannot run; the message is printed as the adapter's one line, exit 2."""
+
+
+@dataclass(frozen=True)
+class Exported:
+    """An exported scene: ``spec`` is ``scene.json``; arrays as in its "arrays" entry (points (N, 3) m,
+    tets (M, 4), material_index (M,), free (N, 3), external_force (N, 3) N, tool_vertex (P,), tool_mask
+    (P, 3), tool_displacement (T, P, 3) m)."""
+
+    spec: dict
+    points: np.ndarray
+    tets: np.ndarray
+    material_index: np.ndarray
+    free: np.ndarray
+    external_force: np.ndarray
+    tool_vertex: np.ndarray
+    tool_mask: np.ndarray
+    tool_displacement: np.ndarray
+
+    @property
+    def static(self) -> bool:
+        return self.spec["time"]["mode"] == "static"
+
+    @property
+    def output_times(self) -> np.ndarray:
+        return np.asarray(self.spec["time"]["output_times_s"], dtype=float)
+
+    @property
+    def size(self) -> float:
+        """The body's largest extent, m."""
+        return float(np.ptp(self.points, axis=0).max())
+
+    def lame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per tetrahedron: lambda (M,) Pa, mu (M,) Pa, density (M,) kg/m^3."""
+        mats = self.spec["materials"]
+        pick = np.asarray(self.material_index)
+        lam = np.array([m["lambda_pa"] for m in mats])[pick]
+        mu = np.array([m["mu_pa"] for m in mats])[pick]
+        rho = np.array([m["density_kg_m3"] for m in mats])[pick]
+        return lam, mu, rho
+
+    def volumes(self) -> np.ndarray:
+        """(M,) m^3: each tetrahedron's volume."""
+        x = self.points[self.tets]
+        e1, e2, e3 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]
+        return np.abs(np.einsum("ij,ij->i", e1, np.cross(e2, e3))) / 6.0
+
+    def lumped_masses(self) -> np.ndarray:
+        """(N,) kg: a quarter of each tetrahedron's mass at each of its vertices."""
+        _, _, rho = self.lame()
+        m = np.zeros(len(self.points))
+        np.add.at(m, self.tets.ravel(), np.repeat(rho * self.volumes() / 4.0, 4))
+        return m
+
+    def wave_step(self, modulus: np.ndarray) -> float:
+        """The smallest time, s, a dilatational wave takes across an element: each tetrahedron's smallest
+        altitude (3 V over its largest face) over sqrt(modulus / rho), ``modulus`` (M,) Pa the P-wave
+        modulus the engine runs with (lambda + 2 mu for the Lame constants). An explicit step is stable
+        below about this; a relaxation with kinetic damping, below about a quarter of it (``RELAX_FRACTION``)."""
+        _, _, rho = self.lame()
+        x = self.points[self.tets]
+        faces = [
+            np.cross(x[:, b] - x[:, a], x[:, c] - x[:, a]) for a, b, c in ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3))
+        ]
+        largest = np.max([0.5 * np.linalg.norm(f, axis=1) for f in faces], axis=0)
+        return float(np.min(3.0 * self.volumes() / largest / np.sqrt(modulus / rho)))
+
+    def held(self) -> np.ndarray:
+        """(N, 3) bool: the components held at zero or prescribed by a tool."""
+        return self.free == 0.0
+
+    def prescribed(self, t: float) -> np.ndarray:
+        """(N, 3) m: the displacement the tools prescribe at time t (s), zero elsewhere; for a static scene
+        the final place whatever t."""
+        out = np.zeros_like(self.points)
+        d = self.tool_displacement
+        if len(self.tool_vertex) == 0:
+            return out
+        if self.static:
+            now = d[-1]
+        else:
+            times = self.output_times
+            k = int(np.clip(np.searchsorted(times, t) - 1, 0, len(times) - 2))
+            s = float(np.clip((t - times[k]) / (times[k + 1] - times[k]), 0.0, 1.0))
+            now = (1.0 - s) * d[k] + s * d[k + 1]
+        np.add.at(out, self.tool_vertex, now * self.tool_mask)
+        return out
+
+
+def read(scene_dir: str | Path) -> Exported:
+    """The scene ``tissuebench export`` wrote into ``scene_dir``; AdapterError naming what is wrong."""
+    d = Path(scene_dir)
+    try:
+        spec = json.loads((d / "scene.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise AdapterError(f"{d / 'scene.json'}: cannot read it ({exc})") from None
+    if spec.get("format") != FORMAT or spec.get("version") not in VERSIONS:
+        raise AdapterError(f"{d / 'scene.json'}: format {spec.get('format')!r} version {spec.get('version')!r}, "
+                           f"not {FORMAT!r} {VERSIONS}")  # fmt: skip
+    with np.load(d / spec["arrays"]["file"]) as z:
+        arrays = {k: np.asarray(z[k]) for k in z.files}
+    fields = [f for f in Exported.__dataclass_fields__ if f != "spec"]
+    return Exported(spec, **{k: arrays[k] for k in fields})
+
+
+class Stepper:
+    """An engine as the driver sees it. ``step(dt)`` advances one step; the arrays are (N, 3) float64 in
+    the scene's vertex order: ``positions()``/``set_positions(x)`` m, ``velocities()``/``set_velocities(v)``
+    m/s. ``masses()`` (N,) kg, the engine's own lumped masses (kinetic energy for the damping).
+    ``epsilon``: the machine epsilon of the engine's arithmetic (a relaxation stops at its round-off)."""
+
+    epsilon: float = float(np.finfo(np.float64).eps)
+
+    def step(self, dt: float) -> None: ...
+
+    def positions(self) -> np.ndarray: ...
+
+    def set_positions(self, x: np.ndarray) -> None: ...
+
+    def velocities(self) -> np.ndarray: ...
+
+    def set_velocities(self, v: np.ndarray) -> None: ...
+
+    def masses(self) -> np.ndarray: ...
+
+
+class _Clock:
+    """The engine's step calls timed in batches: the median of per-step means over batches. The first call
+    is not timed (it compiles the engine's kernels, where it has any)."""
+
+    def __init__(self, batch: int = 50):
+        self.batch, self.samples, self._t, self._n, self._first = batch, [], 0.0, 0, True
+
+    def timed(self, fn, *args) -> None:
+        if self._first:
+            self._first = False
+            fn(*args)
+            return
+        t0 = time.perf_counter()
+        fn(*args)
+        self._t += time.perf_counter() - t0
+        self._n += 1
+        if self._n == self.batch:
+            self.samples.append(self._t / self._n * 1e6)
+            self._t, self._n = 0.0, 0
+
+    def us(self) -> float | None:
+        if self.samples:
+            return float(np.median(self.samples))
+        return self._t / self._n * 1e6 if self._n else None
+
+
+def _impose(engine: Stepper, scene: Exported, held: np.ndarray, target: np.ndarray, velocity: np.ndarray) -> None:
+    """The held and prescribed components put where the scene says, with the tools' velocity."""
+    x, v = engine.positions(), engine.velocities()
+    x[held] = (scene.points + target)[held]
+    v[held] = velocity[held]
+    engine.set_positions(x)
+    engine.set_velocities(v)
+
+
+def _blown(u: np.ndarray, size: float) -> bool:
+    return not np.all(np.isfinite(u)) or float(np.abs(u).max()) > 10.0 * size
+
+
+def relax(engine: Stepper, scene: Exported, dt: float, rtol: float, max_steps: int, progress) -> dict:
+    """A static scene's equilibrium by kinetic-damped dynamic relaxation (the module docstring). The
+    displacement change is measured over the last quarter of the run (at least ``check`` steps), so that
+    a slow mode still on its way is seen however few steps one of its cycles takes."""
+    held, final = scene.held(), scene.prescribed(0.0)
+    ramp_steps = max(1, min(max_steps // 10, 200))
+    clock, m = _Clock(), engine.masses()[:, None]
+    check, calm, ke_prev = 50, 0, 0.0
+    floor = 8.0 * engine.epsilon * float(np.abs(scene.points).max())  # the engine's round-off in a position
+    past = []  # (step, displacement) every check steps, back to a quarter of the run
+    changes = {}  # step: the relative change then
+    for n in range(1, max_steps + 1):
+        s = min(n / ramp_steps, 1.0)
+        rate = final / (ramp_steps * dt) if n <= ramp_steps else 0.0 * final
+        _impose(engine, scene, held, s * final, rate)
+        clock.timed(engine.step, dt)
+        v = engine.velocities()
+        ke = float((m * v * v).sum())
+        if ke < ke_prev:  # past a peak of kinetic energy: start again from rest here
+            engine.set_velocities(np.where(held, v, 0.0))
+            ke = 0.0
+        ke_prev = ke
+        if n % check:
+            continue
+        u = engine.positions() - scene.points
+        if _blown(u, scene.size):
+            return {"u": u, "steps": n, "dt": dt, "step_us": clock.us(), "diverged": 1, "diverged_at": n * dt}
+        past = [(k, p) for k, p in past if k >= (3 * n) // 4 - check] + [(n, u)]
+        change = float(np.abs(u - past[0][1]).max())
+        scale = max(float(np.abs(u).max()), 1e-300)
+        calm = calm + 1 if n > 2 * ramp_steps and change <= max(rtol * scale, floor) else 0
+        changes[n] = change / scale
+        then = changes.get(check * ((n // 2) // check))
+        if n >= 40 * ramp_steps and then is not None and STALLED > changes[n] > 0.5 * then:
+            progress(f"step {n}: the change stalled at {changes[n]:.2e} of the largest displacement (round-off)")
+            return _held(engine, scene, u, dt, {"steps": n, "dt": dt, "step_us": clock.us(), "stalled_at": changes[n]})
+        if n % (check * 200) == 0:
+            progress(f"step {n}: displacement change {change / scale:.2e} of its largest value, asked {rtol:g}")
+        if calm >= 2:
+            return _held(engine, scene, u, dt, {"steps": n, "dt": dt, "step_us": clock.us()})
+    u = engine.positions() - scene.points
+    return {"u": u, "steps": max_steps, "dt": dt, "step_us": clock.us(), "settled": 0}
+
+
+def _held(engine: Stepper, scene: Exported, u: np.ndarray, dt: float, run: dict) -> dict:
+    """A relaxed state checked for what a static answer is: released from rest, the engine stays there.
+    It runs HOLD_STEPS steps with no damping; if the displacement then moves by more than HOLD of its
+    largest value, the state is no equilibrium of the engine at this step (an iterative solver that does
+    not converge per step can stall the relaxation away from it) and the run is "not settled"."""
+    held = scene.held()
+    _impose(engine, scene, held, scene.prescribed(0.0), np.zeros_like(u))
+    engine.set_velocities(np.zeros_like(u))
+    for _ in range(HOLD_STEPS):
+        engine.step(dt)
+    drift = float(np.abs(engine.positions() - scene.points - u).max() / max(np.abs(u).max(), 1e-300))
+    return {"u": u, **run, "settled": int(drift <= HOLD), "hold_drift": drift, "hold_steps": HOLD_STEPS}
+
+
+def trajectory(engine: Stepper, scene: Exported, dt: float, progress) -> dict:
+    """A dynamic scene from rest, sampled at its output instants."""
+    held, times = scene.held(), scene.output_times
+    n_total = int(np.ceil(times[-1] / dt - 1e-9))
+    clock, out, t, k = _Clock(), [np.zeros_like(scene.points)], 0.0, 1
+    for n in range(1, n_total + 1):
+        t_next = min(n * dt, times[-1])
+        h = t_next - t
+        _impose(engine, scene, held, scene.prescribed(t), (scene.prescribed(t_next) - scene.prescribed(t)) / h)
+        clock.timed(engine.step, h)
+        t = t_next
+        while k < len(times) and t >= times[k] - 1e-9 * dt:
+            _impose(engine, scene, held, scene.prescribed(times[k]), np.zeros_like(scene.points))
+            u = engine.positions() - scene.points
+            if _blown(u, scene.size):
+                return {"u": np.array(out + [u]), "steps": n, "dt": dt, "step_us": clock.us(), "diverged": 1,
+                        "diverged_at": t}  # fmt: skip
+            out.append(u)
+            k += 1
+        if n % 2000 == 0:
+            progress(f"t = {t:.4g} of {times[-1]:g} s")
+    return {"u": np.array(out), "steps": n_total, "dt": dt, "step_us": clock.us()}
+
+
+def write(path: str | Path, scene: Exported, run: dict, law: str, engine: str) -> None:
+    """The result as the harness reads it (the module docstring), written whole (a temporary file, then a
+    rename)."""
+    u = np.asarray(run["u"], dtype=float)
+    if u.ndim == 2:
+        u = u[None]
+    keys = {k: v for k, v in run.items() if k != "u" and v is not None}
+    out = Path(path)
+    tmp = out.with_name(out.name + ".part.npz")
+    np.savez(tmp, displacement=u, law=law, engine=engine, **keys)
+    os.replace(tmp, out)
+
+
+def arguments(description: str, solvers: tuple[str, ...]) -> argparse.ArgumentParser:
+    """The command line every adapter takes: SCENE_DIR RESULT.npz and the engine's knobs."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("scene", help="the directory tissuebench export wrote")
+    ap.add_argument("result", help="the .npz to write")
+    ap.add_argument("--solver", choices=solvers, default=solvers[0])
+    ap.add_argument("--dt", type=float, help="the time step, s (default: the adapter's stable guess)")
+    ap.add_argument("--iterations", type=int, default=10, help="solver iterations per step (where it has them)")
+    ap.add_argument("--substeps", type=int, default=1, help="steps per dt (dt / substeps each)")
+    ap.add_argument("--rtol", type=float, default=1e-6, help="a static run's relaxation tolerance")
+    ap.add_argument("--max-steps", type=int, default=100_000, help="a static run's most steps")
+    return ap
+
+
+def main(run, description: str, solvers: tuple[str, ...], argv=None) -> int:
+    """Parse, run ``run(scene, args, progress) -> (run dict, law, engine)``, write; one line and exit 2 on
+    an AdapterError."""
+    args = arguments(description, solvers).parse_args(argv)
+    name = Path(sys.argv[0]).stem
+
+    def progress(text: str) -> None:
+        print(f"{name} {args.solver}: {text}", file=sys.stderr, flush=True)
+
+    try:
+        scene = read(args.scene)
+        result, law, engine = run(scene, args, progress)
+    except AdapterError as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 2
+    write(args.result, scene, result, law, engine)
+    return 0
+
+
+def drive(engine: Stepper, scene: Exported, args, dt: float, progress) -> dict:
+    """The scene run on ``engine`` at ``dt`` (split into ``args.substeps``): relaxed if static, a trajectory
+    if dynamic."""
+    if scene.static:
+        return relax(engine, scene, dt, args.rtol, args.max_steps, progress)
+    return trajectory(engine, scene, dt, progress)

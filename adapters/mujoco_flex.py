@@ -1,0 +1,174 @@
+"""MuJoCo's 3D flex with its elasticity on an exported scene.
+
+    .venv-engines/bin/python adapters/mujoco_flex.py SCENE_DIR RESULT.npz --solver implicitfast --dt 1e-4
+
+The scene becomes an MJCF model as MuJoCo's own flex models are written (XML reference, "deformable/flex"
+and "flex/elasticity"): one body per vertex, a ``<flex dim="3">`` over the scene's tetrahedra with
+``<elasticity young=... poisson=...>``, which MuJoCo documents as Saint Venant-Kirchhoff on piecewise
+linear elements (energy density mu tr(E^2) + lambda/2 tr(E)^2, E the Green strain). That is the scene's law
+when it is StVK; a linear scene is mapped to it (the same at small strain), and the result says so.
+
+- a free vertex's body carries a slide joint along each axis it may move on (a vertex held in some
+  components only keeps the others), with the vertex's lumped mass (rho V / 4 of each tetrahedron it is
+  in) and a negligible inertia;
+- a held vertex is the world's; a vertex a tool drives is a mocap body, moved to the tool's place before
+  every step, as MuJoCo moves kinematic bodies;
+- gravity and loads arrive as the exported nodal forces (``xfrc_applied`` on each vertex's body); MuJoCo's
+  gravity is off, and so are contacts (none acts in a scene);
+- the solver knob is MuJoCo's integrator: ``discrete`` (MuJoCo 4's velocity-stepping integrator, the one
+  in which flex elasticity is implicit; ``implicit`` and ``implicitfast`` no longer take it) or ``Euler``
+  (semi-implicit, explicit in the elasticity); ``--dt`` its timestep.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from exported import RELAX_FRACTION, AdapterError, Exported, Stepper, drive, main
+
+SOLVERS = ("discrete", "Euler")
+
+
+def mjcf(scene: Exported, solver: str, dt: float) -> tuple[str, list, list]:
+    """The model's XML, and for every vertex its body's kind ("free", "world", "mocap")."""
+    mats = scene.spec["materials"]
+    if len(mats) > 1:
+        raise AdapterError("MuJoCo's flex takes one elasticity per flex; this scene has several materials")
+    if mats[0]["law"] not in ("stvk", "linear"):
+        raise AdapterError(f"MuJoCo's flex elasticity is StVK; the scene's law {mats[0]['law']!r} has no match there")
+    held = scene.held()
+    driven = np.zeros(len(scene.points), bool)
+    driven[scene.tool_vertex] = True
+    m = scene.lumped_masses()
+    bodies, names, kinds = [], [], []
+    for i, p in enumerate(scene.points):
+        xyz = " ".join(f"{c:.17g}" for c in p)
+        if driven[i]:
+            names.append(f"v{i}")
+            kinds.append("mocap")
+            bodies.append(f'<body name="v{i}" pos="{xyz}" mocap="true"/>')
+        elif held[i].all():
+            names.append("world")
+            kinds.append("world")
+        else:
+            names.append(f"v{i}")
+            kinds.append("free")
+            joints = "".join(
+                f'<joint type="slide" axis="{" ".join("1" if a == c else "0" for a in range(3))}"/>'
+                for c in range(3)
+                if not held[i, c]
+            )
+            inertia = max(m[i] * 1e-6, 1e-12)  # no rotation dof: any inertia MuJoCo accepts
+            bodies.append(
+                f'<body name="v{i}" pos="{xyz}"><inertial pos="0 0 0" mass="{m[i]:.17g}" '
+                f'diaginertia="{inertia:.3g} {inertia:.3g} {inertia:.3g}"/>{joints}</body>'
+            )
+    vertex = " ".join(
+        " ".join(f"{c:.17g}" for c in (p if kinds[i] == "world" else (0.0, 0.0, 0.0)))
+        for i, p in enumerate(scene.points)
+    )
+    element = " ".join(str(int(k)) for k in scene.tets.ravel())
+    mat = mats[0]
+    xml = f"""<mujoco model="{scene.spec["scene"]}">
+  <option timestep="{dt:.17g}" integrator="{solver}" gravity="0 0 0">
+    <flag contact="disable"/>
+  </option>
+  <worldbody>{"".join(bodies)}</worldbody>
+  <deformable>
+    <flex name="body" dim="3" radius="0" body="{" ".join(names)}" vertex="{vertex}" element="{element}">
+      <contact contype="0" conaffinity="0"/>
+      <elasticity young="{mat["young_pa"]:.17g}" poisson="{mat["poisson"]:.17g}"/>
+    </flex>
+  </deformable>
+</mujoco>"""
+    return xml, kinds, names
+
+
+class MujocoStepper(Stepper):
+    """MuJoCo's model and data behind the driver's calls: positions are read from the flex's vertices
+    (``flexvert_xpos``), and written through the joints (free) and the mocap bodies (driven)."""
+
+    def __init__(self, scene: Exported, solver: str, dt: float, substeps: int):
+        import mujoco
+
+        self.mj, self.substeps = mujoco, substeps
+        xml, kinds, names = mjcf(scene, solver, dt / substeps)
+        try:
+            self.model = mujoco.MjModel.from_xml_string(xml)
+        except ValueError as exc:
+            raise AdapterError(f"MuJoCo refused the model: {' '.join(str(exc).split())}") from None
+        self.data = mujoco.MjData(self.model)
+        self.rest, self.kinds = scene.points, np.array(kinds)
+        body = [mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, n) if n != "world" else 0 for n in names]
+        self.body = np.array(body)
+        # each free vertex's joints: (vertex, component, qpos address, dof address)
+        self.joints = []
+        for i in np.flatnonzero(self.kinds == "free"):
+            b = self.body[i]
+            for j in range(self.model.body_jntadr[b], self.model.body_jntadr[b] + self.model.body_jntnum[b]):
+                c = int(np.argmax(np.abs(self.model.jnt_axis[j])))
+                self.joints.append((i, c, self.model.jnt_qposadr[j], self.model.jnt_dofadr[j]))
+        self.joints = np.array(self.joints, dtype=np.int64).reshape(-1, 4)
+        self.mocap = np.array([self.model.body_mocapid[b] for b in self.body])
+        driven = np.flatnonzero(self.kinds == "mocap")
+        self.driven = driven
+        free = np.flatnonzero(self.kinds == "free")
+        self.data.xfrc_applied[self.body[free], :3] = scene.external_force[free]
+        self.mass = scene.lumped_masses()
+        self.x = scene.points.copy()
+        self.v = np.zeros_like(scene.points)
+        mujoco.mj_forward(self.model, self.data)
+
+    def step(self, dt: float) -> None:
+        for _ in range(self.substeps):
+            self.mj.mj_step(self.model, self.data)
+        i, c, qa, da = self.joints.T
+        self.x[i, c] = self.rest[i, c] + self.data.qpos[qa]
+        self.v[i, c] = self.data.qvel[da]
+
+    def positions(self) -> np.ndarray:
+        return self.x.copy()
+
+    def set_positions(self, x: np.ndarray) -> None:
+        i, c, qa, _ = self.joints.T
+        self.data.qpos[qa] = x[i, c] - self.rest[i, c]
+        if len(self.driven):
+            self.data.mocap_pos[self.mocap[self.driven]] = x[self.driven]
+        self.x = x.copy()
+
+    def velocities(self) -> np.ndarray:
+        return self.v.copy()
+
+    def set_velocities(self, v: np.ndarray) -> None:
+        i, c, _, da = self.joints.T
+        self.data.qvel[da] = v[i, c]
+        self.v = v.copy()
+
+    def masses(self) -> np.ndarray:
+        return self.mass
+
+
+def stable_guess(scene: Exported, solver: str) -> float:
+    """For ``Euler``, RELAX_FRACTION of the explicit wave step (``Exported.wave_step``); for ``discrete``,
+    implicit in the elasticity, 1 ms."""
+    if solver == "discrete":
+        return 1e-3
+    lam, mu, _ = scene.lame()
+    return RELAX_FRACTION * scene.wave_step(lam + 2.0 * mu)
+
+
+def run(scene: Exported, args, progress):
+    import mujoco
+
+    dt = args.dt if args.dt else stable_guess(scene, args.solver)
+    engine = MujocoStepper(scene, args.solver, dt, args.substeps)
+    progress(f"{len(scene.points)} vertices, {len(scene.tets)} tetrahedra, {engine.model.nv} dofs, dt = {dt:.3g} s")
+    law = scene.spec["law"]
+    mapped = "StVK, as the scene's" if law == "stvk" else f"StVK for the scene's {law} law (equal at small strain)"
+    result = drive(engine, scene, args, dt, progress)
+    result["substeps"] = args.substeps
+    return result, f"MuJoCo flex elasticity: {mapped}", f"MuJoCo {mujoco.__version__} flex, {args.solver} (float64)"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(run, "MuJoCo's 3D flex on an exported scene", SOLVERS))
