@@ -53,14 +53,16 @@ ROOT = Path(__file__).resolve().parents[1]
 #: The code a reference result depends on: its solvers, the region rule both sides share, the constants.
 REFERENCE_CODE = ("reference/*.py", "meshes/regions.py", "realtime/material.py")
 
-#: The code a run's row depends on: the engine, its seam, the runs, the inputs and metrics, and the
-#: reference it is compared with.
+#: The code a run's row depends on: the engine, its seam, the adapters of other engines and the versions
+#: they pin, the runs, the inputs and metrics, and the reference it is compared with.
 RUN_CODE = (
     "realtime/*.py",
     "verification/inputs.py",
     "verification/metrics.py",
     "verification/engines/*.py",
     "verification/runs/*.py",
+    "adapters/*.py",
+    "adapters/requirements.txt",
     *REFERENCE_CODE,
 )
 

@@ -33,16 +33,23 @@ def engine_for(model: str):
 
 
 def load_engine(spec: str):
-    """The engine named by ``spec`` ("package.module:Class", or "path/to/file.py:Class"), made and
-    registered in ENGINES for this process; InputError naming the spec and what is wrong (the module
+    """The engine named by ``spec`` (an adapter's name, "newton" or "mujoco": ``adapters.ADAPTERS``; or
+    "package.module:Class", or "path/to/file.py:Class"), made and registered in ENGINES for this
+    process; InputError naming the spec and what is wrong (the adapters' venv is not built, the module
     does not import, has no such class, or the class is no engine: a name, its models and build)."""
     import importlib
     import importlib.util
     from pathlib import Path
 
+    from .adapters import ADAPTERS, adapter
+
+    if spec in ADAPTERS:
+        engine = adapter(spec)
+        ENGINES[engine.name] = engine
+        return engine
     where, _, name = spec.rpartition(":")
     if not where or not name:
-        raise InputError(f"--engine {spec!r}: give MODULE:CLASS or FILE.py:CLASS")
+        raise InputError(f"--engine {spec!r}: give {' or '.join(ADAPTERS)}, MODULE:CLASS or FILE.py:CLASS")
     try:
         if where.endswith(".py"):
             loader = importlib.util.spec_from_file_location(Path(where).stem, where)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import shlex
 import subprocess
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -59,6 +60,18 @@ class CommandSimulation:
         self._answer = None  # (displacement (T, N, 3) m, reaction (T, 3) N, step_us or None)
         self._k = 0  # the output instant held
 
+    @property
+    def label(self) -> str:
+        """How its errors name it."""
+        return f"--engine-cmd {self.engine.command!r}"
+
+    def command(self, scene_dir: Path, result: Path) -> list[str]:
+        """The command line: the template with the scene's directory, the result's path and the model."""
+        return [a.format(scene=scene_dir, result=result, model=self.model) for a in shlex.split(self.engine.command)]
+
+    def relay(self, line: str) -> None:
+        """A line the command wrote on stderr, as it comes (a command engine's are kept for its error)."""
+
     def _run(self) -> None:
         if self._answer is not None:
             return
@@ -66,22 +79,14 @@ class CommandSimulation:
         with tempfile.TemporaryDirectory(prefix="tissuebench-engine-") as work:
             scene_dir, result = Path(work) / "scene", Path(work) / "result.npz"
             export(self.inputs, scene_dir)
-            args = [a.format(scene=scene_dir, result=result, model=self.model) for a in shlex.split(e.command)]
+            args = self.command(scene_dir, result)
             t0 = time.perf_counter()
-            try:
-                done = subprocess.run(args, capture_output=True, text=True, timeout=e.timeout)
-            except FileNotFoundError:
-                raise CommandError(f"--engine-cmd {e.command!r}: no such program {args[0]!r}") from None
-            except subprocess.TimeoutExpired:
-                raise CommandError(
-                    f"--engine-cmd {e.command!r}: still running after {e.timeout:g} s, stopped"
-                ) from None
+            status, last = _call(args, e.timeout, self.relay, self.label, work)
             wall = time.perf_counter() - t0
-            if done.returncode != 0:
-                last = (done.stderr.strip().splitlines() or ["no message"])[-1]
-                raise CommandError(f"--engine-cmd {e.command!r}: exited with status {done.returncode}: {last}")
+            if status != 0:
+                raise CommandError(f"{self.label}: exited with status {status}: {last or 'no message'}")
             if not result.exists():
-                raise CommandError(f"--engine-cmd {e.command!r}: wrote no {{result}} file (it ran {wall:.3g} s)")
+                raise CommandError(f"{self.label}: wrote no {{result}} file (it ran {wall:.3g} s)")
             self._answer = self._read(result)
 
     def _read(self, path: Path) -> tuple:
@@ -89,16 +94,16 @@ class CommandSimulation:
         try:
             res = read_result(path, self.inputs.points)
         except EngineResultError as exc:
-            raise CommandError(f"--engine-cmd {self.engine.command!r}: {exc}") from None
+            raise CommandError(f"{self.label}: {exc}") from None
         expected = len(output_times(self.inputs))
         if not np.array_equal(res.points, self.inputs.points) or len(res.displacement) != expected:
             raise CommandError(
-                f"--engine-cmd {self.engine.command!r}: its displacement is {res.displacement.shape}, not "
+                f"{self.label}: its displacement is {res.displacement.shape}, not "
                 f"({expected}, {len(self.inputs.points)}, 3) (the output instants, the scene's vertices, xyz)"
             )
         with np.load(path) as z:
             step_us = float(z["step_us"]) if "step_us" in z.files else None
-        reaction = res.reaction if res.reaction is not None else np.zeros((expected, 3))
+        reaction = res.reaction if res.reaction is not None else np.full((expected, 3), np.nan)  # none given
         return res.displacement, reaction, step_us
 
     def critical_dt(self):
@@ -116,7 +121,7 @@ class CommandSimulation:
         t0 = time.perf_counter()
         self._run()
         wall = time.perf_counter() - t0
-        static = {"method": f"the command {self.engine.command!r}", "steps": 1, "residual": None, "wall_s": wall}
+        static = {"method": self.label, "steps": 1, "residual": None, "wall_s": wall}
         return Settling(1, None, None, None, wall, static)
 
     def step(self, n: int) -> None:
@@ -133,3 +138,34 @@ class CommandSimulation:
     def tool_force(self) -> np.ndarray:
         self._run()
         return self._answer[1][self._k]
+
+
+def _call(args: list[str], timeout: float, relay, label: str, cwd: str) -> tuple[int, str]:
+    """Run ``args`` in ``cwd`` (what it writes beside its answer goes with the directory), each line of its stderr passed to ``relay`` as it comes (its stdout dropped); its exit
+    status and its last stderr line. CommandError naming ``label`` if it cannot start or runs past
+    ``timeout`` s (then it is killed)."""
+    last = [""]
+
+    def read(stream):
+        for line in stream:
+            if line.strip():
+                last[0] = line.strip()
+                relay(line.rstrip())
+
+    try:
+        proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=cwd)
+    except FileNotFoundError:
+        raise CommandError(f"{label}: no such program {args[0]!r}") from None
+    with proc:
+        reader = threading.Thread(target=read, args=(proc.stderr,), daemon=True)
+        reader.start()
+        try:
+            status = proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            raise CommandError(f"{label}: still running after {timeout:g} s, stopped") from None
+        except BaseException:  # an interrupt, or the harness's own bound: the process goes with it
+            proc.kill()
+            raise
+        reader.join(timeout=5.0)
+    return status, last[0]

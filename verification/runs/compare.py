@@ -94,6 +94,7 @@ def compare(
     vtk: str | None = None,
     budget: bool = True,
     float32: bool = False,
+    options: dict | None = None,
     **ref_options,
 ) -> Row:
     """Metrics of one model run against the scene's reference, as a Row (docs/architecture.md section 6).
@@ -106,6 +107,7 @@ def compare(
     ``float32``: for a model of FLOAT32_MODELS under an explicit integrator, the row's ``float32`` holds
     its float32 twin (``float32_twin``): rel_l2_vs_float64, its distance from this run by the row's own
     metric, beside its rel_l2 against the reference, and its step times; None for the other models.
+    ``options`` go to the engine's build (an adapter's knobs: iterations, substeps).
     """
     # a quasi-static model has its own update whatever integrator was asked for
     base = {
@@ -116,9 +118,17 @@ def compare(
     base["unrepresented"] = tuple(unrepresented(model_name, scene.body_material()))
     ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
     try:
-        res = run_model(scene, model_name, dt=dt, dt_fraction=dt_fraction, integrator=integrator, max_steps=max_steps)
-    except DivergenceError as exc:
-        return Row(**base, **_diverged(exc))
+        res = run_model(
+            scene,
+            model_name,
+            dt=dt,
+            dt_fraction=dt_fraction,
+            integrator=integrator,
+            max_steps=max_steps,
+            options=options,
+        )
+    except DivergenceError as exc:  # named by what stepped it: another engine's own solver
+        return Row(**{**base, "integrator": getattr(exc, "solver", None) or base["integrator"]}, **_diverged(exc))
     metrics = _metrics(scene, res, ref)
     mesh = scene.mesh
     if vtk is not None:
@@ -148,6 +158,7 @@ def compare(
         settle_ms=m["settle_ms"],
         build_s=m.get("build_s"),
         reference=_reference_summary(ref),
+        engine=m.get("engine"),
         n_vertices=mesh.n_vertices,
         n_tets=mesh.n_tets,
     )
@@ -212,7 +223,7 @@ def _diverged(exc: DivergenceError) -> dict:
 def _metrics(scene: Scene, res: Result, ref: Result) -> dict:
     """The run's metrics against its reference (``metrics.compute``), the tool force where there are tools."""
     mesh = scene.mesh
-    has_tools = bool(scene.problem.tools)
+    has_tools = bool(scene.problem.tools) and bool(np.all(np.isfinite(res.reaction)))  # NaN: an engine gave none
     return compute(
         mesh.points,
         mesh.tets,

@@ -65,6 +65,9 @@ class Row:
     float32: dict | None = None
     #: The reference's summary: degree, refinement, law, cache key, its estimate and how it was solved.
     reference: dict | None = None
+    #: Another engine's run (an adapter's): the engine and its version, the law the scene's was mapped
+    #: to, its knobs (iterations, substeps); None for the built-in models.
+    engine: dict | None = None
     n_vertices: int | None = None
     n_tets: int | None = None
     # a run that did not finish

@@ -182,6 +182,7 @@ def _meta(scene: Scene, sim: Simulation, solver: str, dt, dt_crit, build_s: floa
         "rate_hz": 1e6 / timing["step_us"] if timing["step_us"] else None,
         "versions": versions(),
         "commit": git_commit(),
+        "engine": getattr(sim, "info", None),  # an adapter's: the engine, its version, its law, its knobs
     }
 
 
@@ -215,8 +216,8 @@ def _run_dynamic(scene: Scene, sim: Simulation, dt, dt_fraction, build_s: float,
     ts = scene.time
     times = output_times(scene)
     dt_crit = sim.critical_dt()
-    if dt_crit is None:  # stepped by the output instants
-        dt = dt if dt is not None else ts.output_every
+    if dt_crit is None:  # stepped by the output instants, or by its own choice
+        dt = dt if dt is not None or getattr(sim, "own_step", False) else ts.output_every
     elif dt is None:
         default = IMPLICIT_FRACTION if sim.integrator == "implicit-euler" else EXPLICIT_FRACTION
         dt = (default if dt_fraction is None else dt_fraction) * dt_crit
@@ -225,6 +226,7 @@ def _run_dynamic(scene: Scene, sim: Simulation, dt, dt_fraction, build_s: float,
     t1 = time.perf_counter()
     u, reaction = trajectory(sim, times, label)
     run_s = time.perf_counter() - t1
+    dt = dt if dt is not None else sim.dt  # the step it chose
     timing = _timing(sim, sim.timing[0] if sim.timing else 0, 7)
     meta = _meta(scene, sim, solver, dt, dt_crit, build_s, timing)
     meta.update(
@@ -232,7 +234,7 @@ def _run_dynamic(scene: Scene, sim: Simulation, dt, dt_fraction, build_s: float,
         mode="dynamic",
         static={
             "method": "trajectory",
-            "steps": int(np.ceil(ts.end / dt)),
+            "steps": int(np.ceil(ts.end / dt)) if dt else None,
             "residual": None,
             "rtol": None,
             "wall_s": run_s,

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 
 from verification.cache import RUN_CODE, cache_dir, code_digest, digest, machine_id, read_cached
-from verification.engines import plug_in
+from verification.engines import engine_for, plug_in
 from verification.engines.builtin import STABLE_STEPS
 from verification.runs.compare import compare
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
@@ -61,12 +61,15 @@ def cached_compare(
     max_steps: int = 2_000_000,
     budget: bool = True,
     float32: bool = False,
+    options: dict | None = None,
 ) -> Row:
-    """``runs.compare.compare`` through the run cache. The row says whether it came from the cache. A
-    plug-in engine's runs are never cached: their code is not in the key."""
+    """``runs.compare.compare`` through the run cache (``options``: the engine's, as compare's). The row says whether it came from the cache. A
+    plug-in engine's runs are never cached, their code is not in the key; an adapter's are (it is,
+    ``RUN_CODE``)."""
     ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
-    use_cache = use_cache and not plug_in(model)  # a key holds our code's digest, not a plug-in's
-    key = run_key(scene, model, integrator, dt, fraction, ref_opts, budget, {"float32": True} if float32 else None)
+    use_cache = use_cache and (not plug_in(model) or getattr(engine_for(model), "cacheable", False))
+    extra = {**({"float32": True} if float32 else {}), **({"engine": options} if options else {})}
+    key = run_key(scene, model, integrator, dt, fraction, ref_opts, budget, extra or None)
     path = cache_dir() / "runs" / f"{scene.name}-{key}.json"
     row = read_cached(path, _read_row) if use_cache else None
     if row is not None:
@@ -82,6 +85,7 @@ def cached_compare(
         max_steps=max_steps,
         budget=budget,
         float32=float32,
+        options=options,
     )
     row = row.replace(fraction=fraction)
     if use_cache:

@@ -1,0 +1,187 @@
+"""The engines users pick, through the seam: NVIDIA newton and MuJoCo, each run by its adapter in the
+engines' own venv (docs/engines.md).
+
+``--engine newton`` or ``--engine mujoco`` registers one (``load_engine``); its models are then named like
+the built-in ones (``newton-vbd``, ``mujoco-flex``). An adapter is a script in ``adapters/`` that reads the
+exported scene and writes its answer; it runs in ``.venv-engines`` (``make engines``: newton, warp and
+MuJoCo from PyPI with their own numpy, so that the project's stays Debian's), or in the Python
+``TISSUEBENCH_ENGINES_PYTHON`` names. The harness passes the knobs a run asks for (``dt``, and in
+``options``: ``iterations``, ``substeps``) on its command line, and reads back what the adapter reports:
+the step it took, its steps, its own step time, whether it diverged or did not settle, and which of the
+engine's laws it mapped the scene's to (the row's ``engine``).
+
+Their runs are cached like the built-in models' (the adapters and their pinned versions are in the key,
+``verification.cache.RUN_CODE``).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from realtime import DivergenceError, NotConvergedError
+from realtime.errors import InputError
+
+from .command import TIMEOUT, CommandSimulation
+from .protocol import SceneInputs, Settling
+
+ROOT = Path(__file__).resolve().parents[2]
+#: Where the adapters are, and the venv ``make engines`` builds for them.
+ADAPTERS_DIR, ENGINES_VENV = ROOT / "adapters", ROOT / ".venv-engines"
+
+
+@dataclass
+class AdapterEngine:
+    """An engine behind an adapter script: ``solvers`` maps each model's name to the adapter's
+    ``--solver``; ``knobs`` are the options its command line takes besides ``dt``; ``explicit`` names
+    the models explicit in the elasticity (their steps are bound by the critical one), ``iterative``
+    those with an iteration count."""
+
+    name: str
+    script: str
+    solvers: dict
+    knobs: tuple = ()
+    explicit: tuple = ()
+    iterative: tuple = ()
+    timeout: float = TIMEOUT
+    cacheable: bool = True
+    spec: str = ""
+    models: tuple = field(init=False)
+
+    def __post_init__(self):
+        self.models = tuple(self.solvers)
+        self.spec = self.name
+
+    def build(self, inputs: SceneInputs, model: str, integrator: str, options: dict):
+        unknown = sorted(set(options) - set(self.knobs))
+        if unknown:
+            raise InputError(f"{model}: no option {unknown[0]!r}; it takes {', '.join(self.knobs) or 'none'}")
+        return AdapterSimulation(self, inputs, model, dict(options))
+
+
+#: The adapters, by the name ``--engine`` takes.
+ADAPTERS = {
+    "newton": AdapterEngine(
+        "newton",
+        "newton_tets.py",
+        {"newton-semi-implicit": "semi-implicit", "newton-vbd": "vbd", "newton-xpbd": "xpbd"},
+        knobs=("iterations", "substeps"),
+        explicit=("newton-semi-implicit",),
+        iterative=("newton-vbd", "newton-xpbd"),
+    ),
+    "mujoco": AdapterEngine(
+        "mujoco",
+        "mujoco_flex.py",
+        {"mujoco-flex": "discrete", "mujoco-flex-euler": "Euler"},
+        knobs=("substeps",),
+        explicit=("mujoco-flex-euler",),
+    ),
+}
+
+
+def engines_python() -> Path:
+    """The Python the adapters run with: ``TISSUEBENCH_ENGINES_PYTHON``, else ``.venv-engines``'s."""
+    return Path(os.environ.get("TISSUEBENCH_ENGINES_PYTHON") or ENGINES_VENV / "bin" / "python")
+
+
+def adapter(name: str) -> AdapterEngine:
+    """The adapter ``name``, checked runnable; InputError naming what is missing."""
+    python = engines_python()
+    if not python.exists():
+        raise InputError(f"--engine {name}: the engines' venv is not built ({python}): run `make engines`")
+    engine = ADAPTERS[name]
+    engine.timeout = TIMEOUT
+    return engine
+
+
+class AdapterSimulation(CommandSimulation):
+    """An adapter's run as a Simulation: the command runs once, with the step the harness asks for (or
+    the adapter's own), and its answer is read as a command engine's (``CommandSimulation``)."""
+
+    own_step = True  # with no step asked, the adapter chooses one (not the output interval)
+
+    def __init__(self, engine: AdapterEngine, inputs: SceneInputs, model: str, options: dict):
+        super().__init__(engine, inputs, model)
+        self.options, self.asked_dt, self.report = options, None, {}
+        self.integrator = engine.solvers[model]
+
+    @property
+    def label(self) -> str:
+        return f"engine {self.engine.name}, model {self.model}"
+
+    def command(self, scene_dir: Path, result: Path) -> list[str]:
+        args = [str(engines_python()), str(ADAPTERS_DIR / self.engine.script), str(scene_dir), str(result)]
+        args += ["--solver", self.engine.solvers[self.model]]
+        if self.asked_dt is not None:
+            args += ["--dt", repr(float(self.asked_dt))]
+        for k, v in sorted(self.options.items()):
+            args += [f"--{k}", str(v)]
+        return args
+
+    def relay(self, line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+
+    def _read(self, path: Path) -> tuple:
+        with np.load(path) as z:
+            self.report = {k: z[k].item() for k in z.files if z[k].ndim == 0}
+        r = self.report
+        if r.get("diverged"):
+            t = r.get("diverged_at")
+            raise AdapterDivergence(self.model, int(r.get("steps", 0)), float(r["dt"]), self.integrator, t)
+        if r.get("settled") == 0 and r.get("hold_drift") is not None:
+            raise NotConvergedError(
+                f"{self.label}: no equilibrium at dt = {float(r['dt']):.3g} s: its relaxed state, released from "
+                f"rest, moves {float(r['hold_drift']):.2g} of its displacement in {int(r['hold_steps'])} steps (adapters/exported.py)"
+            )
+        if r.get("settled") == 0:
+            raise NotConvergedError(
+                f"{self.label}: not settled in {int(r['steps'])} steps of {float(r['dt']):.3g} s "
+                "(adapters/exported.py, relax)"
+            )
+        return super()._read(path)
+
+    @property
+    def dt(self) -> float | None:
+        return self.report.get("dt")
+
+    @property
+    def info(self) -> dict:
+        """What the run was: the engine and its version, the law the scene's was mapped to, the knobs."""
+        self._run()
+        r = self.report
+        keep = ("engine", "law", "iterations", "substeps", "stalled_at", "hold_drift")
+        return {k: r[k] for k in keep if k in r}
+
+    def start(self, dt) -> None:
+        super().start(dt)
+        if dt is not None:
+            self.asked_dt = dt
+
+    def settle(self, rtol, max_steps, dt, dt_fraction) -> Settling:
+        if dt is not None:
+            self.asked_dt = dt
+        if dt_fraction is not None:
+            raise InputError(f"{self.label}: its steps are its own: give dt in seconds, not a fraction")
+        s = super().settle(rtol, max_steps, dt, dt_fraction)
+        r = self.report
+        static = {
+            "method": "dynamic relaxation with kinetic damping (adapters/exported.py)",
+            "steps": int(r["steps"]),
+            "residual": None,
+            "wall_s": s.wall_s,
+        }
+        return Settling(int(r["steps"]), None, float(r["dt"]), None, s.wall_s, static)
+
+
+class AdapterDivergence(DivergenceError):
+    """An adapter's run that blew up (non-finite, or over 10 times the body): the step, dt and the time;
+    ``solver``, the engine's solver that ran."""
+
+    def __init__(self, model: str, step: int, dt: float, integrator: str, t):
+        self.step, self.dt, self.dt_crit, self.reason, self.solver = step, dt, None, "", integrator
+        when = f" (t = {t:.4g} s)" if t is not None else ""
+        RuntimeError.__init__(self, f"{model} with {integrator} diverged at step {step}{when}: dt = {dt:.4g} s")
