@@ -210,7 +210,9 @@ def cmd_run(args) -> int:
     from verification.runs.simulate import run_model
 
     scene = _scene(args)
-    res = run_model(scene, args.model, dt=args.dt, integrator=args.integrator, max_steps=args.max_steps)
+    res = run_model(
+        scene, args.model, dt=args.dt, integrator=args.integrator, max_steps=args.max_steps, options=args.engine_option
+    )
     if args.out:
         res.save(args.out)
     if args.vtk:
@@ -255,6 +257,7 @@ def cmd_compare(args) -> int:
         petsc_options=args.petsc_option,
         max_steps=args.max_steps,
         vtk=args.vtk,
+        options=args.engine_option,
     )
     if args.rate and row.ok:
         from verification.studies.frame import frame_budget
@@ -377,6 +380,30 @@ def cmd_sweep(args) -> int:
 
         atomic_write_text(args.csv, sweep_csv(out))
     _emit(args, out, format_sweep)
+    return 0
+
+
+def cmd_engines(args) -> int:
+    from verification.engines import load_engine
+    from verification.engines.adapters import ADAPTERS
+    from verification.studies.engines import engines_study, format_engines
+
+    for name in args.engine or ADAPTERS:  # every adapter unless some are named
+        load_engine(name)
+    scene = _scene(args)
+    comm = _mpi_comm()
+    out = engines_study(scene, models=args.models, use_cache=not args.no_cache, comm=comm)
+    if not _rank0(comm):
+        return 0
+    if args.plot:
+        import base64
+
+        from meshes.io import atomic_write
+        from verification.report.plots import plot_engines
+
+        data = base64.b64decode(plot_engines(out))
+        atomic_write(args.plot, lambda tmp: Path(tmp).write_bytes(data))
+    _emit(args, out, format_engines)
     return 0
 
 

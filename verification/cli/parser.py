@@ -13,6 +13,7 @@ from verification.cli.commands import (
     cmd_check,
     cmd_compare,
     cmd_converge,
+    cmd_engines,
     cmd_export,
     cmd_gate,
     cmd_judge,
@@ -25,7 +26,10 @@ from verification.cli.commands import (
     cmd_sweep,
 )
 
-ENGINE_HELP = "a plug-in engine (package.module:Class or file.py:Class) whose models --model may name; repeatable"
+ENGINE_HELP = (
+    "an engine whose models --model may name: an adapter (newton, mujoco) or a plug-in (package.module:Class or "
+    "file.py:Class); repeatable"
+)
 ENGINE_CMD_HELP = (
     "an engine in its own process: a command that reads the exported scene at {scene} and writes its answer "
     "to {result} (.npz); --model names what it runs"
@@ -148,6 +152,13 @@ def _run_compare(sub) -> None:
             "--engine-timeout", type=_positive, default=600.0, metavar="S", help="seconds a plug-in's run may take"
         )
         s.add_argument("--dt", type=_positive, help="time step, s (default 0.9 x the critical one)")
+        s.add_argument(
+            "--engine-option",
+            type=_engine_option,
+            action=_Merge,
+            metavar="KEY=VALUE",
+            help="a knob of an adapter's model (iterations=50, substeps=4); repeatable",
+        )
         s.add_argument("--integrator", default="symplectic-euler", choices=sorted(INTEGRATORS))
         s.add_argument("--max-steps", type=_count, default=2_000_000, help="steps a static scene may take to settle")
         s.add_argument("--vtk", help=VTK_HELP)
@@ -317,6 +328,36 @@ def _judge(sub) -> None:
     s.set_defaults(func=cmd_judge)
 
 
+def _engine_option(text: str) -> dict:
+    """KEY=VALUE with an integer VALUE: one knob of an adapter's model."""
+    key, sep, value = text.partition("=")
+    try:
+        if not sep or not key:
+            raise ValueError
+        return {key: int(value)}
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give KEY=INTEGER (iterations=50)") from None
+
+
+def _engines(sub) -> None:
+    s = sub.add_parser(
+        "engines",
+        help="the engines users pick (newton, MuJoCo) against the reference: error by their own knobs, largest stable "
+        "step, whether the answer depends on the iteration count",
+    )
+    s.add_argument("scene")
+    s.add_argument("--mesh-refine", type=_level, default=0, metavar="K", help=MESH_REFINE_HELP)
+    s.add_argument("--engine", action="append", metavar="NAME", help="an adapter (newton, mujoco; default: both)")
+    s.add_argument("--models", nargs="+", help="only these of the adapters' models (newton-vbd, mujoco-flex, ...)")
+    s.add_argument(
+        "--engine-timeout", type=_positive, default=600.0, metavar="S", help="seconds one of their runs may take"
+    )
+    s.add_argument("--plot", help="also write the error-against-step-time plot here (.png)")
+    s.add_argument("--no-cache", action="store_true")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_engines)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="tissuebench", description="What real-time soft-tissue models give up for their speed.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -333,6 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
         _converge,
         _stability,
         _advise,
+        _engines,
         _gate,
         _bench,
     ):

@@ -72,8 +72,9 @@ def plot_error_vs_speed(rows: list[Row], ref_est: float | None, title: str) -> s
         pts = sorted((r for r in ok if r.model == model), key=lambda r: r.step_us)
         ax.loglog([r.step_us for r in pts], [max(r.rel_l2, 1e-16) for r in pts], "o", label=model, alpha=0.8)
         for r in pts:
-            label = f"{r.dt / r.dt_crit:.2g}" if r.dt_crit else ("q-s" if r.integrator == "quasi-static" else "own")
-            ax.annotate(label, (r.step_us, max(r.rel_l2, 1e-16)), textcoords="offset points", xytext=(4, 3), fontsize=7)
+            ax.annotate(
+                _step_label(r), (r.step_us, max(r.rel_l2, 1e-16)), textcoords="offset points", xytext=(4, 3), fontsize=7
+            )
     front = sorted((r for r in ok if r.pareto), key=lambda r: r.step_us)
     if front:
         ax.step(
@@ -93,10 +94,31 @@ def plot_error_vs_speed(rows: list[Row], ref_est: float | None, title: str) -> s
     ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.3g"))
     ax.set_xlabel("median wall time of one step (us)")
     ax.set_ylabel("relative L2 displacement error (fraction)")
-    ax.set_title(title + "  (labels: dt / dt_crit; q-s: quasi-static; own: a plug-in's own step)", fontsize=9)
+    ax.set_title(title + "  (labels: dt / dt_crit; q-s: quasi-static; ms: another engine's step)", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     _legend_beside(ax)
     return png(fig)
+
+
+def _step_label(r: Row) -> str:
+    """A point's label: dt / dt_crit for the built-in models, another engine's step in ms (and its
+    iterations, where it has some), "q-s" for a quasi-static update, "own" for a step no one reported."""
+    if r.dt_crit:
+        return f"{r.dt / r.dt_crit:.2g}"
+    if r.integrator == "quasi-static":
+        return "q-s"
+    if r.dt is None:
+        return "own"
+    its = (r.engine or {}).get("iterations")
+    return f"{r.dt * 1e3:.2g} ms" + (f", {its} it" if its is not None else "")
+
+
+def plot_engines(out: dict) -> str:
+    """``tissuebench engines``' plot: every adapter run's error against its step time, labelled by its step
+    and iterations, beside the reference's error estimate."""
+    fields = set(Row.__dataclass_fields__)
+    rows = [Row.from_json({k: v for k, v in r.items() if k in fields}) for r in out["runs"]]
+    return plot_error_vs_speed(rows, out.get("reference_estimate"), f"{out['scene']}: other engines")
 
 
 def budget_rows(rows: list[Row]) -> list[Row]:

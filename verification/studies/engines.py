@@ -1,0 +1,200 @@
+"""The questions users of other engines ask, answered on a scene (``tissuebench engines SCENE``;
+docs/engines.md): for every adapter's model, its error against the reference as a function of its own
+knobs, its largest stable step, and whether its answer depends on its iteration count.
+
+The plan is fixed before anything runs, so that ``mpirun -n P`` spreads it over ranks as ``sweep`` does:
+
+- the time step: an explicit solver (newton's semi-implicit, MuJoCo's Euler) at ``EXPLICIT_FRACTIONS`` of
+  the scene mesh's explicit critical step (the built-in linear model's, the same P1 mesh: one axis for
+  every engine); an implicit one (newton's VBD and XPBD, MuJoCo's discrete integrator) at
+  ``IMPLICIT_STEPS``, the steps real-time loops take, from 10 kHz to 100 Hz;
+- the iterations of a solver that has them (VBD, XPBD): ``ITERATIONS`` at ``ITERATION_DT``, the 1 ms step
+  newton's examples take.
+
+The largest stable step is the largest planned step that ran without blowing up, bracketed by the
+smallest that blew up above it (a factor of 2 to 3 apart: the grid's resolution). The answer depends on
+the iteration count when the answers at the two largest counts differ by more than ``DEPENDS`` of the
+reference's norm.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from reference.errors import ReferenceSolveError
+from reference.progress import line
+from verification.engines import ENGINES
+from verification.engines.adapters import AdapterEngine
+from verification.engines.builtin import BUILTIN
+from verification.inputs import scene_inputs
+from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
+from verification.runs.row import Row
+from verification.runs.store import cached_compare
+from verification.scene import Scene
+
+#: Explicit solvers' steps, as fractions of the scene mesh's explicit critical step.
+EXPLICIT_FRACTIONS = (0.25, 0.5, 1.0, 2.0, 4.0)
+#: Implicit solvers' steps, s: 10 kHz, about 3 kHz, 1 kHz, about 300 Hz, 100 Hz.
+IMPLICIT_STEPS = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
+#: Iteration counts, at ITERATION_DT s.
+ITERATIONS, ITERATION_DT = (1, 2, 5, 10, 20, 50), 1e-3
+#: Two answers closer than this (relative L2 over the reference's norm) are the same: three times the
+#: relaxation's own round-off in float32 (measured 2.8e-4 with newton's semi-implicit solver on the
+#: built-in cantilever, adapters/exported.py STALLED), so a difference above it is the engine's.
+DEPENDS = 1e-3
+
+
+def adapter_models(models=None) -> list[tuple[AdapterEngine, str]]:
+    """The (engine, model) pairs to study: the registered adapters' models, or those of ``models``."""
+    pairs = [(e, m) for e in ENGINES.values() if isinstance(e, AdapterEngine) for m in e.models]
+    return [(e, m) for e, m in pairs if models is None or m in models]
+
+
+def engines_plan(scene: Scene, pairs) -> list[dict]:
+    """Every run of the study: model, dt (s), options, and the knob it varies ("dt" or "iterations")."""
+    dt_crit = BUILTIN.build(scene_inputs(scene), "linear-tm", "symplectic-euler", {}).critical_dt()
+    plan = []
+    for engine, model in pairs:
+        steps = [f * dt_crit for f in EXPLICIT_FRACTIONS] if model in engine.explicit else list(IMPLICIT_STEPS)
+        plan += [{"model": model, "dt": float(dt), "options": {}, "knob": "dt"} for dt in steps]
+        if model in engine.iterative:
+            plan += [
+                {"model": model, "dt": ITERATION_DT, "options": {"iterations": k}, "knob": "iterations"}
+                for k in ITERATIONS
+            ]
+    return plan
+
+
+def _run(scene: Scene, item: dict, ref, use_cache: bool) -> Row:
+    from realtime import NotConvergedError
+
+    try:
+        return cached_compare(
+            scene, item["model"], "own", item["dt"], None, ref, use_cache=use_cache, budget=False,
+            options=item["options"] or None,
+        )  # fmt: skip
+    except NotConvergedError as exc:
+        return Row(scene.name, item["model"], "own", "not settled", dt=item["dt"], message=str(exc))
+
+
+def engines_study(scene: Scene, models=None, use_cache: bool = True, comm=None) -> dict:
+    """The study (module docstring): its rows, each model's summary, the mesh's own error (the P1 solution
+    of the scene's law on its mesh against the reference: what every engine on this mesh pays)."""
+    pairs = adapter_models(models)
+    rank, size = (comm.rank, comm.size) if comm is not None else (0, 1)
+    ref = reference_result(scene, **REFERENCE_DEFAULTS)
+    try:
+        p1 = reference_result(scene, **P1_OWN_MESH)
+        mesh_part = float(np.linalg.norm(p1.displacement - ref.displacement) / np.linalg.norm(ref.displacement))
+    except ReferenceSolveError:
+        mesh_part = None
+    plan = engines_plan(scene, pairs)
+    rows = []
+    for k, item in enumerate(plan):
+        if k % size != rank:
+            continue
+        row = _run(scene, item, ref, use_cache).replace(plan_index=k)
+        rows.append((item, row))
+        # every rank says what it finished: the runs are each a process of their own, minutes long
+        who = f" (rank {rank})" if size > 1 else ""
+        line(f"engines {scene.name}{who}: run {k + 1} of {len(plan)}, {item['model']} {item['knob']} "
+             f"{_knob_value(item)}: {_state(row)}")  # fmt: skip
+    if comm is not None and size > 1:
+        gathered = comm.gather(rows, root=0)
+        if rank != 0:
+            return {}
+        rows = sorted((r for part in gathered for r in part), key=lambda ir: ir[1].plan_index)
+    return {
+        "scene": scene.name,
+        "reference_estimate": ref.meta.get("ref_err_estimate"),
+        "mesh_error": mesh_part,
+        "runs": [{"knob": item["knob"], "options": item["options"], **row.to_json()} for item, row in rows],
+        "summary": [_summary(model, [(i, r) for i, r in rows if r.model == model]) for _, model in pairs],
+    }
+
+
+def _knob_value(item: dict) -> str:
+    return f"{item['dt']:.3g} s" if item["knob"] == "dt" else str(item["options"]["iterations"])
+
+
+def _state(row: Row) -> str:
+    if not row.ok:
+        return row.status
+    return f"rel_l2 {row.rel_l2:.3g}" + (f", {row.step_us:.4g} us" if row.step_us is not None else "")
+
+
+def _summary(model: str, runs: list[tuple[dict, Row]]) -> dict:
+    """One model's answers: the largest stable step (and the smallest diverged above it), its best run,
+    and whether its answer depends on the iteration count."""
+    steps = sorted((r.dt, r) for i, r in runs if i["knob"] == "dt")
+    stable = [dt for dt, r in steps if r.status != "diverged"]
+    largest = max(stable) if stable else None
+    above = [dt for dt, r in steps if r.status == "diverged" and (largest is None or dt > largest)]
+    ok = [r for _, r in runs if r.ok]
+    best = min(ok, key=lambda r: r.rel_l2) if ok else None
+    out = {
+        "model": model,
+        "engine": (best.engine if best else None),
+        "largest_stable_dt": largest,
+        "first_diverged_dt": min(above) if above else None,
+        "best": None if best is None else {"rel_l2": best.rel_l2, "dt": best.dt, "step_us": best.step_us},
+        "iterations": None,
+    }
+    by_count = sorted((i["options"]["iterations"], r) for i, r in runs if i["knob"] == "iterations")
+    if by_count:
+        done = [(k, r) for k, r in by_count if r.ok]
+        out["iterations"] = {
+            "rel_l2": {str(k): (r.rel_l2 if r.ok else r.status) for k, r in by_count},
+            "depends": _depends(done),
+        }
+    return out
+
+
+def _depends(done: list[tuple[int, Row]]) -> dict:
+    """Whether the answer still moves with the iteration count: the change of rel_l2 between the two
+    largest counts that ran (a lower bound on the distance between their answers, by the triangle
+    inequality), against DEPENDS."""
+    if len(done) < 2:
+        return {"verdict": "undecided", "why": "fewer than two iteration counts ran to an answer"}
+    (k1, r1), (k2, r2) = done[-2], done[-1]
+    change = abs(r2.rel_l2 - r1.rel_l2)
+    verdict = "depends" if change > DEPENDS else "converged"
+    spread = max(r.rel_l2 for _, r in done) - min(r.rel_l2 for _, r in done)
+    return {"verdict": verdict, "change": change, "between": [k1, k2], "spread": spread}
+
+
+def format_engines(out: dict) -> str:
+    """The study as text: each model's summary, then every run."""
+    est, mesh = out.get("reference_estimate"), out.get("mesh_error")
+    lines = [f"{out['scene']}: other engines against the reference (its estimate {est:.2g})" if est else out["scene"]]
+    if mesh is not None:
+        lines.append(f"  the mesh's own error (P1 on this mesh, what every engine here pays): {mesh:.3g}")
+    for s in out["summary"]:
+        lines.append(f"\n{s['model']}: {(s['engine'] or {}).get('engine', '')}")
+        if s["engine"]:
+            lines.append(f"  law: {s['engine'].get('law')}")
+        big, bad = s["largest_stable_dt"], s["first_diverged_dt"]
+        lines.append(
+            "  largest stable step: "
+            + (f"{big:.3g} s" if big else "none of the steps tried")
+            + (f" (diverged at {bad:.3g} s)" if bad else " (none tried diverged)")
+        )
+        if s["best"]:
+            b = s["best"]
+            lines.append(f"  best: rel_l2 {b['rel_l2']:.3g} at dt {b['dt']:.3g} s, {b['step_us']:.4g} us a step")
+        it = s["iterations"]
+        if it:
+            counts = ", ".join(f"{k}: {v if isinstance(v, str) else f'{v:.3g}'}" for k, v in it["rel_l2"].items())
+            d = it["depends"]
+            why = (
+                f" (rel_l2 moves {d['change']:.2g} between {d['between'][0]} and {d['between'][1]})"
+                if "change" in d
+                else ""
+            )
+            lines.append(f"  rel_l2 by iterations at {ITERATION_DT:g} s: {counts}; answer {d['verdict']}{why}")
+    lines.append("\nruns:")
+    for r in out["runs"]:
+        knob = f"iterations {r['options']['iterations']}" if r["knob"] == "iterations" else f"dt {r['dt']:.3g} s"
+        state = f"rel_l2 {r['rel_l2']:.4g}  {r['step_us']:.4g} us" if r["status"] == "ok" else r["status"]
+        lines.append(f"  {r['model']:<22} {knob:<18} {state}")
+    return "\n".join(lines)
