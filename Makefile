@@ -1,6 +1,6 @@
 # tissuebench: the two commands of the README, and their helpers.
 #   make report   install what is missing, then write the default report under reports/
-#   make test     install what is missing, then lint and run the test suite
+#   make test     install what is missing (the engines' venv too), then lint and run the test suite
 # Both first compile the engine's kernels ahead (realtime.precompile) when they are not cached yet.
 # Set-up is idempotent: it checks Debian packages and the venv, and reinstalls the project only when
 # pyproject.toml changed.
@@ -15,7 +15,7 @@ export OMPI_ALLOW_RUN_AS_ROOT := 1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM := 1
 export OMPI_MCA_rmaps_base_oversubscribe := 1
 
-.PHONY: setup apt venv precompile report test lint bench bench-peers clean-cache
+.PHONY: setup apt venv precompile engines report test lint bench bench-peers clean-cache
 
 setup: apt $(STAMP) precompile
 
@@ -50,11 +50,24 @@ lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
+# The engines users pick (NVIDIA newton with warp, MuJoCo), from PyPI at the versions adapters/requirements.txt
+# pins, in a venv of their own: its numpy is PyPI's, the project's stays Debian's. The adapters in adapters/ run
+# there (docs/engines.md); the project never imports them.
+ENGINES_VENV := .venv-engines
+ENGINES_STAMP := $(ENGINES_VENV)/.tissuebench-installed
+engines: $(ENGINES_STAMP)
+$(ENGINES_STAMP): adapters/requirements.txt | apt
+	[ -x $(ENGINES_VENV)/bin/python ] || /usr/bin/python3 -m venv $(ENGINES_VENV)
+	$(ENGINES_VENV)/bin/python -m pip install -q -r adapters/requirements.txt
+	$(ENGINES_VENV)/bin/python -c "import mujoco, newton, warp"
+	touch $@
+
 # One worker process per core this process may use (pytest-xdist; xdist's own "auto" counts physical
 # cores where psutil is installed), each taking the next test as it ends one. TEST_WORKERS=1 for one.
+# TISSUEBENCH_REQUIRE_ENGINES: the adapters' tests fail, never skip, when the engines' venv is missing.
 TEST_WORKERS ?= $(shell nproc)
-test: setup lint
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist worksteal
+test: setup engines lint
+	TISSUEBENCH_REQUIRE_ENGINES=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist worksteal
 
 bench: setup
 	$(VENV)/bin/tissuebench bench --out reports/bench.json --markdown docs/benchmarks.md
