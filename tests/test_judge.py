@@ -12,7 +12,7 @@ from verification.cli import main
 from verification.inputs import build_loading
 from verification.report.vtk import write_series
 from verification.runs.compare import compare
-from verification.runs.reference import reference_result
+from verification.runs.reference import P1_OWN_MESH, reference_result
 from verification.runs.simulate import run_model
 from verification.scene_file import load_scene
 
@@ -74,6 +74,15 @@ def test_a_result_on_another_mesh_in_mm_is_judged_at_its_own_points(tmp_path, ca
     assert out["rel_l2"] == pytest.approx(independent, rel=1e-6) and independent == pytest.approx(0.02)
     assert out["n_points"] == fine.mesh.n_vertices and out["moved_onto_surface"] == 0
     assert out["surface_rel_l2"] == pytest.approx(0.02, rel=1e-6) and out["volume_err"] is not None
+    # the error budget on the engine's own mesh: P1 solved there (its regions by the scene's rule, on a
+    # mesh the judge was handed in mm with flipped tetrahedra) against the refined scene's own P1 solve
+    # (its regions by the refinement's rule): the same problem, so the same mesh part, to the solvers'
+    # tolerance
+    own_p1 = reference_result(fine, **P1_OWN_MESH).displacement[0]
+    mesh_part = float(np.linalg.norm(own_p1 - truth) / np.linalg.norm(truth))
+    assert out["error_budget"]["mesh"] == pytest.approx(mesh_part, rel=1e-6)
+    model_part = float(np.linalg.norm(1.02 * truth - own_p1) / np.linalg.norm(truth))
+    assert out["error_budget"]["model"] == pytest.approx(model_part, rel=1e-6)
 
 
 def test_a_dynamic_result_is_a_series_at_the_output_instants(tmp_path, capsys):

@@ -5,8 +5,9 @@ The result's points need not be the scene mesh's: the reference is evaluated at 
 body's size: a tessellation of a curved surface lies a hair off another's) is judged at the nearest
 point of the body's surface; one farther is an error naming it. A dynamic result's times must be the
 scene's output instants (the reference is known there). The metrics are ``compare``'s: rel_l2 over all
-points and times, max_err, and with the result's tetrahedra surface_rel_l2 and volume_err; the tool
-force's error when the result carries it. A step time the user gives (``step_us``) is the engine's own,
+points and times, max_err, and with the result's tetrahedra surface_rel_l2, volume_err and the error
+budget's mesh part on the engine's own mesh (``_mesh_part``); the tool force's error when the result
+carries it. A step time the user gives (``step_us``) is the engine's own,
 labelled so.
 """
 
@@ -165,10 +166,12 @@ def judge(scene: Scene, path: str, scale: float = 1.0, outside: float = OUTSIDE,
             rr = ref.reaction[which]
             metrics["reaction_rel_err"] = float(np.linalg.norm(result.reaction - rr) / max(np.linalg.norm(rr), 1e-300))
         metrics["at_reference_accuracy"] = bool(est is not None and metrics["rel_l2"] < REFERENCE_ACCURACY_FACTOR * est)
+    budget = _mesh_part(scene, result, tets, which, ref_u) if tets is not None else None
     return {
         "scene": scene.name,
         "result": result.source,
         "scale": scale,
+        "error_budget": budget,
         "n_points": len(result.points),
         "n_times": len(which),
         "moved_onto_surface": moved,
@@ -178,6 +181,36 @@ def judge(scene: Scene, path: str, scale: float = 1.0, outside: float = OUTSIDE,
     }
 
 
+def _mesh_part(scene: Scene, result, tets: np.ndarray, which: np.ndarray, ref_u: np.ndarray) -> dict:
+    """The error budget of a result that carries its tetrahedra (``runs.compare.error_budget``'s parts):
+    ``mesh``, the P1 solution of the scene's problem on the engine's own mesh against the reference (what
+    any P1 engine on that mesh pays), and ``model``, the result against that P1 solution (what the engine's
+    own shortcuts cost), each relative to the reference's norm at the result's points and times. The P1
+    solution takes the scene's regions by their rule (a box, a plane, a field), as a refined scene does;
+    a region drawn by the scene mesh's own tags selects nothing on another mesh, and the budget says so."""
+    import dataclasses
+
+    from reference.errors import ReferenceSolveError
+    from verification.runs.reference import P1_OWN_MESH, reference_result
+    from verification.scene import check_regions
+
+    if scene.time.mode == "dynamic":
+        return {"mesh": None, "model": None, "why": "the mesh part of a dynamic result is not computed"}
+    try:
+        own = dataclasses.replace(scene, _mesh=TetMesh(result.points, tets))
+        check_regions(own, own.mesh)
+        p1 = reference_result(own, **P1_OWN_MESH).displacement[which]
+    except (InputError, ReferenceSolveError) as exc:
+        return {
+            "mesh": None,
+            "model": None,
+            "why": f"no P1 solution on the engine's mesh: {' '.join(str(exc).split())}",
+        }
+    scale = max(float(np.linalg.norm(ref_u)), 1e-300)
+    mesh, model = float(np.linalg.norm(p1 - ref_u)) / scale, float(np.linalg.norm(result.displacement - p1)) / scale
+    return {"mesh": mesh, "model": model, "dominant": "mesh" if mesh >= model else "model"}
+
+
 def format_judgement(out: dict) -> str:
     est = out["reference"].get("ref_err_estimate")
     lines = [f"{out['scene']}: {out['result']} ({out['n_points']} points, {out['n_times']} time(s))"]
@@ -185,6 +218,11 @@ def format_judgement(out: dict) -> str:
         v = out[k]
         lines.append(f"  {k:<18} {'-' if v is None else f'{v:.4g}'}")
     lines.append(f"  {'reference':<18} P{out['reference']['degree']}, estimate {'-' if est is None else f'{est:.2g}'}")
+    b = out.get("error_budget") or {}
+    if b.get("mesh") is not None:
+        lines.append(f"  {'error budget':<18} mesh {b['mesh']:.3g} (P1 on the engine's mesh), model {b['model']:.3g}")
+    elif b.get("why"):
+        lines.append(f"  {'error budget':<18} {b['why']}")
     if out["moved_onto_surface"]:
         lines.append(f"  {out['moved_onto_surface']} points a hair outside the body were judged at its surface")
     if out["engine_step_us"] is not None:
