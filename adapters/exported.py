@@ -225,11 +225,15 @@ def _blown(u: np.ndarray, size: float) -> bool:
     return not np.all(np.isfinite(u)) or float(np.abs(u).max()) > 10.0 * size
 
 
-def relax(engine: Stepper, scene: Exported, dt: float, rtol: float, max_steps: int, progress) -> dict:
+def relax(
+    engine: Stepper, scene: Exported, dt: float, rtol: float, max_steps: int, progress, max_wall: float = 300.0
+) -> dict:
     """A static scene's equilibrium by kinetic-damped dynamic relaxation (the module docstring). The
     displacement change is measured over the last quarter of the run (at least ``check`` steps), so that
-    a slow mode still on its way is seen however few steps one of its cycles takes."""
+    a slow mode still on its way is seen however few steps one of its cycles takes. It stops unsettled
+    after ``max_steps`` steps or ``max_wall`` seconds, whichever comes first."""
     held, final = scene.held(), scene.prescribed(0.0)
+    t_start = time.perf_counter()
     ramp_steps = max(1, min(max_steps // 10, 200))
     clock, m = _Clock(), engine.masses()[:, None]
     check, calm, ke_prev = 50, 0, 0.0
@@ -261,6 +265,9 @@ def relax(engine: Stepper, scene: Exported, dt: float, rtol: float, max_steps: i
         if n >= 40 * ramp_steps and then is not None and STALLED > changes[n] > 0.5 * then:
             progress(f"step {n}: the change stalled at {changes[n]:.2e} of the largest displacement (round-off)")
             return _held(engine, scene, u, dt, {"steps": n, "dt": dt, "step_us": clock.us(), "stalled_at": changes[n]})
+        if time.perf_counter() - t_start > max_wall:
+            progress(f"step {n}: still moving ({change / scale:.2e}) after {max_wall:g} s, stopped")
+            return {"u": u, "steps": n, "dt": dt, "step_us": clock.us(), "settled": 0, "wall_limit": max_wall}
         if n % (check * 200) == 0:
             progress(f"step {n}: displacement change {change / scale:.2e} of its largest value, asked {rtol:g}")
         if calm >= 2:
@@ -281,6 +288,28 @@ def _held(engine: Stepper, scene: Exported, u: np.ndarray, dt: float, run: dict)
         engine.step(dt)
     drift = float(np.abs(engine.positions() - scene.points - u).max() / max(np.abs(u).max(), 1e-300))
     return {"u": u, **run, "settled": int(drift <= HOLD), "hold_drift": drift, "hold_steps": HOLD_STEPS}
+
+
+def probe(engine: Stepper, scene: Exported, dt: float, steps: int, progress) -> dict:
+    """Is ``dt`` a stable step of the engine on this scene: ``steps`` steps of its plain dynamics from rest
+    (no damping of ours), the loads on and the tools moved to their final place over the first tenth, and
+    whether the displacement stays bounded (``diverged`` otherwise). Its displacement is the last step's,
+    not an answer to judge."""
+    held, final = scene.held(), scene.prescribed(0.0)
+    ramp_steps = max(1, steps // 10)
+    clock = _Clock()
+    for n in range(1, steps + 1):
+        s = min(n / ramp_steps, 1.0)
+        rate = final / (ramp_steps * dt) if n <= ramp_steps else 0.0 * final
+        _impose(engine, scene, held, s * final, rate)
+        clock.timed(engine.step, dt)
+        if n % 50 == 0 or n == steps:
+            u = engine.positions() - scene.points
+            if _blown(u, scene.size):
+                return {"u": u, "steps": n, "dt": dt, "step_us": clock.us(), "diverged": 1, "diverged_at": n * dt}
+        if n % 1000 == 0:
+            progress(f"stability probe: step {n} of {steps}")
+    return {"u": engine.positions() - scene.points, "steps": steps, "dt": dt, "step_us": clock.us(), "probe": steps}
 
 
 def trajectory(engine: Stepper, scene: Exported, dt: float, progress) -> dict:
@@ -331,6 +360,8 @@ def arguments(description: str, solvers: tuple[str, ...]) -> argparse.ArgumentPa
     ap.add_argument("--substeps", type=int, default=1, help="steps per dt (dt / substeps each)")
     ap.add_argument("--rtol", type=float, default=1e-6, help="a static run's relaxation tolerance")
     ap.add_argument("--max-steps", type=int, default=100_000, help="a static run's most steps")
+    ap.add_argument("--max-wall", type=float, default=300.0, help="a static run's most seconds")
+    ap.add_argument("--probe", type=int, default=0, help="only test dt's stability: this many plain steps from rest")
     return ap
 
 
@@ -355,7 +386,9 @@ def main(run, description: str, solvers: tuple[str, ...], argv=None) -> int:
 
 def drive(engine: Stepper, scene: Exported, args, dt: float, progress) -> dict:
     """The scene run on ``engine`` at ``dt`` (split into ``args.substeps``): relaxed if static, a trajectory
-    if dynamic."""
+    if dynamic; with ``args.probe``, only the stability probe."""
+    if args.probe:
+        return probe(engine, scene, dt, args.probe, progress)
     if scene.static:
-        return relax(engine, scene, dt, args.rtol, args.max_steps, progress)
+        return relax(engine, scene, dt, args.rtol, args.max_steps, progress, args.max_wall)
     return trajectory(engine, scene, dt, progress)

@@ -94,7 +94,7 @@ def _adapter(tmp_path, script, solver, *extra):
     points = _uniaxial_export(scene)
     result = tmp_path / "result.npz"
     args = [str(engines_python()), str(ADAPTERS_DIR / script), str(scene), str(result), "--solver", solver]
-    done = subprocess.run(args + list(extra), capture_output=True, text=True, timeout=600)
+    done = subprocess.run(args + list(extra), capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
     with np.load(result) as z:
         return points, z["displacement"][0], {k: z[k].item() for k in z.files if z[k].ndim == 0}

@@ -392,7 +392,7 @@ def cmd_engines(args) -> int:
         load_engine(name)
     scene = _scene(args)
     comm = _mpi_comm()
-    out = engines_study(scene, models=args.models, use_cache=not args.no_cache, comm=comm)
+    out = engines_study(scene, models=args.models, use_cache=not args.no_cache, comm=comm, builtin=args.builtin)
     if not _rank0(comm):
         return 0
     if args.plot:

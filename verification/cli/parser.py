@@ -352,6 +352,7 @@ def _engines(sub) -> None:
     s.add_argument(
         "--engine-timeout", type=_positive, default=600.0, metavar="S", help="seconds one of their runs may take"
     )
+    s.add_argument("--builtin", action="store_true", help="the built-in models beside them, measured in the same run")
     s.add_argument("--plot", help="also write the error-against-step-time plot here (.png)")
     s.add_argument("--no-cache", action="store_true")
     s.add_argument("--json", action="store_true")

@@ -57,7 +57,7 @@ class AdapterEngine:
         self.spec = self.name
 
     def build(self, inputs: SceneInputs, model: str, integrator: str, options: dict):
-        unknown = sorted(set(options) - set(self.knobs))
+        unknown = sorted(set(options) - set(self.knobs) - {"probe"})  # probe: studies.engines' stability test
         if unknown:
             raise InputError(f"{model}: no option {unknown[0]!r}; it takes {', '.join(self.knobs) or 'none'}")
         return AdapterSimulation(self, inputs, model, dict(options))
@@ -132,17 +132,31 @@ class AdapterSimulation(CommandSimulation):
         if r.get("diverged"):
             t = r.get("diverged_at")
             raise AdapterDivergence(self.model, int(r.get("steps", 0)), float(r["dt"]), self.integrator, t)
+        if r.get("probe"):  # a stability probe's field is no answer
+            return None, None, r.get("step_us")
         if r.get("settled") == 0 and r.get("hold_drift") is not None:
             raise NotConvergedError(
                 f"{self.label}: no equilibrium at dt = {float(r['dt']):.3g} s: its relaxed state, released from "
                 f"rest, moves {float(r['hold_drift']):.2g} of its displacement in {int(r['hold_steps'])} steps (adapters/exported.py)"
             )
         if r.get("settled") == 0:
+            limit = f" (its {r['wall_limit']:g} s)" if r.get("wall_limit") else ""
             raise NotConvergedError(
-                f"{self.label}: not settled in {int(r['steps'])} steps of {float(r['dt']):.3g} s "
+                f"{self.label}: not settled in {int(r['steps'])} steps of {float(r['dt']):.3g} s{limit} "
                 "(adapters/exported.py, relax)"
             )
         return super()._read(path)
+
+    def probe(self, dt: float, steps: int) -> dict:
+        """Whether ``dt`` is a stable step here: ``steps`` plain steps from rest under the scene's loads
+        (adapters/exported.py, probe). Returns dt, stable (bool), and for an unstable step the step and
+        time it blew up at."""
+        self.options["probe"], self.asked_dt = steps, dt
+        try:
+            self._run()
+        except AdapterDivergence as exc:
+            return {"dt": dt, "stable": False, "step": exc.step, "steps": steps}
+        return {"dt": dt, "stable": True, "steps": steps, "step_us": self.report.get("step_us")}
 
     @property
     def dt(self) -> float | None:

@@ -11,8 +11,12 @@ The plan is fixed before anything runs, so that ``mpirun -n P`` spreads it over 
 - the iterations of a solver that has them (VBD, XPBD): ``ITERATIONS`` at ``ITERATION_DT``, the 1 ms step
   newton's examples take.
 
-The largest stable step is the largest planned step that ran without blowing up, bracketed by the
-smallest that blew up above it (a factor of 2 to 3 apart: the grid's resolution). The answer depends on
+Each planned step is also probed for stability as the built-in models' are (``STABLE_STEPS`` plain steps
+from rest under the scene's loads, no damping of ours: ``AdapterSimulation.probe``). The largest stable
+step is the largest planned one the probe passed, bracketed by the smallest above it that blew up (a
+factor of 2 to 3 apart: the grid's resolution). It can exceed the largest step whose static relaxation
+settles: kinetic damping's velocity resets make some steps gradient descent, stable only below
+sqrt(2) / omega_max (adapters/exported.py, RELAX_FRACTION). The answer depends on
 the iteration count when the answers at the two largest counts differ by more than ``DEPENDS`` of the
 reference's norm.
 """
@@ -23,9 +27,9 @@ import numpy as np
 
 from reference.errors import ReferenceSolveError
 from reference.progress import line
-from verification.engines import ENGINES
+from verification.engines import ENGINES, engine_for
 from verification.engines.adapters import AdapterEngine
-from verification.engines.builtin import BUILTIN
+from verification.engines.builtin import BUILTIN, STABLE_STEPS
 from verification.inputs import scene_inputs
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
@@ -57,6 +61,7 @@ def engines_plan(scene: Scene, pairs) -> list[dict]:
     for engine, model in pairs:
         steps = [f * dt_crit for f in EXPLICIT_FRACTIONS] if model in engine.explicit else list(IMPLICIT_STEPS)
         plan += [{"model": model, "dt": float(dt), "options": {}, "knob": "dt"} for dt in steps]
+        plan += [{"model": model, "dt": float(dt), "options": {}, "knob": "stability"} for dt in steps]
         if model in engine.iterative:
             plan += [
                 {"model": model, "dt": ITERATION_DT, "options": {"iterations": k}, "knob": "iterations"}
@@ -66,20 +71,65 @@ def engines_plan(scene: Scene, pairs) -> list[dict]:
 
 
 def _run(scene: Scene, item: dict, ref, use_cache: bool) -> Row:
+    """One planned run as a row; a run that gives no answer (unsettled, stopped past its time bound,
+    failed) is a row saying so, and the study goes on."""
     from realtime import NotConvergedError
+    from realtime.errors import InputError
 
     try:
-        return cached_compare(
-            scene, item["model"], "own", item["dt"], None, ref, use_cache=use_cache, budget=False,
-            options=item["options"] or None,
-        )  # fmt: skip
-    except NotConvergedError as exc:
+        return _probe(scene, item) if item["knob"] == "stability" else _compare(scene, item, ref, use_cache)
+    except (NotConvergedError, InputError) as exc:
         return Row(scene.name, item["model"], "own", "not settled", dt=item["dt"], message=str(exc))
 
 
-def engines_study(scene: Scene, models=None, use_cache: bool = True, comm=None) -> dict:
+def _compare(scene: Scene, item: dict, ref, use_cache: bool) -> Row:
+    return cached_compare(
+        scene, item["model"], "own", item["dt"], None, ref, use_cache=use_cache,
+        budget=scene.time.mode == "static", options=item["options"] or None,
+    )  # fmt: skip
+
+
+def _probe(scene: Scene, item: dict) -> Row:
+    """A planned step's stability probe, as a row: "ok" when it held, "diverged" with its step when not."""
+    engine = engine_for(item["model"])
+    sim = engine.build(scene_inputs(scene), item["model"], "own", dict(item["options"]))
+    out = sim.probe(item["dt"], STABLE_STEPS)
+    status = "ok" if out["stable"] else "diverged"
+    return Row(scene.name, item["model"], sim.integrator, status, dt=item["dt"], step=out.get("step"),
+               message=f"{STABLE_STEPS} plain steps from rest: {'held' if out['stable'] else 'blew up'}")  # fmt: skip
+
+
+def builtin_beside(scene: Scene, ref, use_cache: bool) -> list[dict]:
+    """The built-in models in the same run, for the table beside the adapters: each at its default step
+    (0.9 of its critical one, or its quasi-static update) with its error, its step time and its largest
+    stable step (``largest_stable_fraction``, the same STABLE_STEPS probe from rest)."""
+    from realtime.registry import QUASI_STATIC
+    from verification.runs.store import largest_stable_fraction
+
+    out = []
+    for model in BUILTIN.models:
+        row = cached_compare(scene, model, reference=ref, use_cache=use_cache, budget=scene.time.mode == "static")
+        stable = None if model in QUASI_STATIC else largest_stable_fraction(scene, model, use_cache=use_cache)
+        out.append(
+            {
+                "model": model,
+                "status": row.status,
+                "rel_l2": row.rel_l2,
+                "step_us": row.step_us,
+                "dt": row.dt,
+                "model_part": (row.error_budget or {}).get("model"),
+                "largest_stable_dt": None if stable is None else stable["stable"] * stable["dt_crit"],
+                "first_diverged_dt": None if stable is None else stable["unstable"] * stable["dt_crit"],
+            }
+        )
+        line(f"engines {scene.name}: built-in {model}: {_state(row)}")
+    return out
+
+
+def engines_study(scene: Scene, models=None, use_cache: bool = True, comm=None, builtin: bool = False) -> dict:
     """The study (module docstring): its rows, each model's summary, the mesh's own error (the P1 solution
-    of the scene's law on its mesh against the reference: what every engine on this mesh pays)."""
+    of the scene's law on its mesh against the reference: what every engine on this mesh pays); with
+    ``builtin``, the built-in models measured in the same run (``builtin_beside``)."""
     pairs = adapter_models(models)
     rank, size = (comm.rank, comm.size) if comm is not None else (0, 1)
     ref = reference_result(scene, **REFERENCE_DEFAULTS)
@@ -106,6 +156,7 @@ def engines_study(scene: Scene, models=None, use_cache: bool = True, comm=None) 
         rows = sorted((r for part in gathered for r in part), key=lambda ir: ir[1].plan_index)
     return {
         "scene": scene.name,
+        "builtin": builtin_beside(scene, ref, use_cache) if builtin else [],
         "reference_estimate": ref.meta.get("ref_err_estimate"),
         "mesh_error": mesh_part,
         "runs": [{"knob": item["knob"], "options": item["options"], **row.to_json()} for item, row in rows],
@@ -114,10 +165,12 @@ def engines_study(scene: Scene, models=None, use_cache: bool = True, comm=None) 
 
 
 def _knob_value(item: dict) -> str:
-    return f"{item['dt']:.3g} s" if item["knob"] == "dt" else str(item["options"]["iterations"])
+    return str(item["options"]["iterations"]) if item["knob"] == "iterations" else f"{item['dt']:.3g} s"
 
 
 def _state(row: Row) -> str:
+    if row.message and row.message.startswith(f"{STABLE_STEPS} plain steps"):
+        return row.message
     if not row.ok:
         return row.status
     return f"rel_l2 {row.rel_l2:.3g}" + (f", {row.step_us:.4g} us" if row.step_us is not None else "")
@@ -126,18 +179,27 @@ def _state(row: Row) -> str:
 def _summary(model: str, runs: list[tuple[dict, Row]]) -> dict:
     """One model's answers: the largest stable step (and the smallest diverged above it), its best run,
     and whether its answer depends on the iteration count."""
-    steps = sorted((r.dt, r) for i, r in runs if i["knob"] == "dt")
-    stable = [dt for dt, r in steps if r.status != "diverged"]
+    probes = sorted((r.dt, r.ok) for i, r in runs if i["knob"] == "stability")
+    stable = [dt for dt, held in probes if held]
     largest = max(stable) if stable else None
-    above = [dt for dt, r in steps if r.status == "diverged" and (largest is None or dt > largest)]
-    ok = [r for _, r in runs if r.ok]
+    above = [dt for dt, held in probes if not held and (largest is None or dt > largest)]
+    settles = [r.dt for i, r in runs if i["knob"] == "dt" and r.ok]
+    ok = [r for i, r in runs if r.ok and i["knob"] != "stability"]
     best = min(ok, key=lambda r: r.rel_l2) if ok else None
     out = {
         "model": model,
         "engine": (best.engine if best else None),
         "largest_stable_dt": largest,
         "first_diverged_dt": min(above) if above else None,
-        "best": None if best is None else {"rel_l2": best.rel_l2, "dt": best.dt, "step_us": best.step_us},
+        "largest_settling_dt": max(settles) if settles else None,
+        "best": None
+        if best is None
+        else {
+            "rel_l2": best.rel_l2,
+            "dt": best.dt,
+            "step_us": best.step_us,
+            "model_part": (best.error_budget or {}).get("model"),
+        },
         "iterations": None,
     }
     by_count = sorted((i["options"]["iterations"], r) for i, r in runs if i["knob"] == "iterations")
@@ -178,10 +240,24 @@ def format_engines(out: dict) -> str:
             "  largest stable step: "
             + (f"{big:.3g} s" if big else "none of the steps tried")
             + (f" (diverged at {bad:.3g} s)" if bad else " (none tried diverged)")
+            + (
+                f"; its static answer reached up to {s['largest_settling_dt']:.3g} s"
+                if s["largest_settling_dt"]
+                else ""
+            )
         )
         if s["best"]:
             b = s["best"]
-            lines.append(f"  best: rel_l2 {b['rel_l2']:.3g} at dt {b['dt']:.3g} s, {b['step_us']:.4g} us a step")
+            own = b.get("model_part")
+            lines.append(
+                f"  best: rel_l2 {b['rel_l2']:.3g} at dt {b['dt']:.3g} s, {b['step_us']:.4g} us a step"
+                + (f"; its distance from P1 on the same mesh {own:.3g}" if own is not None else "")
+                + (
+                    " (below the mesh's own error: right for a wrong reason)"
+                    if own and mesh and b["rel_l2"] < mesh and own > mesh / 2
+                    else ""
+                )
+            )
         it = s["iterations"]
         if it:
             counts = ", ".join(f"{k}: {v if isinstance(v, str) else f'{v:.3g}'}" for k, v in it["rel_l2"].items())
@@ -192,9 +268,25 @@ def format_engines(out: dict) -> str:
                 else ""
             )
             lines.append(f"  rel_l2 by iterations at {ITERATION_DT:g} s: {counts}; answer {d['verdict']}{why}")
+    if out.get("builtin"):
+        lines.append("\nthe built-in models, in the same run (their default step; largest stable by the same probe):")
+        for b in out["builtin"]:
+            if b["status"] != "ok":
+                lines.append(f"  {b['model']:<22} {b['status']}")
+                continue
+            big = "quasi-static" if b["largest_stable_dt"] is None else f"largest stable {b['largest_stable_dt']:.3g} s"
+            lines.append(f"  {b['model']:<22} rel_l2 {b['rel_l2']:.4g}  {b['step_us']:.4g} us  {big}")
     lines.append("\nruns:")
     for r in out["runs"]:
         knob = f"iterations {r['options']['iterations']}" if r["knob"] == "iterations" else f"dt {r['dt']:.3g} s"
-        state = f"rel_l2 {r['rel_l2']:.4g}  {r['step_us']:.4g} us" if r["status"] == "ok" else r["status"]
+        if r["knob"] == "stability":
+            state = f"probe: {'stable' if r['status'] == 'ok' else 'diverged at step ' + str(r['step'])}"
+        elif r["status"] == "ok":
+            model = (r.get("error_budget") or {}).get("model")
+            state = f"rel_l2 {r['rel_l2']:.4g}  {r['step_us']:.4g} us" + (
+                f"  (model part {model:.3g})" if model is not None else ""
+            )
+        else:
+            state = r["status"]
         lines.append(f"  {r['model']:<22} {knob:<18} {state}")
     return "\n".join(lines)
