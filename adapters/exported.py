@@ -173,6 +173,11 @@ class Stepper:
 
     epsilon: float = float(np.finfo(np.float64).eps)
 
+    def unstable(self) -> bool:
+        """Whether the engine itself found its state unstable (MuJoCo resets to rest when it does, which
+        no displacement shows)."""
+        return False
+
     def step(self, dt: float) -> None: ...
 
     def positions(self) -> np.ndarray: ...
@@ -221,8 +226,9 @@ def _impose(engine: Stepper, scene: Exported, held: np.ndarray, target: np.ndarr
     engine.set_velocities(v)
 
 
-def _blown(u: np.ndarray, size: float) -> bool:
-    return not np.all(np.isfinite(u)) or float(np.abs(u).max()) > 10.0 * size
+def _blown(u: np.ndarray, size: float, engine: Stepper) -> bool:
+    """Diverged: a displacement that is not finite or over ten times the body, or the engine says so."""
+    return not np.all(np.isfinite(u)) or float(np.abs(u).max()) > 10.0 * size or engine.unstable()
 
 
 def relax(
@@ -254,7 +260,7 @@ def relax(
         if n % check:
             continue
         u = engine.positions() - scene.points
-        if _blown(u, scene.size):
+        if _blown(u, scene.size, engine):
             return {"u": u, "steps": n, "dt": dt, "step_us": clock.us(), "diverged": 1, "diverged_at": n * dt}
         past = [(k, p) for k, p in past if k >= (3 * n) // 4 - check] + [(n, u)]
         change = float(np.abs(u - past[0][1]).max())
@@ -305,7 +311,7 @@ def probe(engine: Stepper, scene: Exported, dt: float, steps: int, progress) -> 
         clock.timed(engine.step, dt)
         if n % 50 == 0 or n == steps:
             u = engine.positions() - scene.points
-            if _blown(u, scene.size):
+            if _blown(u, scene.size, engine):
                 return {"u": u, "steps": n, "dt": dt, "step_us": clock.us(), "diverged": 1, "diverged_at": n * dt}
         if n % 1000 == 0:
             progress(f"stability probe: step {n} of {steps}")
@@ -326,7 +332,7 @@ def trajectory(engine: Stepper, scene: Exported, dt: float, progress) -> dict:
         while k < len(times) and t >= times[k] - 1e-9 * dt:
             _impose(engine, scene, held, scene.prescribed(times[k]), np.zeros_like(scene.points))
             u = engine.positions() - scene.points
-            if _blown(u, scene.size):
+            if _blown(u, scene.size, engine):
                 return {"u": np.array(out + [u]), "steps": n, "dt": dt, "step_us": clock.us(), "diverged": 1,
                         "diverged_at": t}  # fmt: skip
             out.append(u)

@@ -126,6 +126,13 @@ class MujocoStepper(Stepper):
         self.x[i, c] = self.rest[i, c] + self.data.qpos[qa]
         self.v[i, c] = self.data.qvel[da]
 
+    def unstable(self) -> bool:
+        """MuJoCo's own verdict: a bad acceleration, position or velocity makes it warn and reset the state
+        to rest (mjWARN_BADQACC, BADQPOS, BADQVEL), which the positions alone would take for an answer."""
+        w = self.mj.mjtWarning
+        bad = (w.mjWARN_BADQACC, w.mjWARN_BADQPOS, w.mjWARN_BADQVEL)
+        return any(self.data.warning[int(k)].number > 0 for k in bad)
+
     def positions(self) -> np.ndarray:
         return self.x.copy()
 

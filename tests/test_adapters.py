@@ -205,3 +205,22 @@ def test_the_plan_gives_each_solver_its_knobs():
     assert max(p["dt"] for p in explicit) / min(p["dt"] for p in explicit) == pytest.approx(16.0)
     assert {p["knob"] for p in vbd} == {"dt", "iterations"}
     assert [p["options"]["iterations"] for p in vbd if p["knob"] == "iterations"] == [1, 2, 5, 10, 20, 50]
+
+
+@needs_engines
+def test_engines_finds_mujoco_eulers_stable_step_where_the_p1_critical_step_is(capsys):
+    """tissuebench engines on MuJoCo's explicit flex: the same P1 StVK as ours with the same lumped masses,
+    so its largest stable step sits where the scene mesh's explicit critical step is (the grid brackets
+    it within a factor of 2: stable at 0.5 or 1 of it, diverged by 4 of it), and every answer it reaches
+    is P1's (its model part below 1e-5, as for the discrete integrator)."""
+    code = main(["engines", "cantilever", "--engine", "mujoco", "--models", "mujoco-flex-euler", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 0
+    (s,) = out["summary"]
+    dts = sorted({r["dt"] for r in out["runs"]})
+    dt_crit = dts[2]  # the grid is 0.25, 0.5, 1, 2, 4 of it
+    assert s["largest_stable_dt"] in (pytest.approx(0.5 * dt_crit), pytest.approx(dt_crit))
+    assert s["first_diverged_dt"] is not None and s["first_diverged_dt"] <= 4.0 * dt_crit * (1 + 1e-9)
+    answers = [r for r in out["runs"] if r["knob"] == "dt" and r["status"] == "ok"]
+    assert answers and all(r["error_budget"]["model"] < 1e-5 for r in answers)
+    assert out["mesh_error"] == pytest.approx(answers[0]["error_budget"]["mesh"])
