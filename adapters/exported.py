@@ -101,6 +101,13 @@ class Exported:
         rho = np.array([m["density_kg_m3"] for m in mats])[pick]
         return lam, mu, rho
 
+    @property
+    def damping(self) -> tuple[float, float]:
+        """Rayleigh damping of a dynamic scene: (alpha 1/s, mass-proportional; beta s, stiffness-
+        proportional); (0, 0) for a static one."""
+        t = self.spec["time"]
+        return float(t.get("damping_mass_per_s") or 0.0), float(t.get("damping_stiffness_s") or 0.0)
+
     def volumes(self) -> np.ndarray:
         """(M,) m^3: each tetrahedron's volume."""
         x = self.points[self.tets]

@@ -11,8 +11,12 @@ when it is StVK; a linear scene is mapped to it (the same at small strain), and 
 - a free vertex's body carries a slide joint along each axis it may move on (a vertex held in some
   components only keeps the others), with the vertex's lumped mass (rho V / 4 of each tetrahedron it is
   in) and a negligible inertia;
-- a held vertex is the world's; a vertex a tool drives is a mocap body, moved to the tool's place before
-  every step, as MuJoCo moves kinematic bodies;
+- a held vertex is the world's; a vertex a tool drives is a body ``DRIVEN_MASS`` times heavier, put at the
+  tool's place with the tool's velocity before every step (MuJoCo refuses mocap bodies in an elastic
+  flex);
+- a dynamic scene's Rayleigh damping: the stiffness-proportional part is the elasticity's ``damping``
+  (documented as Rayleigh's coefficient, in seconds); the mass-proportional part is applied after every
+  step (v / (1 + alpha dt), implicit), MuJoCo refusing joint damping on a flex's vertex bodies;
 - gravity and loads arrive as the exported nodal forces (``xfrc_applied`` on each vertex's body); MuJoCo's
   gravity is off, and so are contacts (none acts in a scene);
 - the solver knob is MuJoCo's integrator: ``discrete`` (MuJoCo 4's velocity-stepping integrator, the one
@@ -27,10 +31,14 @@ import numpy as np
 from exported import RELAX_FRACTION, AdapterError, Exported, Stepper, drive, main
 
 SOLVERS = ("discrete", "Euler")
+#: A tool's vertex is a body this many times its lumped mass: the tissue's forces barely move it within a
+#: step, and its place and velocity are the tool's again before the next (MuJoCo takes no mocap body in
+#: an elastic flex, nor joint damping on a flex's bodies).
+DRIVEN_MASS = 1e4
 
 
 def mjcf(scene: Exported, solver: str, dt: float) -> tuple[str, list, list]:
-    """The model's XML, and for every vertex its body's kind ("free", "world", "mocap")."""
+    """The model's XML, and for every vertex its body's kind ("free", "world", "driven")."""
     mats = scene.spec["materials"]
     if len(mats) > 1:
         raise AdapterError("MuJoCo's flex takes one elasticity per flex; this scene has several materials")
@@ -40,29 +48,26 @@ def mjcf(scene: Exported, solver: str, dt: float) -> tuple[str, list, list]:
     driven = np.zeros(len(scene.points), bool)
     driven[scene.tool_vertex] = True
     m = scene.lumped_masses()
+    beta = scene.damping[1]
     bodies, names, kinds = [], [], []
     for i, p in enumerate(scene.points):
         xyz = " ".join(f"{c:.17g}" for c in p)
-        if driven[i]:
-            names.append(f"v{i}")
-            kinds.append("mocap")
-            bodies.append(f'<body name="v{i}" pos="{xyz}" mocap="true"/>')
-        elif held[i].all():
+        if held[i].all() and not driven[i]:
             names.append("world")
             kinds.append("world")
-        else:
-            names.append(f"v{i}")
-            kinds.append("free")
-            joints = "".join(
-                f'<joint type="slide" axis="{" ".join("1" if a == c else "0" for a in range(3))}"/>'
-                for c in range(3)
-                if not held[i, c]
-            )
-            inertia = max(m[i] * 1e-6, 1e-12)  # no rotation dof: any inertia MuJoCo accepts
-            bodies.append(
-                f'<body name="v{i}" pos="{xyz}"><inertial pos="0 0 0" mass="{m[i]:.17g}" '
-                f'diaginertia="{inertia:.3g} {inertia:.3g} {inertia:.3g}"/>{joints}</body>'
-            )
+            continue
+        names.append(f"v{i}")
+        kinds.append("driven" if driven[i] else "free")
+        axes = range(3) if driven[i] else [c for c in range(3) if not held[i, c]]
+        joints = "".join(
+            f'<joint type="slide" axis="{" ".join("1" if a == c else "0" for a in range(3))}"/>' for c in axes
+        )
+        mass = m[i] * (DRIVEN_MASS if driven[i] else 1.0)
+        inertia = max(mass * 1e-6, 1e-12)  # no rotation dof: any inertia MuJoCo accepts
+        bodies.append(
+            f'<body name="v{i}" pos="{xyz}"><inertial pos="0 0 0" mass="{mass:.17g}" '
+            f'diaginertia="{inertia:.3g} {inertia:.3g} {inertia:.3g}"/>{joints}</body>'
+        )
     vertex = " ".join(
         " ".join(f"{c:.17g}" for c in (p if kinds[i] == "world" else (0.0, 0.0, 0.0)))
         for i, p in enumerate(scene.points)
@@ -77,7 +82,7 @@ def mjcf(scene: Exported, solver: str, dt: float) -> tuple[str, list, list]:
   <deformable>
     <flex name="body" dim="3" radius="0" body="{" ".join(names)}" vertex="{vertex}" element="{element}">
       <contact contype="0" conaffinity="0"/>
-      <elasticity young="{mat["young_pa"]:.17g}" poisson="{mat["poisson"]:.17g}"/>
+      <elasticity young="{mat["young_pa"]:.17g}" poisson="{mat["poisson"]:.17g}" damping="{beta:.17g}"/>
     </flex>
   </deformable>
 </mujoco>"""
@@ -85,8 +90,8 @@ def mjcf(scene: Exported, solver: str, dt: float) -> tuple[str, list, list]:
 
 
 class MujocoStepper(Stepper):
-    """MuJoCo's model and data behind the driver's calls: positions are read from the flex's vertices
-    (``flexvert_xpos``), and written through the joints (free) and the mocap bodies (driven)."""
+    """MuJoCo's model and data behind the driver's calls: a vertex's position and velocity are its body's
+    joints' (qpos, qvel; the free and the driven vertices), the world's vertices stay where they are."""
 
     def __init__(self, scene: Exported, solver: str, dt: float, substeps: int):
         import mujoco
@@ -103,25 +108,26 @@ class MujocoStepper(Stepper):
         self.body = np.array(body)
         # each free vertex's joints: (vertex, component, qpos address, dof address)
         self.joints = []
-        for i in np.flatnonzero(self.kinds == "free"):
+        for i in np.flatnonzero(self.kinds != "world"):
             b = self.body[i]
             for j in range(self.model.body_jntadr[b], self.model.body_jntadr[b] + self.model.body_jntnum[b]):
                 c = int(np.argmax(np.abs(self.model.jnt_axis[j])))
                 self.joints.append((i, c, self.model.jnt_qposadr[j], self.model.jnt_dofadr[j]))
         self.joints = np.array(self.joints, dtype=np.int64).reshape(-1, 4)
-        self.mocap = np.array([self.model.body_mocapid[b] for b in self.body])
-        driven = np.flatnonzero(self.kinds == "mocap")
-        self.driven = driven
         free = np.flatnonzero(self.kinds == "free")
         self.data.xfrc_applied[self.body[free], :3] = scene.external_force[free]
         self.mass = scene.lumped_masses()
+        self.alpha = scene.damping[0]
         self.x = scene.points.copy()
         self.v = np.zeros_like(scene.points)
         mujoco.mj_forward(self.model, self.data)
 
     def step(self, dt: float) -> None:
+        h = dt / self.substeps
         for _ in range(self.substeps):
             self.mj.mj_step(self.model, self.data)
+            if self.alpha:
+                self.data.qvel[self.joints[:, 3]] /= 1.0 + self.alpha * h
         i, c, qa, da = self.joints.T
         self.x[i, c] = self.rest[i, c] + self.data.qpos[qa]
         self.v[i, c] = self.data.qvel[da]
@@ -139,8 +145,6 @@ class MujocoStepper(Stepper):
     def set_positions(self, x: np.ndarray) -> None:
         i, c, qa, _ = self.joints.T
         self.data.qpos[qa] = x[i, c] - self.rest[i, c]
-        if len(self.driven):
-            self.data.mocap_pos[self.mocap[self.driven]] = x[self.driven]
         self.x = x.copy()
 
     def velocities(self) -> np.ndarray:

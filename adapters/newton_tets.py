@@ -18,7 +18,10 @@ the external ones set before each step):
   mu/2 (tr(F^T F) - 3)^2 V, has no shear stiffness at small strain; the Lame constants are passed as its
   docstring asks, and the judge measures what follows.
 
-Every law of the scene (linear, StVK) is mapped to that solver's Neo-Hookean; the result says which.
+Every law of the scene (linear, StVK) is mapped to that solver's Neo-Hookean; the result says which. A
+dynamic scene's mass-proportional damping is applied after every step (v / (1 + alpha dt), implicit);
+its stiffness-proportional damping has no exact counterpart in newton's per-tetrahedron k_damp and is
+left out, which the result's law says.
 Held vertices are made inactive (newton keeps them where they are); vertices held in some components only
 are put back in those after every step. The scene's gravity and loads come as the exported nodal forces
 (newton's own gravity is off). The engine runs in float32, as newton does.
@@ -83,6 +86,7 @@ class NewtonStepper(Stepper):
         self.model, self.control = model, model.control()
         self.states = [model.state(), model.state()]
         self.force = scene.external_force.astype(np.float32)
+        self.alpha = scene.damping[0]
         self.mass = model.particle_mass.numpy().astype(float)
         self.rest = scene.points
 
@@ -94,6 +98,8 @@ class NewtonStepper(Stepper):
             s0.particle_f.assign(self.force)
             self.solver.step(s0, s1, self.control, None, h)
             self.states.reverse()
+            if self.alpha:  # the scene's mass-proportional damping, implicit: v / (1 + alpha h)
+                self.set_velocities(self.velocities() / (1.0 + self.alpha * h))
         if self.partial.any():  # components held alone: put back after the step
             x, v = self.positions(), self.velocities()
             x[self.partial], v[self.partial] = self._held_x[self.partial], 0.0
@@ -138,6 +144,8 @@ def run(scene: Exported, args, progress):
         "vbd": "stable Neo-Hookean (Smith et al. 2018) with the Lame constants",
         "xpbd": "XPBD constraints tr(F^T F) - 3 and det F - 1, compliances 1/(V mu), 1/(V lambda)",
     }[args.solver]
+    if scene.damping[1]:
+        law += "; the scene's stiffness-proportional damping left out"
     result = drive(engine, scene, args, dt, progress)
     result["iterations"] = args.iterations if args.solver != "semi-implicit" else None
     result["substeps"] = args.substeps
