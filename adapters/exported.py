@@ -17,7 +17,8 @@ from rest and must stay where it is (``HOLD``). A dynamic scene is run
 from rest to its end, and sampled at its output instants; the tools' prescribed displacements come from
 the export at those instants, linearly interpolated in between.
 
-The result's keys: ``displacement`` (T, N, 3) m at the scene's vertices; ``step_us`` (us per step of the
+The result's keys: ``displacement`` (T, N, 3) m at the scene's vertices; ``reaction`` (T, 3) N, the tools'
+force on the body, where the engine gives its internal force (``tool_force``); ``step_us`` (us per step of the
 engine's own step call, median over the run's batches); ``dt`` s; ``steps``; ``diverged`` (1 when the run
 blew up, and ``diverged_at`` s); ``settled`` (0 when a static run hit its step limit); ``law`` (the
 engine's law the scene's was mapped to, in words); ``engine`` (name and version).
@@ -180,6 +181,11 @@ class Stepper:
 
     epsilon: float = float(np.finfo(np.float64).eps)
 
+    def internal_force(self) -> np.ndarray | None:
+        """(N, 3) N: the engine's elastic force on each vertex at its present state (minus its energy's
+        gradient), for the tools' force; None where the engine does not give its own law's."""
+        return None
+
     def unstable(self) -> bool:
         """Whether the engine itself found its state unstable (MuJoCo resets to rest when it does, which
         no displacement shows)."""
@@ -231,6 +237,17 @@ def _impose(engine: Stepper, scene: Exported, held: np.ndarray, target: np.ndarr
     v[held] = velocity[held]
     engine.set_positions(x)
     engine.set_velocities(v)
+
+
+def tool_force(engine: Stepper, scene: Exported) -> np.ndarray | None:
+    """(3,) N: the force the tools exert on the body, -(f_int + f_ext) on the components they prescribe,
+    summed (the reference's and the built-in models' definition; in a dynamic run the quasi-static part,
+    a tool vertex's own inertia left out); None without the engine's internal force."""
+    f = engine.internal_force()
+    if f is None or len(scene.tool_vertex) == 0:
+        return None
+    total = f + scene.external_force
+    return -(total[scene.tool_vertex] * scene.tool_mask).sum(axis=0)
 
 
 def _blown(u: np.ndarray, size: float, engine: Stepper) -> bool:
@@ -294,13 +311,16 @@ def _held(engine: Stepper, scene: Exported, u: np.ndarray, dt: float, run: dict)
     It runs HOLD_STEPS steps with no damping; if the displacement then moves by more than HOLD of its
     largest value, the state is no equilibrium of the engine at this step (an iterative solver that does
     not converge per step can stall the relaxation away from it) and the run is "not settled"."""
-    held = scene.held()
-    _impose(engine, scene, held, scene.prescribed(0.0), np.zeros_like(u))
-    engine.set_velocities(np.zeros_like(u))
+    held, still = scene.held(), np.zeros_like(u)
+    engine.set_velocities(still)
     for _ in range(HOLD_STEPS):
+        _impose(engine, scene, held, scene.prescribed(0.0), still)  # the tools stay where they are
         engine.step(dt)
     drift = float(np.abs(engine.positions() - scene.points - u).max() / max(np.abs(u).max(), 1e-300))
-    return {"u": u, **run, "settled": int(drift <= HOLD), "hold_drift": drift, "hold_steps": HOLD_STEPS}
+    out = {"u": u, **run, "settled": int(drift <= HOLD), "hold_drift": drift, "hold_steps": HOLD_STEPS}
+    engine.set_positions(scene.points + u)  # the relaxed state, for its tools' force
+    engine.set_velocities(np.zeros_like(u))
+    return {**out, "reaction": tool_force(engine, scene)}
 
 
 def probe(engine: Stepper, scene: Exported, dt: float, steps: int, progress) -> dict:
@@ -330,6 +350,7 @@ def trajectory(engine: Stepper, scene: Exported, dt: float, progress) -> dict:
     held, times = scene.held(), scene.output_times
     n_total = int(np.ceil(times[-1] / dt - 1e-9))
     clock, out, t, k = _Clock(), [np.zeros_like(scene.points)], 0.0, 1
+    forces = [tool_force(engine, scene)]
     for n in range(1, n_total + 1):
         t_next = min(n * dt, times[-1])
         h = t_next - t
@@ -343,10 +364,12 @@ def trajectory(engine: Stepper, scene: Exported, dt: float, progress) -> dict:
                 return {"u": np.array(out + [u]), "steps": n, "dt": dt, "step_us": clock.us(), "diverged": 1,
                         "diverged_at": t}  # fmt: skip
             out.append(u)
+            forces.append(tool_force(engine, scene))
             k += 1
         if n % 2000 == 0:
             progress(f"t = {t:.4g} of {times[-1]:g} s")
-    return {"u": np.array(out), "steps": n_total, "dt": dt, "step_us": clock.us()}
+    reaction = None if any(f is None for f in forces) else np.array(forces)
+    return {"u": np.array(out), "steps": n_total, "dt": dt, "step_us": clock.us(), "reaction": reaction}
 
 
 def write(path: str | Path, scene: Exported, run: dict, law: str, engine: str) -> None:

@@ -132,6 +132,15 @@ class MujocoStepper(Stepper):
         self.x[i, c] = self.rest[i, c] + self.data.qpos[qa]
         self.v[i, c] = self.data.qvel[da]
 
+    def internal_force(self) -> np.ndarray:
+        """The flex's elastic force on each vertex: its joints' passive force (``qfrc_passive``; a slide
+        joint's generalised force is the Cartesian component), at the present state."""
+        self.mj.mj_forward(self.model, self.data)
+        f = np.zeros_like(self.rest)
+        i, c, _, da = self.joints.T
+        f[i, c] = self.data.qfrc_passive[da]
+        return f
+
     def unstable(self) -> bool:
         """MuJoCo's own verdict: a bad acceleration, position or velocity makes it warn and reset the state
         to rest (mjWARN_BADQACC, BADQPOS, BADQVEL), which the positions alone would take for an answer."""

@@ -47,7 +47,7 @@ class NewtonStepper(Stepper):
         wp.config.quiet = True
         import newton
 
-        self.wp, self.substeps = wp, substeps
+        self.wp, self.substeps, self.kind = wp, substeps, solver
         lam, mu, rho = scene.lame()
         if len(set(rho.tolist())) > 1:
             raise AdapterError("newton's add_soft_mesh takes one density per body; this scene has several")
@@ -105,6 +105,18 @@ class NewtonStepper(Stepper):
             x[self.partial], v[self.partial] = self._held_x[self.partial], 0.0
             self.set_positions(x)
             self.set_velocities(v)
+
+    def internal_force(self) -> np.ndarray | None:
+        """The semi-implicit solver's own tetrahedral force (``eval_tetrahedra_forces``, the law it steps
+        with) at the present state; None for VBD and XPBD, whose laws that kernel is not."""
+        if self.kind != "semi-implicit":
+            return None
+        from newton._src.solvers.semi_implicit.solver_semi_implicit import eval_tetrahedra_forces
+
+        state = self.states[0]
+        f = self.wp.zeros_like(state.particle_f)
+        eval_tetrahedra_forces(self.model, state, self.control, f)
+        return f.numpy().astype(float)
 
     def positions(self) -> np.ndarray:
         return self.states[0].particle_q.numpy().astype(float)

@@ -201,9 +201,11 @@ def test_the_plan_gives_each_solver_its_knobs():
     plan = engines_plan(load_scene("cantilever"), pairs)
     explicit = [p for p in plan if p["model"] == "newton-semi-implicit"]
     vbd = [p for p in plan if p["model"] == "newton-vbd"]
-    assert all(p["knob"] == "dt" for p in explicit) and len(explicit) == 5
-    assert max(p["dt"] for p in explicit) / min(p["dt"] for p in explicit) == pytest.approx(16.0)
-    assert {p["knob"] for p in vbd} == {"dt", "iterations"}
+    # each step run for its answer and probed for its stability, on one grid
+    steps = [p["dt"] for p in explicit if p["knob"] == "dt"]
+    assert steps == [p["dt"] for p in explicit if p["knob"] == "stability"] and len(explicit) == 10
+    assert max(steps) / min(steps) == pytest.approx(16.0)
+    assert {p["knob"] for p in vbd} == {"dt", "stability", "iterations"}
     assert [p["options"]["iterations"] for p in vbd if p["knob"] == "iterations"] == [1, 2, 5, 10, 20, 50]
 
 
@@ -238,3 +240,17 @@ def test_a_dynamic_scene_through_an_adapter(capsys):
     b = row["error_budget"]
     assert b["model"] < 0.02 and b["time"] < 0.01 and b["dominant"] == "mesh"
     assert row["dt"] == pytest.approx(1e-3) and row["engine"]["engine"].startswith("MuJoCo")
+
+
+@needs_engines
+def test_the_tools_force_through_an_adapter_is_p1s(capsys):
+    """cantilever-pull through MuJoCo's explicit flex: the tool's force, -(f_int + f_ext) on the components
+    it prescribes with MuJoCo's own elastic force (qfrc_passive), is the built-in StVK model's on the same
+    mesh (the same P1 StVK at the same equilibrium): its error against the reference agrees to 1e-4
+    relatively, the relaxation's tolerance."""
+    code = main(["compare", "cantilever-pull", "--engine", "mujoco", "--model", "mujoco-flex-euler", "--json"])
+    row = json.loads(capsys.readouterr().out)
+    assert code == 0 and row["status"] == "ok" and row["error_budget"]["model"] < 1e-5
+    assert main(["compare", "cantilever-pull", "--model", "stvk-tm", "--json"]) == 0
+    ours = json.loads(capsys.readouterr().out)
+    assert row["reaction_rel_err"] == pytest.approx(ours["reaction_rel_err"], rel=1e-4)
