@@ -254,3 +254,18 @@ def test_the_tools_force_through_an_adapter_is_p1s(capsys):
     assert main(["compare", "cantilever-pull", "--model", "stvk-tm", "--json"]) == 0
     ours = json.loads(capsys.readouterr().out)
     assert row["reaction_rel_err"] == pytest.approx(ours["reaction_rel_err"], rel=1e-4)
+
+
+@needs_engines
+def test_a_gate_holds_an_adapters_model(tmp_path, monkeypatch):
+    """A CI gate on MuJoCo's flex (``engine = "mujoco"``): measured through the adapter, passed under a bound
+    above P1's error on this mesh (0.284) and failed under one below it, saying by how much."""
+    from verification import engines
+    from verification.studies.gates import run_gates
+
+    monkeypatch.setattr(engines, "ENGINES", dict(engines.ENGINES))
+    gate = '[[gate]]\nscene = "cantilever"\nmodel = "mujoco-flex"\nengine = "mujoco"\nmetric = "rel_l2"\n'
+    (tmp_path / "gates.toml").write_text(gate + "bound = 0.3\n\n" + gate + "bound = 0.2\n")
+    loose, tight = run_gates(tmp_path / "gates.toml", use_cache=True, baselines=False)
+    assert loose["passed"] and not tight["passed"]
+    assert loose["value"] == pytest.approx(0.2838, abs=1e-3) and "exceeds the bound 0.2" in tight["why"]
