@@ -232,7 +232,7 @@ def format_engines(out: dict) -> str:
     if mesh is not None:
         lines.append(f"  the mesh's own error (P1 on this mesh, what every engine here pays): {mesh:.3g}")
     for s in out["summary"]:
-        lines.append(f"\n{s['model']}: {(s['engine'] or {}).get('engine', '')}")
+        lines.append(f"\n{s['model']}: {(s['engine'] or {}).get('engine', 'no run reached an answer')}")
         if s["engine"]:
             lines.append(f"  law: {s['engine'].get('law')}")
         big, bad = s["largest_stable_dt"], s["first_diverged_dt"]
