@@ -269,3 +269,24 @@ def test_a_gate_holds_an_adapters_model(tmp_path, monkeypatch):
     loose, tight = run_gates(tmp_path / "gates.toml", use_cache=True, baselines=False)
     assert loose["passed"] and not tight["passed"]
     assert loose["value"] == pytest.approx(0.2838, abs=1e-3) and "exceeds the bound 0.2" in tight["why"]
+
+
+@needs_engines
+def test_the_advisor_names_each_adapters_step_error_and_verdict(monkeypatch):
+    """advise with two of the engines users pick among the candidates: each named with its measured step,
+    its step time, its error and why it qualifies or not; the command that re-runs the pick registers its
+    engine (--engine mujoco)."""
+    from verification import engines
+    from verification.studies.advise import advise
+    from verification.scene_file import load_scene
+
+    monkeypatch.setattr(engines, "ENGINES", dict(engines.ENGINES))
+    engines.load_engine("mujoco")
+    scene = load_scene("cantilever")
+    out = advise(scene, tol=0.5, rate=60.0, models=("mujoco-flex", "mujoco-flex-euler"))
+    picks = {c["model"]: c for c in out["candidates"]}
+    for model in ("mujoco-flex", "mujoco-flex-euler"):
+        c = picks[model]
+        assert c["step_us"] > 0.0 and c["dt"] > 0.0 and c["rel_l2"] == pytest.approx(0.2838, abs=1e-3)
+        assert c["why"].startswith(model) and isinstance(c["qualifies"], bool)
+    assert out["model"] in picks and "--engine mujoco" in out["command"]
