@@ -277,8 +277,8 @@ def test_the_advisor_names_each_adapters_step_error_and_verdict(monkeypatch):
     its step time, its error and why it qualifies or not; the command that re-runs the pick registers its
     engine (--engine mujoco)."""
     from verification import engines
-    from verification.studies.advise import advise
     from verification.scene_file import load_scene
+    from verification.studies.advise import advise
 
     monkeypatch.setattr(engines, "ENGINES", dict(engines.ENGINES))
     engines.load_engine("mujoco")

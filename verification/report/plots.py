@@ -19,6 +19,9 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
 from verification.runs.row import Row  # noqa: E402
 
+#: The markers of the error-against-speed plot's series, in turn.
+MARKERS = "os^Dv<>pPXh*"
+
 
 def png(fig) -> str:
     """The figure as base64 PNG text; the figure is closed."""
@@ -68,9 +71,11 @@ def plot_error_vs_speed(rows: list[Row], ref_est: float | None, title: str) -> s
     ones), the Pareto front as a staircase."""
     fig, ax = plt.subplots(figsize=(7.2, 4.6))
     ok = [r for r in rows if r.ok and r.step_us is not None]  # timed: a plug-in may report no step time
-    for model in sorted({r.model for r in ok}):
+    colours = plt.get_cmap("tab20").colors
+    for k, model in enumerate(sorted({r.model for r in ok})):  # colour and marker: no two series alike
         pts = sorted((r for r in ok if r.model == model), key=lambda r: r.step_us)
-        ax.loglog([r.step_us for r in pts], [max(r.rel_l2, 1e-16) for r in pts], "o", label=model, alpha=0.8)
+        ax.loglog([r.step_us for r in pts], [max(r.rel_l2, 1e-16) for r in pts], MARKERS[k % len(MARKERS)],
+                  color=colours[(2 * k) % 20 + (k // 10) % 2], label=model, alpha=0.85)  # fmt: skip
         for r in pts:
             ax.annotate(
                 _step_label(r), (r.step_us, max(r.rel_l2, 1e-16)), textcoords="offset points", xytext=(4, 3), fontsize=7
