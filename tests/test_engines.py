@@ -160,6 +160,35 @@ class Hangs(_Spoilt):
         return u
 
 
+class Segfaults(_Spoilt):
+    def build(self, inputs, model, integrator, options):
+        import ctypes
+
+        ctypes.string_at(0)  # reads address 0: the interpreter dies of SIGSEGV, at once
+
+
+class HangsInC(_Spoilt):
+    def spoil(self, u):
+        import numba
+
+        @numba.njit
+        def spin(n):  # compiled: no Python bytecode for a signal handler to interrupt
+            k = 0
+            while n > 0:
+                k = (k + 1) % 7
+            return k
+
+        spin(1)
+        return u
+
+
+class Diverges(_Spoilt):
+    def spoil(self, u):
+        from realtime import DivergenceError
+
+        raise DivergenceError("spoilt", 12, 1e-4, 2e-4, "its own integrator")
+
+
 class NotAnEngine:
     name = "not-an-engine"
 
@@ -187,6 +216,8 @@ def test_a_plug_in_engine_named_on_the_command_line(monkeypatch, capsys):
         ("tests.test_engines:WrongShape", ("its displacement is (1, 553, 3), not (1, 554, 3)",)),
         ("tests.test_engines:InMillimetres", ("over 10 times the body", "is it in metres?")),
         ("tests.test_engines:Hangs", ("engine spoilt, model spoilt: still running after 1 s, stopped",)),
+        ("tests.test_engines:HangsInC", ("engine spoilt, model spoilt: still running after 1 s, stopped",)),
+        ("tests.test_engines:Segfaults", ("engine spoilt, model spoilt: its process died (signal SIGSEGV)",)),
     ],
 )
 def test_a_faulty_plug_in_is_one_line_and_exit_2(monkeypatch, capsys, spec, needles):
@@ -198,6 +229,16 @@ def test_a_faulty_plug_in_is_one_line_and_exit_2(monkeypatch, capsys, spec, need
     assert len(lines) == 1, err
     for n in needles:
         assert n in lines[0], lines[0]
+
+
+def test_a_plug_in_that_diverges_is_a_diverged_row(monkeypatch):
+    """A plug-in's DivergenceError comes back from its worker process with its step and steps: compare
+    makes it a "diverged" row, as it does the built-in models' (the run, not the harness, failed)."""
+    monkeypatch.setattr(engines, "ENGINES", dict(engines.ENGINES))
+    engines.load_engine("tests.test_engines:Diverges")
+    row = compare(load_scene("cantilever"), "spoilt", budget=False)
+    assert row.status == "diverged" and row.step == 12 and row.dt == 1e-4 and row.dt_crit == 2e-4
+    assert "diverged at step 12" in row.message
 
 
 DIRECT_P1 = f"{sys.executable} {Path(__file__).parent / 'engines' / 'direct_p1.py'} {{scene}} {{result}}"

@@ -49,6 +49,7 @@ class AdapterEngine:
     iterative: tuple = ()
     timeout: float = TIMEOUT
     cacheable: bool = True
+    isolated: bool = True  # its adapter runs in a process of its own
     spec: str = ""
     models: tuple = field(init=False)
 

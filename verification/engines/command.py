@@ -38,6 +38,8 @@ class CommandError(InputError):
 class CommandEngine:
     """The engine a command is: one model, ``model``, run by ``command`` (the module docstring)."""
 
+    isolated = True  # it runs in a process of its own: the harness need not fork one for it
+
     def __init__(self, command: str, model: str, timeout: float = TIMEOUT):
         if not command.strip():
             raise InputError("--engine-cmd: give the command that runs the engine")

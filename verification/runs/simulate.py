@@ -27,6 +27,7 @@ from ..inputs import scene_inputs
 from ..progress import _rank
 from ..scene import Scene
 from .results import Result
+from .worker import PlugInError, forks, in_worker
 
 #: A static run's default tolerance (its residual against the load) and its most steps to settle.
 SETTLE_RTOL, SETTLE_MAX_STEPS = 1e-10, 2_000_000
@@ -132,18 +133,23 @@ def _bounded(seconds: float, what: str):
         signal.signal(signal.SIGALRM, previous)
 
 
-class PlugInError(InputError):
-    """A plug-in engine that failed: it raised, or answered with an array that is not a displacement of
-    the scene's vertices in metres; ``str()`` names the engine, the model and what went wrong."""
-
-
 def _plug_in(scene: Scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options) -> Result:
     """A plug-in's run, as ``_run``, with whatever it raises or writes wrong said in one line: the
-    harness judges other people's code and keeps going (a study records the failure)."""
+    harness judges other people's code and keeps going (a study records the failure). An engine that
+    runs in this process runs in a forked worker (``runs.worker``), so that a hang in C code or a crash
+    of the interpreter stops the worker alone; one that runs in a process of its own already (a command,
+    an adapter: ``isolated``) runs here, bound by SIGALRM as well as by its own timeout."""
     what = f"engine {engine.name}, model {model_name}"
+
+    def run():
+        return _run(scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options)
+
     try:
-        with _bounded(PLUG_IN_TIMEOUT, what):
-            res = _run(scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options)
+        if forks() and not getattr(engine, "isolated", False):
+            res = in_worker(run, PLUG_IN_TIMEOUT, what)
+        else:
+            with _bounded(PLUG_IN_TIMEOUT, what):
+                res = run()
     except (DivergenceError, NotConvergedError, InputError):
         raise
     except Exception as exc:  # the plug-in's own code: named, never a traceback of ours
