@@ -65,8 +65,12 @@ $(ENGINES_STAMP): adapters/requirements.txt | apt
 # One worker process per core this process may use (pytest-xdist; xdist's own "auto" counts physical
 # cores where psutil is installed), each taking the next test as it ends one. TEST_WORKERS=1 for one.
 # TISSUEBENCH_REQUIRE_ENGINES: the adapters' tests fail, never skip, when the engines' venv is missing.
+# The two venvs are made side by side (-j2): the engines' download and install overlap the project's
+# install and the engine's compilation ahead.
 TEST_WORKERS ?= $(shell nproc)
-test: setup engines lint
+test:
+	$(MAKE) --no-print-directory -j2 setup engines
+	$(MAKE) --no-print-directory lint
 	TISSUEBENCH_REQUIRE_ENGINES=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist worksteal
 
 bench: setup
