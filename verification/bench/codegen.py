@@ -15,6 +15,7 @@ process (``NUMBA_CPU_NAME``/``NUMBA_CPU_FEATURES`` choose another).
 
 from __future__ import annotations
 
+import functools
 import re
 
 import numba
@@ -51,16 +52,35 @@ def fma_peak_loop() -> dict:
     return {"packed_fma": _count(PACKED_FMA, _asm(kernel)), "expected_at_least": roofline._CHAINS * roofline._DEGREE}
 
 
+@functools.cache
+def _force_asm(name: str) -> str:
+    """The machine code of a model's force kernel (``name``: linear-tm, stvk-tm or mass-spring), compiled
+    afresh on a small beam; once per process, as two counts read the same stvk-tm force."""
+    import importlib
+
+    from meshes import structured_box
+    from realtime import Material, blocks, build_model
+
+    module, fn = FORCE_KERNELS[name].split(".")
+    mesh = structured_box((0.04, 0.01, 0.01), (4, 1, 1))
+    compiled = _fresh(getattr(importlib.import_module(f"realtime.{module}"), fn), blocks.HOT)
+    model = build_model(name, mesh.points, mesh.tets, Material(1e4, 0.3, 1000.0, law="stvk"))
+    compiled(model.data, model.new_scratch(), np.zeros_like(mesh.points), np.zeros_like(mesh.points))
+    return _asm(compiled)
+
+
+#: Each model's force kernel, module.function in realtime.
+FORCE_KERNELS = {
+    "linear-tm": "tensor_mass.linear_tm_force",
+    "stvk-tm": "stvk.stvk_force",
+    "mass-spring": "springs.spring_force",
+}
+
+
 def stvk_loops() -> dict:
     """stvk-tm's force (packed FMAs) and its element loop compiled alone for an isotropic block and a
     general one (fibres and the penalty: packed double instructions of each)."""
-    from meshes import structured_box
-    from realtime import Material, blocks, build_model, stvk
-
-    mesh = structured_box((0.02, 0.02, 0.02), (2, 2, 2))
-    model = build_model("stvk-tm", mesh.points, mesh.tets, Material(1e4, 0.3, 1000.0, law="stvk"))
-    kernel = _fresh(stvk.stvk_force, blocks.HOT)
-    kernel(model.data, model.new_scratch(), np.zeros_like(mesh.points), np.zeros_like(mesh.points))
+    from realtime import blocks, stvk
 
     def lanes(general: bool) -> int:
         @numba.njit(**{**blocks.HOT, "cache": False})
@@ -71,7 +91,7 @@ def stvk_loops() -> dict:
         return _count(PACKED, _asm(loop))
 
     return {
-        "force_packed_fma": _count(PACKED_FMA, _asm(kernel)),
+        "force_packed_fma": _count(PACKED_FMA, _force_asm("stvk-tm")),
         "isotropic_packed": lanes(False),
         "general_packed": lanes(True),
     }
@@ -93,23 +113,9 @@ def indexed_loops() -> dict:
     """linear-tm's, stvk-tm's and mass-spring's force kernels: the sign shifts and multiplications of
     numba's signed, strided indexing left in their machine code (at most 1 and 3 of each, outside the
     loops, on the Xeon where the unsigned flat views were written; 11 to 33 and 23 to 35 before)."""
-    import importlib
-
-    from meshes import structured_box
-    from realtime import Material, blocks, build_model
-
-    mesh = structured_box((0.04, 0.01, 0.01), (4, 1, 1))
     out = {}
-    for name, kernel in (
-        ("linear-tm", "tensor_mass.linear_tm_force"),
-        ("stvk-tm", "stvk.stvk_force"),
-        ("mass-spring", "springs.spring_force"),
-    ):
-        module, fn = kernel.split(".")
-        compiled = _fresh(getattr(importlib.import_module(f"realtime.{module}"), fn), blocks.HOT)
-        model = build_model(name, mesh.points, mesh.tets, Material(1e4, 0.3, 1000.0))
-        compiled(model.data, model.new_scratch(), np.zeros_like(mesh.points), np.zeros_like(mesh.points))
-        asm = _asm(compiled)
+    for name in FORCE_KERNELS:
+        asm = _force_asm(name)
         out[name] = {"sign_shifts": _count(SIGN_SHIFT, asm), "stride_multiplications": _count(STRIDE_MUL, asm)}
     return out
 
