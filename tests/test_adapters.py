@@ -138,6 +138,7 @@ def test_xpbd_tetrahedra_have_no_small_strain_stiffness(tmp_path):
     assert STRESS / axial < 0.5 * E
 
 
+@pytest.mark.slow
 @needs_engines
 def test_mujoco_flex_is_p1_stvk_on_the_same_mesh(monkeypatch):
     """MuJoCo's 3D flex is StVK on linear tetrahedra, as documented: its answer on the cantilever equals
@@ -156,6 +157,7 @@ def test_mujoco_flex_is_p1_stvk_on_the_same_mesh(monkeypatch):
     assert row.integrator == "discrete" and row.step_us > 0 and row.dt == pytest.approx(1e-3)
 
 
+@pytest.mark.slow
 @needs_engines
 def test_newton_semi_implicit_is_near_p1_stvk(capsys):
     """newton's semi-implicit solver runs a Neo-Hookean law, the scene's is StVK: at the cantilever's 7%
@@ -214,6 +216,7 @@ def test_the_plan_gives_each_solver_its_knobs():
     assert [p["options"]["iterations"] for p in vbd if p["knob"] == "iterations"] == [1, 2, 5, 10, 20, 50]
 
 
+@pytest.mark.slow
 @needs_engines
 def test_engines_finds_mujoco_eulers_stable_step_where_the_p1_critical_step_is(capsys):
     """tissuebench engines on MuJoCo's explicit flex: the same P1 StVK as ours with the same lumped masses,
@@ -233,6 +236,7 @@ def test_engines_finds_mujoco_eulers_stable_step_where_the_p1_critical_step_is(c
     assert out["mesh_error"] == pytest.approx(answers[0]["error_budget"]["mesh"])
 
 
+@pytest.mark.slow
 @needs_engines
 def test_a_dynamic_scene_through_an_adapter(capsys):
     """The tool-driven, damped cantilever-dynamic through MuJoCo's flex: every output instant read back,
@@ -247,6 +251,7 @@ def test_a_dynamic_scene_through_an_adapter(capsys):
     assert row["dt"] == pytest.approx(1e-3) and row["engine"]["engine"].startswith("MuJoCo")
 
 
+@pytest.mark.slow
 @needs_engines
 def test_the_tools_force_through_an_adapter_is_p1s(capsys):
     """cantilever-pull through MuJoCo's explicit flex: the tool's force, -(f_int + f_ext) on the components
@@ -261,6 +266,7 @@ def test_the_tools_force_through_an_adapter_is_p1s(capsys):
     assert row["reaction_rel_err"] == pytest.approx(ours["reaction_rel_err"], rel=1e-4)
 
 
+@pytest.mark.slow
 @needs_engines
 def test_a_gate_holds_an_adapters_model(tmp_path, monkeypatch):
     """A CI gate on MuJoCo's flex (``engine = "mujoco"``): measured through the adapter, passed under a bound
@@ -276,6 +282,7 @@ def test_a_gate_holds_an_adapters_model(tmp_path, monkeypatch):
     assert loose["value"] == pytest.approx(0.2838, abs=1e-3) and "exceeds the bound 0.2" in tight["why"]
 
 
+@pytest.mark.slow
 @needs_engines
 def test_the_advisor_names_each_adapters_step_error_and_verdict(monkeypatch):
     """advise with two of the engines users pick among the candidates: each named with its measured step,

@@ -48,6 +48,7 @@ def test_the_threaded_ceiling_loops_do_all_of_the_one_thread_loops_work(parts):
     assert roofline._polynomials_threads(x, 2) == pytest.approx(parts * roofline._polynomials(x[0], 2), rel=1e-15)
 
 
+@pytest.mark.slow
 def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     """A short benchmark on the stored beam: the rows whose work is a fixed count (linear-tm, stvk-tm,
     mass-spring, scipy's product) carry their flops, bytes, bound and achieved fraction, and the table
