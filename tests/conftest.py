@@ -46,17 +46,12 @@ def _xdist_worker(config) -> bool:
 
 
 def pytest_collection_modifyitems(config, items):
-    """Tests marked slow go first, and tests marked run_last after all the others (they inspect what the
-    whole session loaded).
+    """Tests marked run_last go after all the others (they inspect what the whole session loaded).
 
     On xdist's workers each process loads only the modules of its own share of the tests, so the run_last
     check of the Debian packages leaves the workers: each reports what it loaded (pytest_sessionfinish)
     and the controller checks all of it once every worker is done (_check_workers_packages)."""
-    # the slow tests first: xdist's workers then steal short ones at the end, where a long test started
-    # last would keep one worker busy while the other idles
-    items.sort(
-        key=lambda item: (item.get_closest_marker("run_last") is not None, item.get_closest_marker("slow") is None)
-    )
+    items.sort(key=lambda item: item.get_closest_marker("run_last") is not None)
     if _xdist_worker(config):
         checks = [item for item in items if item.get_closest_marker("run_last") is not None]
         if checks:
