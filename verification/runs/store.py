@@ -63,9 +63,9 @@ def cached_compare(
     float32: bool = False,
     options: dict | None = None,
 ) -> Row:
-    """``runs.compare.compare`` through the run cache (``options``: the engine's, as compare's). The row says whether it came from the cache. A
-    plug-in engine's runs are never cached, their code is not in the key; an adapter's are (it is,
-    ``RUN_CODE``)."""
+    """``runs.compare.compare`` through the run cache (``options``: the engine's, as compare's). The row
+    says whether it came from the cache. A plug-in engine's runs are never cached, their code is not in
+    the key; an adapter's are (the adapters and their pinned versions are, ``RUN_CODE``)."""
     ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
     use_cache = use_cache and (not plug_in(model) or getattr(engine_for(model), "cacheable", False))
     extra = {**({"float32": True} if float32 else {}), **({"engine": options} if options else {})}
