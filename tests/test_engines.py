@@ -223,7 +223,11 @@ def test_a_plug_in_engine_named_on_the_command_line(monkeypatch, capsys):
 def test_a_faulty_plug_in_is_one_line_and_exit_2(monkeypatch, capsys, spec, needles):
     monkeypatch.setattr(engines, "ENGINES", dict(engines.ENGINES))
     code = main(["run", "cantilever", "--engine", spec, "--engine-timeout", "1", "--model", "spoilt"])
-    err = capsys.readouterr().err
+    _one_line_exit_2(code, capsys.readouterr().err, needles)
+
+
+def _one_line_exit_2(code: int, err: str, needles) -> None:
+    """Exit status 2 and one line of the tool's on stderr, holding every needle, never a traceback."""
     assert code == 2 and "Traceback" not in err
     lines = [line for line in err.splitlines() if line.startswith("tissuebench")]
     assert len(lines) == 1, err
@@ -273,12 +277,7 @@ def test_an_engine_in_another_process_is_judged_through_the_seam(capsys):
 )
 def test_a_failing_command_engine_is_one_line_and_exit_2(capsys, command, needles):
     code = main(["run", "cantilever", "--engine-cmd", command, "--engine-timeout", "1", "--model", "cmd-model"])
-    err = capsys.readouterr().err
-    assert code == 2 and "Traceback" not in err
-    lines = [line for line in err.splitlines() if line.startswith("tissuebench")]
-    assert len(lines) == 1, err
-    for n in needles:
-        assert n in lines[0], lines[0]
+    _one_line_exit_2(code, capsys.readouterr().err, needles)
 
 
 def test_the_advisor_judges_a_plug_in_as_it_judges_the_built_in_models(monkeypatch):
