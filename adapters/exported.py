@@ -250,6 +250,13 @@ def tool_force(engine: Stepper, scene: Exported) -> np.ndarray | None:
     return -(total[scene.tool_vertex] * scene.tool_mask).sum(axis=0)
 
 
+def _ramped(engine: Stepper, scene: Exported, held, final: np.ndarray, n: int, ramp_steps: int, dt: float) -> None:
+    """Before step ``n``: the tools at n / ramp_steps of their travel to ``final`` (N, 3) m, moving at the
+    ramp's speed through its last step, then still there."""
+    speed = final / (ramp_steps * dt) if n <= ramp_steps else np.zeros_like(final)
+    _impose(engine, scene, held, min(n / ramp_steps, 1.0) * final, speed)
+
+
 def _blown(u: np.ndarray, size: float, engine: Stepper) -> bool:
     """Diverged: a displacement that is not finite or over ten times the body, or the engine says so."""
     return not np.all(np.isfinite(u)) or float(np.abs(u).max()) > 10.0 * size or engine.unstable()
@@ -271,9 +278,7 @@ def relax(
     past = []  # (step, displacement) every check steps, back to a quarter of the run
     changes = {}  # step: the relative change then
     for n in range(1, max_steps + 1):
-        s = min(n / ramp_steps, 1.0)
-        rate = final / (ramp_steps * dt) if n <= ramp_steps else 0.0 * final
-        _impose(engine, scene, held, s * final, rate)
+        _ramped(engine, scene, held, final, n, ramp_steps, dt)
         clock.timed(engine.step, dt)
         v = engine.velocities()
         ke = float((m * v * v).sum())
@@ -332,9 +337,7 @@ def probe(engine: Stepper, scene: Exported, dt: float, steps: int, progress) -> 
     ramp_steps = max(1, steps // 10)
     clock = _Clock()
     for n in range(1, steps + 1):
-        s = min(n / ramp_steps, 1.0)
-        rate = final / (ramp_steps * dt) if n <= ramp_steps else 0.0 * final
-        _impose(engine, scene, held, s * final, rate)
+        _ramped(engine, scene, held, final, n, ramp_steps, dt)
         clock.timed(engine.step, dt)
         if n % 50 == 0 or n == steps:
             u = engine.positions() - scene.points

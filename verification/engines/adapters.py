@@ -94,9 +94,7 @@ def adapter(name: str) -> AdapterEngine:
     python = engines_python()
     if not python.exists():
         raise InputError(f"--engine {name}: the engines' venv is not built ({python}): run `make engines`")
-    engine = ADAPTERS[name]
-    engine.timeout = TIMEOUT
-    return engine
+    return ADAPTERS[name]
 
 
 class AdapterSimulation(CommandSimulation):
