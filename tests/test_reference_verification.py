@@ -400,3 +400,19 @@ damping = { mass = 2.0, stiffness = 1e-4 }
     assert b.meta["mpi_ranks"] == 2 and len(a.times) == 6
     assert np.linalg.norm(a.displacement - b.displacement) <= 1e-8 * np.linalg.norm(a.displacement)
     assert np.linalg.norm(a.reaction - b.reaction) <= 1e-8 * np.linalg.norm(a.reaction)
+
+
+def test_a_body_nothing_holds_falls_as_newmark_integrates_a_constant_acceleration():
+    """A free P2 block under gravity g: every node moves by g t^2 / 2, which average-acceleration
+    Newmark integrates exactly once its initial acceleration, M a0 = f, is g at every node (the mass
+    solve's conjugate gradients stop at 1e-13 of the residual, its conditioning in the tens: 1e-10
+    relative leaves room for that and the steps' round-off; a0 = 0 would miss by half the answer)."""
+    g = np.array([0.0, -3.0, -9.81])
+    mesh = box(size=[0.02, 0.01, 0.01], h=0.005)
+    ep = ElasticityProblem(
+        mesh, Material(1e5, 0.3, 1000.0, law="linear"), Problem(fixed=(), loads=(Gravity(tuple(g)),))
+    )
+    run = ep.solve_dynamic(1e-3, 0.01, 1e-3, mesh.points)
+    exact = 0.5 * g * run.times[:, None, None] ** 2
+    assert np.abs(run.values - exact).max() <= 1e-10 * np.abs(exact).max()
+    assert np.abs(ep.acceleration.x.array.reshape(-1, 3) - g).max() <= 1e-8 * np.linalg.norm(g)
