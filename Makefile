@@ -39,7 +39,8 @@ $(STAMP): pyproject.toml | $(VENV)/bin/python
 	touch $(STAMP)
 
 # The engine's numba kernels compiled into numba's cache on every core, once per version of the engine
-# (about 90 s on 2 cores, instead of three minutes on one core inside the first run or the test suite).
+# (about 50 s on 2 cores, instead of minutes on one core inside the first run or the test suite); the
+# threaded kernels only a simulator or make bench builds compile when first built (realtime.precompile.jobs).
 precompile: apt $(STAMP)
 	$(PY) -m realtime.precompile
 
