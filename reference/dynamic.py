@@ -16,7 +16,6 @@ from .errors import ReferenceSolveError
 from .progress import Heartbeat, Progress
 from .solver import Newton, _mumps_info, configure, grow_ksp_workspace, solver_options
 
-
 #: The relative residual to which the initial acceleration's mass solve is taken: round-off for a system
 #: whose scaled condition number is in the tens.
 INITIAL_ACCELERATION_RTOL = 1e-13
