@@ -8,7 +8,7 @@
 SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
-APT_PACKAGES := python3-dolfinx python3-gmsh python3-meshio python3-h5py python3-venv python3-scipy libgomp1 chromium
+APT_PACKAGES := python3-dolfinx python3-gmsh python3-meshio python3-h5py python3-venv python3-scipy libgomp1 libopenblas0-pthread chromium
 STAMP := $(VENV)/.tissuebench-installed
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 export OMPI_ALLOW_RUN_AS_ROOT := 1

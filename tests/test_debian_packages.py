@@ -7,6 +7,7 @@ sees ``sys.modules`` as the whole session left it, lazy imports (meshio's h5py) 
 
 from __future__ import annotations
 
+import os
 import shutil
 import sys
 
@@ -75,6 +76,23 @@ def test_the_check_sees_the_shared_libraries_no_module_names():
     assert owners(gomp)[gomp[0]] == "libgomp1"
     assert "libgomp1" in makefile_packages()
     assert "libgomp1" in dependency_closure(makefile_packages())
+
+
+def test_the_references_factorisations_run_in_an_optimised_blas_the_makefile_installs():
+    """MUMPS's dense kernels run in whatever libblas.so.3 Debian's alternatives name. A fresh Debian 12
+    has only the reference BLAS (libblas3), in which the stiff beam's refined Newmark matrix took 15 s to
+    factorise, against 4 in OpenBLAS: the Makefile installs OpenBLAS, whose alternative outranks it.
+    The BLAS this process mapped (numpy and PETSc load the same one) must not be libblas3's."""
+    import numpy  # noqa: F401  (loads libblas.so.3)
+    from petsc4py import PETSc  # noqa: F401
+
+    from .debian_packages import loaded_libraries, owners
+
+    blas = [f for f in loaded_libraries() if os.path.basename(f).startswith(("libblas.so", "libopenblas"))]
+    assert blas, "no BLAS mapped"
+    found = owners(blas)
+    assert all(owner != "libblas3" for owner in found.values()), f"the reference BLAS is loaded: {found}"
+    assert "libopenblas0-pthread" in makefile_packages()
 
 
 @pytest.mark.slow

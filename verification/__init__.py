@@ -12,6 +12,13 @@ if _RANK is not None and "NUMBA_CACHE_DIR" not in os.environ:
     _base = Path(os.environ.get("TISSUEBENCH_CACHE", Path.home() / ".cache" / "tissuebench"))
     os.environ["NUMBA_CACHE_DIR"] = str(_base / "numba" / f"rank{_RANK}")
 
+# The reference's factorisations (MUMPS) run their dense kernels in Debian's OpenBLAS (the Makefile installs
+# it: Debian's default reference BLAS factorised the stiff beam's 121 000 P2 dofs in 15 s, OpenBLAS in 4),
+# one thread a process: the studies solve references on a worker per core, where OpenBLAS's spinning
+# threads would contend (two threads gained 3 s of 47 on one solve, with 27 s of system time). Read when
+# the library loads, with numpy: set before realtime imports it; a user's setting stands.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 # The engine before anything that loads GNU OpenMP (dolfinx, gmsh): it sets the spin count its
 # threaded kernels' threads wait with (realtime/__init__.py), which OpenMP reads only when it loads.
 import realtime  # noqa: E402,F401
