@@ -21,6 +21,8 @@ displacements of the tool dofs, so that an update is one (free retained x tool d
 
 from __future__ import annotations
 
+from functools import cached_property
+
 import numba as nb
 import numpy as np
 import scipy.linalg as sla
@@ -221,7 +223,6 @@ class Condensed:
         held = (lo.free.ravel() == 0.0)[rdofs]
         self.free_r = np.flatnonzero(~held)
         self.held_r = np.flatnonzero(held)
-        self.chol = sla.cho_factor(self.K_star[np.ix_(self.free_r, self.free_r)])
         self.K_fc = self.K_star[np.ix_(self.free_r, self.held_r)]
         self.n = n
         # Bro-Nielsen's precomputation: the free retained response to the loads (z0) and to unit
@@ -233,26 +234,54 @@ class Condensed:
         self.tool_dofs = tool_dofs
         tool_rows = self.held_r[self.tool_cols]
         self.K_tool, self.f_tool = self.K_star[tool_rows], self.f_star[tool_rows]  # (D, R), (D,)
-        self.z0 = sla.cho_solve(self.chol, self.f_star[self.free_r])
-        self.G = (
-            -sla.cho_solve(self.chol, self.K_fc[:, self.tool_cols])
-            if len(tool_dofs)
+
+    @cached_property
+    def _solution(self) -> tuple:
+        """(Cholesky factor of K* on the free retained dofs, z0 (F,) m, G (F, D)), made when a static
+        answer is first asked: a body that nothing holds has a force and an energy but no equilibrium.
+        Its K* is singular, which a factorisation may or may not notice in round-off (the reference
+        BLAS passed, OpenBLAS did not): InputError instead, whichever BLAS runs."""
+        free = self.K_star[np.ix_(self.free_r, self.free_r)]
+        scale = float(np.abs(np.diag(free)).max()) if free.size else 0.0
+        if len(self.held_r) == 0 or free.size == 0:
+            raise InputError(
+                "condensed: no vertex is fixed or driven by a tool: the body's rigid motions are free and it "
+                "has no static equilibrium"
+            )
+        try:
+            chol = sla.cho_factor(free)
+        except np.linalg.LinAlgError as exc:
+            raise InputError(
+                f"condensed: the condensed stiffness is singular ({exc}): the fixed and tool vertices do not "
+                "hold every rigid motion of the body"
+            ) from None
+        if np.abs(np.diag(chol[0])).min() ** 2 <= 1e3 * np.finfo(float).eps * scale:
+            raise InputError(
+                "condensed: the condensed stiffness is singular to round-off: the fixed and tool vertices do "
+                "not hold every rigid motion of the body"
+            )
+        z0 = sla.cho_solve(chol, self.f_star[self.free_r])
+        G = (
+            -sla.cho_solve(chol, self.K_fc[:, self.tool_cols])
+            if len(self.tool_dofs)
             else np.zeros((len(self.free_r), 0))
         )
+        return chol, z0, G
 
     def update(self, tool_values: np.ndarray) -> np.ndarray:
         """Retained displacements (R,) m with the tool dofs at ``tool_values`` (in ``tool_dofs`` order) and
         the fixed dofs at zero: z0 + G d."""
         u = np.zeros(len(self.retained))
         u[self.held_r[self.tool_cols]] = tool_values
-        u[self.free_r] = self.z0 + self.G @ tool_values
+        _, z0, G = self._solution
+        u[self.free_r] = z0 + G @ tool_values
         return u
 
     def solve_surface(self, held_values: np.ndarray) -> np.ndarray:
         """Retained displacements (R,) m with the held retained dofs at ``held_values`` (H,) m."""
         u = np.zeros(len(self.retained))
         u[self.held_r] = held_values
-        u[self.free_r] = sla.cho_solve(self.chol, self.f_star[self.free_r] - self.K_fc @ held_values)
+        u[self.free_r] = sla.cho_solve(self._solution[0], self.f_star[self.free_r] - self.K_fc @ held_values)
         return u
 
     def tool_reactions(self, model: Model, u: np.ndarray) -> np.ndarray:
