@@ -146,7 +146,7 @@ class DynamicSolves:
         old = fem.Function(V), fem.Function(V), fem.Function(V)  # u, v, a at the last step
         coefficients = (1.0 / (beta * dt * dt), 1.0 / (beta * dt), (1.0 - 2.0 * beta) / (2.0 * beta), dt, gamma)
         residual = self._newmark_residual(old, coefficients, rayleigh)
-        opts = solver_options(self.n_dofs, petsc_options, linear=self.linear, reused=self.linear)
+        opts = solver_options(self.n_dofs, petsc_options, linear=self.linear, comm=self.comm)
         modes = self.rigid_body_modes() if opts.get("pc_type") == "gamg" else None
         times, values, reactions = [0.0], [self.evaluate(points)], [self.reaction()]
         self._newmark_start(old)

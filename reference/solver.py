@@ -44,17 +44,22 @@ GAMG_OPTIONS = {
     "mg_levels_pc_type": "jacobi",
     "mg_levels_esteig_ksp_type": "cg",
 }
-#: Degrees of freedom up to which a solve factorises with MUMPS; above, GAMG_OPTIONS. Measured on 2
-#: cores: at 95 000 P2 dofs (the twisted cylinder refined) MUMPS factorises in 28 s and solves in 0.1,
-#: GAMG sets up in 5 and solves in 2; at 276 000 (the slender beam refined), 70 and 0.3 against 15
-#: and 6. Newton needs 2 factorisations and 5 to 7 solves there, so GAMG wins above about 60 000.
-DIRECT_LIMIT = 60_000
+#: The share of the available memory a factorisation may be predicted to take (``direct_bytes``): a solve
+#: factorises with MUMPS wherever its factor fits there, whatever its size, and takes GAMG_OPTIONS only
+#: where it does not. Measured on a 2-core AMD EPYC with OpenBLAS, the direct path was the faster at every
+#: size that fits: the slender beam's refined level (276 000 P2 dofs, StVK, 2 factorisations and 4 to 7
+#: solves) 30 s against GAMG's 59; a linear Newmark run, one factorisation and a back-substitution a
+#: step, is the direct path's best case (GAMG took 1081 s where the factor takes 48 s on the stiff beam).
+#: (With Debian's reference BLAS, which the Makefile replaces, MUMPS was four times slower and GAMG won
+#: above about 60 000 dofs, the fixed limit this replaced.)
+DIRECT_MEMORY_SHARE = 0.5
+#: A solve whose iterative solver failed is tried with a factorisation predicted to take up to this share
+#: of the available memory (it did not fit in DIRECT_MEMORY_SHARE: the last resort before stronger multigrid).
+FALLBACK_MEMORY_SHARE = 0.8
 
 
-#: An iterative solve that failed (GMRES breaking down, too many iterations) is tried again where a
-#: direct factor is predicted to fit in half the available memory, else with GAMG_STRONGER. The
-#: prediction scales the factor measured above (11.6 M entries at 39 000 P2 dofs) by n^(4/3), nested
-#: dissection's fill in 3D, and doubles it for MUMPS's workspace: 2.5 GB at 276 000 dofs.
+#: The prediction of a factor's size scales the factor measured at 39 000 P2 dofs (11.6 M entries) by
+#: n^(4/3), nested dissection's fill in 3D, and doubles it for MUMPS's workspace: 2.5 GB at 276 000 dofs.
 FACTOR_ENTRIES_AT = (39_000, 11.6e6)
 #: GAMG_OPTIONS made stronger for a solve that failed with them: GMRES restarted less often, more
 #: iterations, every coupling aggregated, more smoothing on each level.
@@ -87,11 +92,22 @@ def available_bytes() -> float:
     return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
 
 
-def fallback_options(opts: dict, n_dofs: int, user: dict | None) -> tuple[dict, str] | None:
+def direct_fits(n_dofs: int, share: float | None = None, comm=None) -> bool:
+    """Whether a factorisation of ``n_dofs`` unknowns is predicted to fit in ``share`` (default
+    DIRECT_MEMORY_SHARE) of the available memory; the same answer on every rank of ``comm`` (the least
+    memory any of them sees), since all must choose one solver."""
+    share = DIRECT_MEMORY_SHARE if share is None else share
+    have = available_bytes()
+    if comm is not None and comm.size > 1:
+        have = comm.allreduce(have, op=MPI.MIN)
+    return direct_bytes(n_dofs) <= share * have
+
+
+def fallback_options(opts: dict, n_dofs: int, user: dict | None, comm=None) -> tuple[dict, str] | None:
     """What a solve whose iterative solver failed with ``opts`` tries next, and a phrase naming it: a
-    direct factorisation where it is predicted to fit in half the available memory, else GAMG_STRONGER.
-    None when the user chose the solver (``--petsc-option pc_type=...``), the solve was direct, or it
-    was already the stronger multigrid."""
+    direct factorisation where it is predicted to fit in FALLBACK_MEMORY_SHARE of the available memory,
+    else GAMG_STRONGER. None when the user chose the solver (``--petsc-option pc_type=...``), the solve
+    was direct, or it was already the stronger multigrid."""
     if (
         "pc_type" in (user or {})
         or opts.get("pc_type") != "gamg"
@@ -99,25 +115,23 @@ def fallback_options(opts: dict, n_dofs: int, user: dict | None) -> tuple[dict, 
     ):
         return None
     need, have = direct_bytes(n_dofs), available_bytes()
-    if need <= 0.5 * have:
+    if direct_fits(n_dofs, FALLBACK_MEMORY_SHARE, comm):
         direct = f"a direct factorisation (MUMPS, about {need / 1e9:.2g} GB of the {have / 1e9:.3g} GB available)"
         return {**DIRECT_OPTIONS, **(user or {})}, direct
     stronger = (
-        f"stronger multigrid (a direct factor would take about {need / 1e9:.2g} GB, over half of {have / 1e9:.3g})"
+        f"stronger multigrid (a direct factor would take about {need / 1e9:.2g} GB of the {have / 1e9:.3g} available)"
     )
     return {**GAMG_STRONGER, "ksp_rtol": opts.get("ksp_rtol", GAMG_STRONGER["ksp_rtol"]), **(user or {})}, stronger
 
 
-def solver_options(n_dofs: int, user: dict | None = None, linear: bool = False, reused: bool = False) -> dict:
-    """The PETSc options of a solve with ``n_dofs`` unknowns: MUMPS LDL^T up to DIRECT_LIMIT, GAMG above,
-    and the user's options (``--petsc-option KEY=VALUE``) over the choice; a user's ``pc_type`` replaces
-    the choice whole. ``linear``: the solve is the answer itself, not a Newton step, so GAMG's
-    tolerance is 1e-12. ``reused``: one matrix is solved many times (a linear Newmark run): it is
-    factorised once wherever the factor is predicted to fit in half the available memory
-    (``direct_bytes``), whatever its size, since every later solve is a back-substitution (a stiff
-    beam's 110 000 P2 dofs took GAMG's iterations at each of thousands of steps, 1081 s)."""
-    fits = reused and direct_bytes(n_dofs) <= 0.5 * available_bytes()
-    base = DIRECT_OPTIONS if n_dofs <= DIRECT_LIMIT or fits else GAMG_OPTIONS
+def solver_options(n_dofs: int, user: dict | None = None, linear: bool = False, comm=None) -> dict:
+    """The PETSc options of a solve with ``n_dofs`` unknowns: MUMPS LDL^T wherever its factor is predicted
+    to fit in DIRECT_MEMORY_SHARE of the available memory (``direct_fits``), GAMG elsewhere, and the
+    user's options (``--petsc-option KEY=VALUE``) over the choice; a user's ``pc_type`` replaces the
+    choice whole. ``linear``: the solve is the answer itself, not a Newton step, so GAMG's tolerance is
+    1e-12. A linear problem therefore factorises once and back-substitutes (a linear Newmark run at
+    every step) wherever the factor fits. ``comm``: the ranks that solve together (one choice for all)."""
+    base = DIRECT_OPTIONS if direct_fits(n_dofs, comm=comm) else GAMG_OPTIONS
     if linear and base is GAMG_OPTIONS:
         base = {**GAMG_OPTIONS, "ksp_rtol": 1e-12}
     user = dict(user or {})
@@ -263,7 +277,7 @@ class Newton:
         self.gap = u.vector.copy()
         self.ksp = PETSc.KSP().create(comm)
         self.ksp.setOptionsPrefix(f"tb_newton_{id(self)}_")
-        # an iterative solve (GAMG above DIRECT_LIMIT) costs its iterations, not a factorisation: Newton
+        # an iterative solve (GAMG, where no factor fits) costs its iterations, not a factorisation: Newton
         # then takes the current tangent at every step and keeps the preconditioner instead (inexact
         # Newton, Eisenstat and Walker's inner tolerances down to the options' ksp_rtol)
         self.iterative = self.options.get("ksp_type", "preonly") != "preonly"

@@ -22,7 +22,7 @@ class StaticSolves:
         """One linear solve (law = linear): K u = f with the Dirichlet conditions."""
         if not self.linear:
             raise ValueError("solve_linear needs law = linear and no volume penalty; use solve_newton")
-        opts = solver_options(self.n_dofs, petsc_options, linear=True)
+        opts = solver_options(self.n_dofs, petsc_options, linear=True, comm=self.comm)
         du = ufl.TrialFunction(self.V)
         zero = fem.Function(self.V)
         a = ufl.replace(ufl.derivative(self.residual, self.u, du), {self.u: zero})
@@ -38,7 +38,7 @@ class StaticSolves:
             problem.solve()  # assembles the matrix again, so the preconditioner factorises it again
             reason = problem.solver.getConvergedReason()
         tried = [f"{opts.get('pc_type')} (PETSc reason {reason})"]
-        while reason < 0 and (fallback := fallback_options(opts, self.n_dofs, petsc_options)) is not None:
+        while reason < 0 and (fallback := fallback_options(opts, self.n_dofs, petsc_options, self.comm)) is not None:
             opts, what = fallback
             self._log(f"reference: the iterative solve failed (PETSc reason {reason}); trying {what}")
             problem = LinearProblem(a, L, bcs=self.bcs, u=self.u, petsc_options=opts)
@@ -78,7 +78,7 @@ class StaticSolves:
         increment became smaller than ``min_increment`` or the solve took more than ``time_limit``
         seconds. Each load step's Newton iterations go to stderr.
         """
-        opts = solver_options(self.n_dofs, petsc_options)
+        opts = solver_options(self.n_dofs, petsc_options, comm=self.comm)
         du = ufl.TrialFunction(self.V)
         solver = Newton(
             self.comm,

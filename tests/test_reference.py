@@ -169,14 +169,14 @@ def test_evaluate_finds_boundary_points_that_round_off_puts_outside_every_cell()
 
 
 def test_large_problems_switch_to_gamg_and_agree_with_mumps(monkeypatch):
-    """Above DIRECT_LIMIT dofs the reference's solves use GMRES with GAMG and the rigid-body near null
-    space; the metadata says so, and the equilibrium is MUMPS's to 1e-8 relative (both Newtons stop at
+    """Where no factor fits in memory the reference's solves use GMRES with GAMG and the rigid-body near
+    null space (forced here: no memory is available); the metadata says so, and the equilibrium is MUMPS's to 1e-8 relative (both Newtons stop at
     1e-10 of the force scale; the stiffness's conditioning, about 1e4 here, scales that)."""
     from reference import solver
 
     scene = load_scene("block-twist")
     lu = reference_static(scene.mesh, scene.material, scene.problem, degree=1, estimate=False)
-    monkeypatch.setattr(solver, "DIRECT_LIMIT", 10)
+    monkeypatch.setattr(solver, "available_bytes", lambda: 0.0)
     gamg = reference_static(scene.mesh, scene.material, scene.problem, degree=1, estimate=False)
     opts = gamg["meta"]["petsc_options"]
     assert opts["pc_type"] == "gamg" and lu["meta"]["petsc_options"]["pc_type"] == "cholesky"
@@ -186,11 +186,12 @@ def test_large_problems_switch_to_gamg_and_agree_with_mumps(monkeypatch):
     # a linear law's one solve is the answer itself: GAMG iterates to 1e-12 there
     lin = scene.with_material(law="linear")
     runs = []
-    for limit in (10**9, 10):
-        monkeypatch.setattr(solver, "DIRECT_LIMIT", limit)
+    for share in (solver.DIRECT_MEMORY_SHARE, 0.0):
+        monkeypatch.setattr(solver, "DIRECT_MEMORY_SHARE", share)
         runs.append(reference_static(lin.mesh, lin.material, lin.problem, degree=1, estimate=False)["displacement"])
     assert np.linalg.norm(runs[0] - runs[1]) <= 1e-9 * np.linalg.norm(runs[0])
     # a user's pc_type replaces the choice whole; other options go over it
+    monkeypatch.undo()
     assert solver.solver_options(10**9, {"pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}) == {
         "pc_type": "lu",
         "pc_factor_mat_solver_type": "mumps",
@@ -303,8 +304,8 @@ def test_iterative_newton_stops_where_direct_newton_does(monkeypatch):
 
     scene = load_scene("cantilever")
     runs = []
-    for limit in (10**9, 10):
-        monkeypatch.setattr(solver, "DIRECT_LIMIT", limit)
+    for share in (solver.DIRECT_MEMORY_SHARE, 0.0):
+        monkeypatch.setattr(solver, "DIRECT_MEMORY_SHARE", share)
         runs.append(reference_static(scene.mesh, scene.material, scene.problem, degree=1, estimate=True)["meta"])
     lu, gamg = runs
     assert gamg["petsc_options"]["pc_type"] == "gamg" and lu["petsc_options"]["pc_type"] == "cholesky"
@@ -540,14 +541,15 @@ def test_a_solution_whose_check_level_fails_is_kept_and_said_to_be_unverified(mo
 def test_an_iterative_solve_that_fails_falls_back_and_says_so(monkeypatch, capfd, memory):
     """SOFA's raptor (8418 tetrahedra, linear, nu = 0.45) failed its iterative solve with PETSc reason -5
     (GMRES broke down) after 86 s, and the reference gave up. A failed iterative solve is now tried again
-    by a direct factorisation where it is predicted to fit in half the available memory, else by a
-    stronger multigrid, with one line on stderr; both give the direct answer. The failure is made here
-    by GAMG allowed one iteration on a problem forced onto the iterative path."""
+    by a direct factorisation where it is predicted to fit in FALLBACK_MEMORY_SHARE of the available
+    memory, else by a stronger multigrid, with one line on stderr; both give the direct answer. The
+    failure is made here by GAMG allowed one iteration on a problem forced onto the iterative path (no
+    share of the memory for a factor at first)."""
     from reference import solver
 
     lin = load_scene("block-twist").with_material(law="linear")
     direct = reference_static(lin.mesh, lin.material, lin.problem, degree=1, estimate=False)["displacement"]
-    monkeypatch.setattr(solver, "DIRECT_LIMIT", 10)
+    monkeypatch.setattr(solver, "DIRECT_MEMORY_SHARE", 0.0)
     monkeypatch.setattr(solver, "GAMG_OPTIONS", {**solver.GAMG_OPTIONS, "ksp_max_it": 1})
     if memory == "none":
         monkeypatch.setattr(solver, "available_bytes", lambda: 0.0)
@@ -563,20 +565,26 @@ def test_an_iterative_solve_that_fails_falls_back_and_says_so(monkeypatch, capfd
     )
 
 
-def test_a_matrix_solved_at_every_step_is_factorised_once_where_the_factor_fits(monkeypatch):
-    """A linear Newmark run solves one matrix at each of its steps: above DIRECT_LIMIT it took GAMG's
-    iterations every step (a stiff beam's dynamic reference, 1081 s). It is factorised once wherever
-    the factor is predicted to fit in half the available memory, and only one solve, or a factor that
-    does not fit, takes the iterative path."""
+def test_a_solve_factorises_wherever_its_factor_fits_in_memory_whatever_its_size(monkeypatch):
+    """The solver is chosen by predicted memory, not by a count of unknowns: a linear Newmark run above
+    the old limit of 60 000 dofs took GAMG's iterations every step (a stiff beam's dynamic reference,
+    1081 s), and the slender beam's 276 000 P2 dofs took 59 s in GAMG against 30 factorised. MUMPS
+    wherever the factor is predicted to fit in DIRECT_MEMORY_SHARE of the available memory, for a linear
+    and a non-linear solve alike; GAMG (at 1e-12 for a linear answer) where it does not; a user's
+    pc_type over both."""
     from reference import solver
 
-    n = 4 * solver.DIRECT_LIMIT
-    monkeypatch.setattr(solver, "available_bytes", lambda: 4.0 * solver.direct_bytes(n))
-    assert solver.solver_options(n, linear=True, reused=True)["pc_type"] == "cholesky"
-    assert solver.solver_options(n, linear=True)["pc_type"] == "gamg"
-    monkeypatch.setattr(solver, "available_bytes", lambda: 1.5 * solver.direct_bytes(n))
-    assert solver.solver_options(n, linear=True, reused=True)["pc_type"] == "gamg"
-    assert solver.solver_options(n, {"pc_type": "lu"}, linear=True, reused=True) == {"pc_type": "lu"}
+    for n in (10**3, 10**6):
+        monkeypatch.setattr(solver, "available_bytes", lambda n=n: 2.01 * solver.direct_bytes(n))
+        assert solver.solver_options(n)["pc_type"] == "cholesky"
+        assert solver.solver_options(n, linear=True)["pc_type"] == "cholesky"
+        monkeypatch.setattr(solver, "available_bytes", lambda n=n: 1.99 * solver.direct_bytes(n))
+        assert solver.solver_options(n)["pc_type"] == "gamg" and solver.solver_options(n)["ksp_rtol"] == 1e-8
+        assert solver.solver_options(n, linear=True)["ksp_rtol"] == 1e-12
+        assert solver.solver_options(n, {"pc_type": "lu"}, linear=True) == {"pc_type": "lu"}
+        # where it did not fit in half, a failed iterative solve may still factorise in 80%
+        fallback = solver.fallback_options(solver.solver_options(n), n, None)
+        assert fallback is not None and fallback[0]["pc_type"] == "cholesky"
 
 
 def test_a_heartbeat_speaks_through_a_call_that_holds_pythons_lock_and_stops_with_its_block(capfd):

@@ -57,18 +57,18 @@ CLASSIC_DIRECT = {"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_
 def run(cases=None, newton: str = "modified") -> dict:
     """Solve each case; ``newton`` "classic" is the solver before issue 14: Newton refactorising at
     every iteration (solver.SLOW and solver.SLOW_DYNAMIC = inf) with MUMPS's LU at every size
-    (solver.DIRECT_LIMIT = inf). Under ``mpirun -n N`` every case is solved on the N ranks."""
+    (solver.DIRECT_MEMORY_SHARE = inf). Under ``mpirun -n N`` every case is solved on the N ranks."""
     from mpi4py import MPI
 
     chosen = [c for c in CASES if cases is None or any(k in c[0] for k in cases)]
-    saved = solver.SLOW, solver.SLOW_DYNAMIC, solver.DIRECT_LIMIT, solver.DIRECT_OPTIONS
+    saved = solver.SLOW, solver.SLOW_DYNAMIC, solver.DIRECT_MEMORY_SHARE, solver.DIRECT_OPTIONS
     if newton == "classic":
-        solver.SLOW = solver.SLOW_DYNAMIC = solver.DIRECT_LIMIT = float("inf")
+        solver.SLOW = solver.SLOW_DYNAMIC = solver.DIRECT_MEMORY_SHARE = float("inf")
         solver.DIRECT_OPTIONS = CLASSIC_DIRECT
     try:
         rows = [_solve_row(*c) for c in chosen]
     finally:
-        solver.SLOW, solver.SLOW_DYNAMIC, solver.DIRECT_LIMIT, solver.DIRECT_OPTIONS = saved
+        solver.SLOW, solver.SLOW_DYNAMIC, solver.DIRECT_MEMORY_SHARE, solver.DIRECT_OPTIONS = saved
     return {"machine": machine(), "newton": newton, "ranks": MPI.COMM_WORLD.size, "rows": rows}
 
 

@@ -82,8 +82,9 @@ MESH_REFINE_HELP = "cut the scene's mesh uniformly K more times (h / 2^K; the re
 
 
 PETSC_HELP = (
-    "a PETSc option for the reference's linear solves, over the choice by size (MUMPS LDL^T up to "
-    "reference.solver.DIRECT_LIMIT dofs, GAMG above); a pc_type replaces the choice; repeatable"
+    "a PETSc option for the reference's linear solves, over the choice by memory (MUMPS LDL^T where its "
+    "factor is predicted to fit in half the available memory, GAMG elsewhere); a pc_type replaces the "
+    "choice; repeatable"
 )
 
 

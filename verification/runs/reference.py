@@ -40,7 +40,7 @@ def reference_key(
     own_mesh: bool = False,
     petsc_options: dict | None = None,
 ) -> str:
-    from reference.solver import DIRECT_LIMIT, DIRECT_OPTIONS, GAMG_OPTIONS
+    from reference.solver import DIRECT_MEMORY_SHARE, DIRECT_OPTIONS, GAMG_OPTIONS
 
     return digest(
         {
@@ -53,7 +53,7 @@ def reference_key(
             "solver": {
                 "direct": DIRECT_OPTIONS,
                 "gamg": GAMG_OPTIONS,
-                "direct_limit": DIRECT_LIMIT,
+                "direct_where_the_factor_fits_in": DIRECT_MEMORY_SHARE,
                 "user": petsc_options,
             },
             "version": REFERENCE_VERSION,
