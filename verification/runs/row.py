@@ -9,7 +9,9 @@ Which fields hold a value depends on ``status``:
   ``build_s``), the error budget, the float32 twin, the reference's summary and the mesh size;
 - "diverged": the ``step`` it blew up at, the ``message``, and whether the scene's own answer is what is
   unbounded (``unbounded``);
-- "not settled": the ``message`` (a static run that did not reach equilibrium in its steps).
+- "not settled": the ``message`` (a static run that did not reach equilibrium in its steps);
+- "over budget": a run the advisor did not make, its steps timed ahead (``step_us``, ``dt``) and too
+  slow for the frame rate asked (``frame``, ``message``): its error was not needed for the verdict.
 
 The last group says how a study obtained and placed the run: asked as a ``fraction`` of the critical
 step, read from the run ``cached``, the sweep's ``largest_stable`` step, its index in the sweep's plan
@@ -23,7 +25,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 #: The statuses a row can have.
-STATUSES = ("ok", "diverged", "not settled")
+STATUSES = ("ok", "diverged", "not settled", "over budget")
 
 
 @dataclass(frozen=True)

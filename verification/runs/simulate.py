@@ -17,6 +17,7 @@ import numpy as np
 
 from realtime import DivergenceError, NotConvergedError
 from realtime.errors import InputError
+from realtime.registry import QUASI_STATIC
 from reference.progress import Progress
 
 from ..cache import git_commit, versions
@@ -217,16 +218,52 @@ def trajectory(sim: Simulation, times: np.ndarray, label: str = "") -> tuple[np.
     return np.array(out_u), np.array(out_r)
 
 
+def _dynamic_step(scene: Scene, sim: Simulation, dt, dt_fraction) -> tuple:
+    """The step (s) a dynamic run takes and the explicit critical step (s) it comes from: ``dt``, else
+    ``dt_fraction`` (default EXPLICIT_FRACTION, IMPLICIT_FRACTION for implicit Euler) of the critical
+    step; an engine with none steps by the output instants or by its own choice (dt None)."""
+    dt_crit = sim.critical_dt()
+    if dt_crit is None:  # stepped by the output instants, or by its own choice
+        dt = dt if dt is not None or getattr(sim, "own_step", False) else scene.time.output_every
+    elif dt is None:
+        default = IMPLICIT_FRACTION if sim.integrator == "implicit-euler" else EXPLICIT_FRACTION
+        dt = (default if dt_fraction is None else dt_fraction) * dt_crit
+    return dt, dt_crit
+
+
+#: The steps, and their repeats, a dynamic run's step time is measured on before the run
+#: (``step_time_ahead``): a few milliseconds of a small model's steps, a second of a large one's.
+AHEAD_STEPS, AHEAD_REPEATS = 50, 3
+
+
+def step_time_ahead(scene: Scene, model_name: str, dt=None, dt_fraction=None, integrator: str = "symplectic-euler"):
+    """A built-in model's step on a dynamic scene and its time, before its run: the model built,
+    started from rest at the step the run would take (``_dynamic_step``), and AHEAD_REPEATS x
+    AHEAD_STEPS steps timed (``time_steps``). From rest a step costs what it costs later for every model
+    whose work does not grow with the deformation, and less for those whose does (hybrid-tm's non-linear
+    part, adaptive-tm's refined tetrahedra): an underestimate, never an overestimate. Returns dt,
+    dt_crit (s) and the timing, or None where the step is not the harness's to time (another engine's,
+    a quasi-static update) or the steps diverged (the run then says so itself)."""
+    engine = engine_for(model_name)
+    if engine is not BUILTIN or scene.time.mode != "dynamic" or model_name in QUASI_STATIC:
+        return None
+    sim = engine.build(scene_inputs(scene), model_name, integrator, {})
+    dt, dt_crit = _dynamic_step(scene, sim, dt, dt_fraction)
+    if dt is None or dt_crit is None or not np.isfinite(dt):
+        return None
+    sim.start(dt)
+    try:
+        timing = time_steps(sim, AHEAD_STEPS, AHEAD_REPEATS)
+    except DivergenceError:
+        return None
+    return {"dt": dt, "dt_crit": dt_crit, **timing}
+
+
 def _run_dynamic(scene: Scene, sim: Simulation, dt, dt_fraction, build_s: float, solver: str) -> Result:
     """A dynamic scene: the trajectory from rest at the scene's output times, then steps timed."""
     ts = scene.time
     times = output_times(scene)
-    dt_crit = sim.critical_dt()
-    if dt_crit is None:  # stepped by the output instants, or by its own choice
-        dt = dt if dt is not None or getattr(sim, "own_step", False) else ts.output_every
-    elif dt is None:
-        default = IMPLICIT_FRACTION if sim.integrator == "implicit-euler" else EXPLICIT_FRACTION
-        dt = (default if dt_fraction is None else dt_fraction) * dt_crit
+    dt, dt_crit = _dynamic_step(scene, sim, dt, dt_fraction)
     sim.start(dt)
     label = "" if dt_crit is None else f" ({sim.integrator}, dt = {dt:.3g} s)"
     t1 = time.perf_counter()

@@ -60,9 +60,10 @@ def frame_budget(row: Row, rate: float, dynamic: bool, share: float = FRAME_SHAR
     if dynamic:
         n = max(1, math.ceil(frame_us / dt_us * (1.0 - 1e-12)))
         work = n * step_us
-        holds = work <= budget_us and dt_us <= frame_us
+        # a step of one frame, printed to 6 digits in a command and read back, is still one frame
+        holds = work <= budget_us and dt_us <= frame_us * (1.0 + 1e-6)
         why = f"{n} steps of {step_us:.3g} us keep up with the clock in {work:.3g} us of a {frame_us:.3g} us frame"
-        if dt_us > frame_us:
+        if dt_us > frame_us * (1.0 + 1e-6):
             why = f"dt = {dt_us:.3g} us is longer than a frame of {frame_us:.3g} us: the state changes at {1e6 / dt_us:.0f} Hz"
         elif work > budget_us:
             why = (

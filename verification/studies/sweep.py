@@ -65,9 +65,13 @@ def sweep_plan(models, fractions, dts, integrator: str) -> list[dict]:
     return plan
 
 
-def _run_plan(scene: Scene, plan: list[dict], ref, integrator: str, use_cache: bool, float32: bool, rank, size):
+def _run_plan(
+    scene: Scene, plan: list[dict], ref, integrator: str, use_cache: bool, float32: bool, rank, size, screen=None
+):
     """This rank's share of the plan's runs (every size-th from its rank), each through the run cache,
-    with its index in the plan; the largest stable step found first where the plan asks for it."""
+    with its index in the plan; the largest stable step found first where the plan asks for it.
+    ``screen(scene, model, integrator, dt, fraction)``: a row that decides a run without making it, or
+    None to make it."""
     progress = Progress(len(plan), f"sweep {scene.name}") if rank == 0 else None
     rows = []
     for k, item in enumerate(plan):
@@ -76,20 +80,16 @@ def _run_plan(scene: Scene, plan: list[dict], ref, integrator: str, use_cache: b
         fraction = item["fraction"]
         if fraction == "largest-stable":
             fraction = largest_stable_fraction(scene, item["model"], integrator, use_cache=use_cache)["stable"]
-            row = cached_compare(
+            row = screen and screen(scene, item["model"], integrator, None, fraction)
+            row = row or cached_compare(
                 scene, item["model"], integrator, None, fraction, ref, use_cache=use_cache, float32=float32
             )
             row = row.replace(largest_stable=True)
         else:
-            row = cached_compare(
-                scene,
-                item["model"],
-                item["integrator"] if item["integrator"] != "quasi-static" else integrator,
-                item["dt"],
-                fraction,
-                ref,
-                use_cache=use_cache,
-                float32=float32,
+            stepper = item["integrator"] if item["integrator"] != "quasi-static" else integrator
+            row = screen and screen(scene, item["model"], stepper, item["dt"], fraction)
+            row = row or cached_compare(
+                scene, item["model"], stepper, item["dt"], fraction, ref, use_cache=use_cache, float32=float32
             )
         rows.append(row.replace(plan_index=k))
         if progress:
@@ -107,6 +107,7 @@ def sweep(
     use_cache: bool = True,
     comm=None,
     float32: bool = False,
+    screen=None,
 ) -> dict:
     """Models x time steps -> rows of metrics and the Pareto front of error (rel_l2) against step_us.
 
@@ -114,7 +115,8 @@ def sweep(
     ``default_fractions(scene)`` of its critical step, plus (``largest_stable``) each
     explicit model at the largest stable fraction that ``largest_stable_fraction`` finds. ``float32``:
     each row of a model that runs in float32 also carries its float32 twin (``runs.compare.float32_twin``), whose
-    distance from the float64 run stands beside the model's error.
+    distance from the float64 run stands beside the model's error. ``screen``: see ``_run_plan`` (the
+    advisor's, which leaves out the runs too slow for its rate).
     """
     models = list(models or offered())
     if fractions is None and dts is None:
@@ -136,7 +138,7 @@ def sweep(
         for m in models:
             if m not in QUASI_STATIC and integrator != "implicit-euler" and not plug_in(m):
                 plan.append({"model": m, "integrator": integrator, "dt": None, "fraction": "largest-stable"})
-    rows = _run_plan(scene, plan, ref, integrator, use_cache, float32, rank, size)
+    rows = _run_plan(scene, plan, ref, integrator, use_cache, float32, rank, size, screen)
     if comm is not None and size > 1:
         gathered = comm.gather(rows, root=0)
         if rank != 0:
