@@ -93,6 +93,19 @@ def cached_compare(
     return row
 
 
+def compare_or_unsettled(scene: Scene, model: str, integrator: str, dt, fraction, **options) -> Row:
+    """``cached_compare``, where a run that does not settle is a row of status "not settled" with the
+    reason (a candidate that failed, not an error that ends a study: hybrid-tm left a newcomer's liver
+    advice with no answer). Not cached: whether a run settles depends on its ``max_steps``, which the
+    run's key leaves out."""
+    from realtime import NotConvergedError
+
+    try:
+        return cached_compare(scene, model, integrator, dt, fraction, **options)
+    except NotConvergedError as exc:
+        return Row(scene.name, model, integrator, "not settled", dt=dt, fraction=fraction, message=str(exc))
+
+
 def largest_stable_fraction(
     scene: Scene,
     model_name: str,

@@ -22,13 +22,12 @@ import math
 
 import numpy as np
 
-from realtime import NotConvergedError
 from verification.engines import engine_for, offered
 from verification.progress import Progress
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
 from verification.runs.simulate import step_time_ahead
-from verification.runs.store import cached_compare
+from verification.runs.store import compare_or_unsettled
 from verification.scene import Scene, SceneError
 from verification.scene_file import builtin_scenes
 from verification.studies.frame import (
@@ -139,7 +138,7 @@ def _candidates(
     if not dynamic:
         progress = Progress(len(extra), progress_label)
         for m in extra:
-            rows.append(_compare_or_unsettled(scene, m, "implicit-euler", None, use_cache))
+            rows.append(compare_or_unsettled(scene, m, "implicit-euler", None, None, use_cache=use_cache))
             progress.step(f"{m} implicit-euler")
     else:
         # implicit Euler at a frame's step and finer: where a stiff body's explicit steps cannot keep up
@@ -149,18 +148,10 @@ def _candidates(
             for k in IMPLICIT_STEPS_PER_FRAME:
                 dt = 1.0 / (k * rate)
                 row = screen(scene, m, "implicit-euler", dt, None)
-                rows.append(row or _compare_or_unsettled(scene, m, "implicit-euler", None, use_cache, dt))
+                rows.append(row or compare_or_unsettled(scene, m, "implicit-euler", dt, None, use_cache=use_cache))
                 progress.step(f"{m} implicit-euler, dt {dt:.3g} s")
     rows = [r.replace(frame=frame_budget(r, rate, dynamic)) if r.ok else r for r in rows]
     return merge_same_answers(rows, metric, dynamic)
-
-
-def _compare_or_unsettled(scene: Scene, model: str, integrator: str, fraction, use_cache: bool, dt=None) -> Row:
-    """A cached compare row; a run that does not settle is a candidate that failed, not an error."""
-    try:
-        return cached_compare(scene, model, integrator, dt, fraction, use_cache=use_cache)
-    except NotConvergedError as exc:
-        return Row(scene.name, model, integrator, "not settled", message=str(exc))
 
 
 def _pick(rows: list[Row], metric: str, tol: float, dynamic: bool):
@@ -458,7 +449,8 @@ def _run_plans(scene: Scene, proposal: dict, metric: str, tol: float, rate: floa
         r0 = p["row"]
         level_scene = scene.refined(p["level"])
         fraction = None if r0.dt is None or r0.integrator == "implicit-euler" else min(r0.fraction or 0.9, 0.9)
-        row = _compare_or_unsettled(level_scene, r0.model, r0.integrator, fraction, use_cache)
+        dt = r0.dt if dynamic and r0.integrator == "implicit-euler" else None  # its steps a frame, kept
+        row = compare_or_unsettled(level_scene, r0.model, r0.integrator, dt, fraction, use_cache=use_cache)
         progress.step(f"{r0.model} level {p['level']}")
         row = row.replace(frame=frame_budget(row, rate, dynamic) if row.ok else None, level=p["level"])
         ok, line = verdict(row, metric, tol)

@@ -14,7 +14,7 @@ from verification.metrics import METRICS
 from verification.progress import Progress
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
-from verification.runs.store import cached_compare, largest_stable_fraction
+from verification.runs.store import compare_or_unsettled, largest_stable_fraction
 from verification.scene import Scene, SceneError
 
 #: Time steps a sweep tries by default on a dynamic scene, as fractions of each model's critical step.
@@ -81,15 +81,15 @@ def _run_plan(
         if fraction == "largest-stable":
             fraction = largest_stable_fraction(scene, item["model"], integrator, use_cache=use_cache)["stable"]
             row = screen and screen(scene, item["model"], integrator, None, fraction)
-            row = row or cached_compare(
-                scene, item["model"], integrator, None, fraction, ref, use_cache=use_cache, float32=float32
+            row = row or compare_or_unsettled(
+                scene, item["model"], integrator, None, fraction, reference=ref, use_cache=use_cache, float32=float32
             )
             row = row.replace(largest_stable=True)
         else:
             stepper = item["integrator"] if item["integrator"] != "quasi-static" else integrator
             row = screen and screen(scene, item["model"], stepper, item["dt"], fraction)
-            row = row or cached_compare(
-                scene, item["model"], stepper, item["dt"], fraction, ref, use_cache=use_cache, float32=float32
+            row = row or compare_or_unsettled(
+                scene, item["model"], stepper, item["dt"], fraction, reference=ref, use_cache=use_cache, float32=float32
             )
         rows.append(row.replace(plan_index=k))
         if progress:
