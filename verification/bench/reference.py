@@ -20,13 +20,15 @@ from verification.scene_file import load_scene
 
 BENCH_SCENES = Path(__file__).parents[1] / "scenes" / "bench"
 #: (label, scene, with the estimate): the slender P2 beam with and without its estimate, the
-#: 90-degree twisted cylinder, the liver, and a dynamic case of about 40 000 dofs and 1600 steps.
+#: 90-degree twisted cylinder, the liver, a dynamic case of about 40 000 dofs and 1600 steps, and a
+#: stiff linear beam's dynamics with the estimate (one factorisation a level, back-substitutions).
 CASES = (
     ("slender beam P2, no estimate", BENCH_SCENES / "slender-beam.toml", False),
     ("slender beam P2 + estimate", BENCH_SCENES / "slender-beam.toml", True),
     ("cylinder twisted 90 degrees P2 + estimate", BENCH_SCENES / "twisted-cylinder.toml", True),
     ("liver P2 + estimate", "liver", True),
     ("slender beam dynamic P2, 1600 steps", BENCH_SCENES / "slender-beam-dynamic.toml", False),
+    ("stiff beam dynamic linear P2 + estimate", BENCH_SCENES / "stiff-beam-dynamic.toml", True),
 )
 
 
