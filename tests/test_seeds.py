@@ -233,3 +233,18 @@ def test_seeds_page_images_load_in_a_headless_browser(tmp_path):
     title = out.stdout.split("<title>", 1)[1].split("</title>", 1)[0]
     n_plots = sum(len(f["plots"]) for f in res["experiments"])
     assert title == f"images {n_plots} broken 0", out.stderr[-2000:]
+
+
+def test_a_rates_row_whose_run_does_not_settle_says_so_with_its_step_time(monkeypatch, tmp_path):
+    """hybrid-tm did not settle on the rates study's 7232-tetrahedron beam, and the whole seeds page
+    failed with a KeyError: the unsettled run's metadata (its step timed from rest) did not name its
+    integrator. Made here with a settling budget of 5 steps: the row says "did not settle", carries its
+    step time and the rates it holds, and has no error."""
+    from verification.studies.seeds import e8_rates
+
+    monkeypatch.setenv("TISSUEBENCH_CACHE", str(tmp_path))  # the unsettled run is cached: a private cache
+    monkeypatch.setattr(common, "SETTLE_STEPS", 5)
+    scene = e8_rates.rates_scenes(common.SMALL)[0]
+    row = e8_rates._rate_row(scene, "linear-tm", np.zeros((scene.mesh.n_vertices, 3)), common.SMALL, {})
+    assert row["status"].startswith("did not settle") and row["rel_l2"] is None
+    assert row["step_us"] > 0 and isinstance(row["holds_visual"], bool)

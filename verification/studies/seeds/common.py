@@ -155,7 +155,8 @@ def _read_settled(path: Path) -> tuple[np.ndarray, dict]:
 
 def _step_time(scene: Scene, model: str, options: dict | None) -> dict:
     """The step time of a run that did not settle: symplectic Euler at 0.9 of the rest critical step,
-    timed from rest like every run (``runs.simulate.time_steps``)."""
+    timed from rest like every run (``runs.simulate.time_steps``), with the integrator named as a run's
+    meta names it (the rates study read it, and failed with a KeyError on an unsettled hybrid-tm)."""
     from verification.engines import engine_for
     from verification.inputs import scene_inputs
     from verification.runs.simulate import EXPLICIT_FRACTION, time_steps
@@ -163,7 +164,7 @@ def _step_time(scene: Scene, model: str, options: dict | None) -> dict:
     sim = engine_for(model).build(scene_inputs(scene), model, "symplectic-euler", dict(options or {}))
     dt = EXPLICIT_FRACTION * sim.critical_dt()
     sim.start(dt)
-    return {"dt": dt, **time_steps(sim)}
+    return {"dt": dt, "integrator": "symplectic-euler", **time_steps(sim)}
 
 
 def _ref(scene: Scene, size: Size):
