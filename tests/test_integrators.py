@@ -1,6 +1,7 @@
 """Integrators: the critical time step, blow-up detection, tools, order of accuracy."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -441,6 +442,23 @@ def test_a_settling_below_its_round_off_floor_stops_there_whatever_the_order_of_
     monkeypatch.setattr(statics, "FLOOR_FACTOR", 0.0)  # the stall rule alone
     stalled = statics.solve_static(model, dt=dt, rtol=1e-12)
     assert stalled.steps > 1.5 * runs[1]
+
+
+def test_a_settling_that_stops_progressing_far_above_its_tolerance_ends_early():
+    """Asked for 1e-20 of the load, which no float64 run reaches (linear-tm's floor on the cantilever is
+    1.0e-11), a settling that no floor or plateau rule may stop (1e-20 x 1000 is still far below what it
+    reaches) ends when its residual has not fallen by 10% in STALLED_CHUNKS chunks: it does not settle,
+    and says so then, not after max_steps (hybrid-tm ran 300 000 steps on the rates beam for that)."""
+    from realtime import statics
+    from verification.engines.builtin import scene_model
+    from verification.scene_file import load_scene
+
+    model = scene_model(load_scene("cantilever"), "linear-tm")
+    dt = 0.9 * SymplecticEuler().critical_dt(model)
+    with pytest.raises(NotConvergedError, match=r"has not fallen by 10% in its last 50000 steps") as err:
+        statics.solve_static(model, dt=dt, rtol=1e-20, max_steps=2_000_000)
+    taken = int(re.search(r"in (\d+) steps of", str(err.value)).group(1))
+    assert statics.STALLED_CHUNKS * 200 <= taken < 200_000
 
 
 @pytest.mark.parametrize("name", ["linear-tm", "stvk-tm", "mass-spring", "condensed"])
