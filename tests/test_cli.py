@@ -256,3 +256,19 @@ def test_a_model_run_without_a_term_of_the_material_says_so(tmp_path, capsys):
     result.update(pareto=[], computed=2, cached=0)
     table = format_sweep(result)
     assert table.count("(without the volume penalty") == 1
+
+
+def test_the_reports_sweep_table_says_what_became_of_a_run_that_did_not_settle():
+    """A sweep's run that does not settle is a row "not settled" with its reason (studies.sweep); the
+    report's table of runs that did not finish printed every such row as "diverged at step None"."""
+    from verification.report.sections import _diverged_html
+    from verification.runs.row import Row
+
+    rows = [
+        Row("s", "stvk-tm", "symplectic-euler", "diverged", dt=2e-4, dt_crit=1e-4, step=17),
+        Row("s", "hybrid-tm", "symplectic-euler", "not settled", message="reached 5.9e-03 in 50000 steps"),
+    ]
+    page = _diverged_html(rows)
+    assert "diverged at step 17" in page and "1 runs beyond their stable step" in page
+    assert "not settled: reached 5.9e-03 in 50000 steps" in page and "1 runs that did not settle" in page
+    assert "step None" not in page

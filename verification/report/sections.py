@@ -78,10 +78,14 @@ def _sweep_table(rows: list[Row]) -> str:
         if r.largest_stable:
             ratio += " (largest stable)"
         if r.status != "ok":
+            what = (
+                f"diverged at step {r.step} (critical dt {fmt(r.dt_crit)} s)"
+                if r.status == "diverged"
+                else html.escape(f"{r.status}: {r.message or ''}")
+            )
             out.append(
                 f"<tr class='bad'><td>{r.model}</td><td>{r.integrator}</td><td>{fmt(r.dt)}</td>"
-                f"<td>{ratio}</td><td colspan='9'>diverged at step {r.step} (critical dt "
-                f"{fmt(r.dt_crit)} s)</td></tr>"
+                f"<td>{ratio}</td><td colspan='9'>{what}</td></tr>"
             )
             continue
         acc = " <em>(at reference accuracy)</em>" if r.at_reference_accuracy else ""
@@ -250,14 +254,21 @@ def _reaction_html(scene, ref, reactions: dict) -> str:
 
 
 def _diverged_html(rows: list[Row]) -> str:
-    """The runs that blew up (the steps beyond each model's limit are run on purpose), folded."""
-    bad = [r for r in rows if r.status != "ok"]
-    if not bad:
-        return ""
-    return (
-        f"<details><summary>{len(bad)} runs beyond their stable step (run on purpose, to show each model's "
-        f"limit)</summary>{_sweep_table(bad)}</details>"
-    )
+    """The runs that blew up (the steps beyond each model's limit are run on purpose), folded, and those
+    that did not settle."""
+    bad = [r for r in rows if r.status == "diverged"]
+    unsettled = [r for r in rows if r.status not in ("ok", "diverged")]
+    out = ""
+    if bad:
+        out += (
+            f"<details><summary>{len(bad)} runs beyond their stable step (run on purpose, to show each model's "
+            f"limit)</summary>{_sweep_table(bad)}</details>"
+        )
+    if unsettled:
+        out += (
+            f"<details><summary>{len(unsettled)} runs that did not settle</summary>{_sweep_table(unsettled)}</details>"
+        )
+    return out
 
 
 def _repairs(mesh) -> str:
