@@ -248,18 +248,13 @@ class Condensed:
                 "condensed: no vertex is fixed or driven by a tool: the body's rigid motions are free and it "
                 "has no static equilibrium"
             )
+        unheld = "the fixed and tool vertices do not hold every rigid motion of the body"
         try:
             chol = sla.cho_factor(free)
         except np.linalg.LinAlgError as exc:
-            raise InputError(
-                f"condensed: the condensed stiffness is singular ({exc}): the fixed and tool vertices do not "
-                "hold every rigid motion of the body"
-            ) from None
+            raise InputError(f"condensed: the condensed stiffness is singular ({exc}): {unheld}") from None
         if np.abs(np.diag(chol[0])).min() ** 2 <= 1e3 * np.finfo(float).eps * scale:
-            raise InputError(
-                "condensed: the condensed stiffness is singular to round-off: the fixed and tool vertices do "
-                "not hold every rigid motion of the body"
-            )
+            raise InputError(f"condensed: the condensed stiffness is singular to round-off: {unheld}")
         z0 = sla.cho_solve(chol, self.f_star[self.free_r])
         G = (
             -sla.cho_solve(chol, self.K_fc[:, self.tool_cols])

@@ -121,8 +121,9 @@ def test_self_equilibrated_and_translation_free(name, rng):
 
 
 def test_a_condensed_body_nothing_holds_has_forces_but_no_static_answer():
-    """condensed on a body with no fixed or tool vertex: its force is the linear model's, and a static
-    answer, which does not exist (every rigid motion is free), is refused in one line, whatever the
+    """condensed on a body with no fixed or tool vertex: it builds, a rigid translation gives it no force
+    (to round-off of a 1e-3 strain's), and a static answer, which does not exist (every rigid motion is
+    free), is refused in one line, whatever the
     BLAS's round-off makes of the singular Cholesky factorisation (Debian's reference BLAS passed it)."""
     from realtime.quasistatic import Condensed
 
