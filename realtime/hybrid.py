@@ -16,9 +16,21 @@ from .stvk import stvk_block
 from .tensor_mass import TensorData, linear_tm_energy, linear_tm_force
 
 
+#: A vertex that moved past the threshold stays non-linear until it is back within this share of it
+#: (hysteresis). With one threshold for both ways the hybrid had no equilibrium where a vertex's
+#: displacement under the linear law lay past the threshold and under StVK short of it: its tetrahedra
+#: switched law at every step and damped dynamics never settled (hybrid-tm sat at a residual of 6e-3 of
+#: the load on the rates beam's 57 856 tetrahedra, 5.9e-3 on a liver pressed by a 5 mm tool). With a
+#: band, a vertex switches only when its displacement crosses the whole band, which a settling body's
+#: vertices stop doing as its motion dies out. Half: wide against the two laws' difference in
+#: displacement at a threshold of 10% of the edge (a few per cent), narrow against the threshold.
+RELEASE = 0.5
+
+
 class HybridData(NamedTuple):
     """hybrid_force's data: linear (TensorData) the linear tensor-mass, tets, geo and prm as BlockData's,
-    threshold (1,) float64 m."""
+    threshold (2,) float64 m: the displacement past which a vertex becomes non-linear, and the one
+    within which it returns to linear (RELEASE times the first)."""
 
     linear: TensorData
     tets: np.ndarray
@@ -29,7 +41,9 @@ class HybridData(NamedTuple):
 
 def hybrid_scratch(n_vertices: int, n_padded: int) -> tuple:
     """The scratch of hybrid_force on N vertices and P (padded) tetrahedra: W (9 BLOCK,) float64 as
-    block_scratch, moved (N,) bool, flags (P,) bool."""
+    block_scratch, moved (N,) bool, flags (P,) bool. ``moved`` is the state of the hysteresis: an
+    integrator keeps its scratch from step to step, so its vertices remember their law; a fresh scratch
+    (``Model.internal_force``) has none moved."""
     return (np.zeros(9 * BLOCK), np.zeros(n_vertices, dtype=np.bool_), np.zeros(n_padded, dtype=np.bool_))
 
 
@@ -37,18 +51,20 @@ def hybrid_scratch(n_vertices: int, n_padded: int) -> tuple:
 def hybrid_force(data, scratch, u, f):
     """f = f_linear-tm(u) + sum over flagged tetrahedra of (f_stvk,e(u) - f_linear,e(u)).
 
-    A tetrahedron is non-linear when one of its vertices moved more than ``threshold`` (m) from rest
-    (Picinbono et al. 2003, section 5). Threshold 0: every tetrahedron, the stvk-tm force (to
+    A tetrahedron is non-linear when one of its vertices moved more than ``threshold[0]`` (m) from rest
+    (Picinbono et al. 2003, section 5); a vertex stays moved until it is back within ``threshold[1]``
+    (RELEASE, the hysteresis kept in ``scratch``). Threshold 0: every tetrahedron, the stvk-tm force (to
     round-off). Threshold infinity: none, exactly the linear-tm force. Blocks with no flagged
     tetrahedron cost only the flag test.
-    data: HybridData.   scratch: hybrid_scratch(N, P).
+    data: HybridData.   scratch: hybrid_scratch(N, P), the moved vertices of the last call.
     """
     lin, tets, geo, prm, threshold = data
     W, moved, flags = scratch
     linear_tm_force(lin, scratch, u, f)  # which takes no scratch
-    thr2 = threshold[0] * threshold[0]
+    on2, off2 = threshold[0] * threshold[0], threshold[1] * threshold[1]
     for i in range(u.shape[0]):
-        moved[i] = u[i, 0] * u[i, 0] + u[i, 1] * u[i, 1] + u[i, 2] * u[i, 2] > thr2
+        d2 = u[i, 0] * u[i, 0] + u[i, 1] * u[i, 1] + u[i, 2] * u[i, 2]
+        moved[i] = d2 > on2 or (moved[i] and d2 > off2)
     t1, u1, f1 = tets.reshape(-1), u.reshape(-1), f.reshape(-1)
     for b in range(tets.shape[0] // BLOCK):
         e0 = b * BLOCK
@@ -65,8 +81,9 @@ def hybrid_force(data, scratch, u, f):
 
 @nb.njit(**JIT)
 def hybrid_energy(data, u):
-    """Energy of the same split, with the flags of the current u: the linear tensor-mass energy plus,
-    on the flagged tetrahedra, V (W_stvk + W_penalty - W_linear)."""
+    """Energy of the same split, with the flags a fresh scratch gives at u (no vertex remembered: those
+    moved past threshold[0]): the linear tensor-mass energy plus, on the flagged tetrahedra,
+    V (W_stvk + W_penalty - W_linear). With a fixed set of flags the force is its gradient."""
     lin, tets, geo, prm = data.linear, data.tets, data.geo, data.prm
     thr2 = data.threshold[0] * data.threshold[0]
     w = linear_tm_energy(lin, u)

@@ -221,6 +221,13 @@ class Integrator:
             model.check_current()  # raises: the mesh was cut since the model was built
         return p
 
+    def internal_force(self, model: Model, u: np.ndarray) -> np.ndarray:
+        """The internal force (N, 3), N, of ``model`` at u (N, 3) m as this integrator's steps see it: with
+        its kernel's scratch, so a force with a memory (hybrid-tm's hysteresis) has the run's. A settling
+        measures its residual by it (with the force from rest, hybrid-tm's equilibrium showed a residual
+        wherever a vertex sat in the hysteresis band)."""
+        return model.force_with(self._prepare(model).scratch, u)
+
     def set_forces(self, model: Model, forces: np.ndarray) -> None:
         """Apply the external nodal forces ``forces`` (N, 3) float64, N, from the next step on, in place of
         the model's ``loading.external_force`` (the model does not change; the forces live in this

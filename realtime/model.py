@@ -315,10 +315,17 @@ class Model:
 
     def internal_force(self, u: np.ndarray) -> np.ndarray:
         """Internal elastic force (N, 3), N, at displacement u (N, 3) m, both in the model's ``dtype`` (u
-        is rounded to it; with scratch of its own: safe beside any other call)."""
+        is rounded to it; with scratch of its own: safe beside any other call). A model whose force
+        remembers (hybrid-tm's hysteresis) gives it here as from rest; an integrator's
+        ``internal_force`` gives it with the run's memory."""
+        return self.force_with(self.new_scratch(), u)
+
+    def force_with(self, scratch: tuple, u: np.ndarray) -> np.ndarray:
+        """The internal force (N, 3), N, at u (N, 3) m with the kernel's ``scratch`` (a tuple as
+        ``new_scratch`` makes, which the call updates)."""
         u = self.nodal("internal_force: u", u)
         f = np.empty_like(u)
-        self.force_kernel(self.data, self.new_scratch(), u, f)
+        self.force_kernel(self.data, scratch, u, f)
         return f
 
     def rest_stiffness(self):

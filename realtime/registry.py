@@ -18,7 +18,7 @@ from .blocks import BlockData, block_data, block_scratch
 from .corotational import corotational_energy, corotational_force, corotational_scratch
 from .errors import InputError, index_array, is_real
 from .geometry import renumbered, shape_gradients, signed_volumes, unique_edges
-from .hybrid import HybridData, hybrid_energy, hybrid_force, hybrid_scratch
+from .hybrid import RELEASE, HybridData, hybrid_energy, hybrid_force, hybrid_scratch
 from .material import Material, Materials
 from .model import PRECISIONS, Loading, Model, check_float64, lumped_masses, no_scratch, prepare_mesh
 from .springs import SpringData, spring_energy, spring_force
@@ -228,7 +228,9 @@ def build_corotational_tm(
 def build_hybrid_tm(
     points, tets, material: Material | Materials, loading: Loading | None = None, threshold: float | None = None
 ) -> Model:
-    """Linear tensor-mass, StVK on the tetrahedra with a vertex displaced more than ``threshold`` (m).
+    """Linear tensor-mass, StVK on the tetrahedra with a vertex displaced more than ``threshold`` (m); a
+    vertex returns to linear within hybrid.RELEASE times it (hysteresis: the force does not switch back
+    and forth at the threshold, and damped dynamics settles).
 
     Default threshold: 10% of the mean edge length, the small-displacement limit of linear elasticity
     quoted by Delingette & Ayache (2004).
@@ -241,7 +243,7 @@ def build_hybrid_tm(
     if not (is_real(threshold) and threshold >= 0.0):
         raise InputError(f"hybrid-tm: threshold = {threshold!r} must be a number >= 0 m")
     btets, geo, prm = block_data(points, tets, material)
-    data = HybridData(tm.kernel_data(), btets, geo, prm, np.array([float(threshold)]))
+    data = HybridData(tm.kernel_data(), btets, geo, prm, np.array([float(threshold), RELEASE * float(threshold)]))
     n_points, n_padded = len(points), len(btets)
     return _model(
         "hybrid-tm",
@@ -260,8 +262,9 @@ def build_hybrid_tm(
 
 
 def nonlinear_fraction(tets: np.ndarray, u: np.ndarray, threshold: float) -> float:
-    """Fraction of the tetrahedra (M, 4) int64 that hybrid-tm treats as StVK at displacement u (N, 3) m:
-    those with a vertex displaced more than ``threshold`` m (``hybrid_force``'s rule)."""
+    """Fraction of the tetrahedra (M, 4) int64 that hybrid-tm treats as StVK at displacement u (N, 3) m
+    from a fresh start: those with a vertex displaced more than ``threshold`` m (``hybrid_force``'s rule;
+    a run that came there may keep more, those within the hysteresis band of hybrid.RELEASE)."""
     moved = np.linalg.norm(u, axis=1) > threshold
     return float(moved[tets].any(axis=1).mean())
 

@@ -34,7 +34,7 @@ FLOOR_FACTOR = 10.0
 STALLED_CHUNKS = 250
 
 
-def residual_floor(model: Model, u: np.ndarray, scale: float, f: np.ndarray | None = None) -> float:
+def residual_floor(model: Model, u: np.ndarray, scale: float, f: np.ndarray | None = None, force=None) -> float:
     """The round-off floor of a relative residual at ``u`` (N, 3) m: |f(u') - f(u)| / ``scale`` (N) over
     the free components, u' = u with every component moved by one unit in the last place (alternating
     signs: deterministic). No iteration can tell residuals below it apart: they are what rounding u to
@@ -42,11 +42,14 @@ def residual_floor(model: Model, u: np.ndarray, scale: float, f: np.ndarray | No
     own summation adds as much). On the cantilever refined twice linear-tm's floor is 2.3e-10: the run
     stops at 57 400 steps, at 2.3e-9; by the stall rule alone its residual stalled at 2.0e-9 and it
     ended after 74 000 steps, a count the summation order decided (69 600 with the two-thread kernel,
-    whose sums differ by round-off). ``f`` (N, 3) N: the internal force at u, if the caller has it."""
+    whose sums differ by round-off). ``f`` (N, 3) N: the internal force at u, if the caller has it;
+    ``force``: the force function, u -> f, that made it (default ``model.internal_force``; a settling
+    passes its integrator's, whose hybrid-tm remembers which law each vertex is under)."""
     lo = model.loading
+    force = model.internal_force if force is None else force
     signs = np.where(np.arange(u.size).reshape(u.shape) % 2 == 0, 1.0, -1.0)
     moved = u + signs * np.spacing(u)
-    delta = (model.internal_force(moved) - (model.internal_force(u) if f is None else f)) * lo.free
+    delta = (force(moved) - (force(u) if f is None else f)) * lo.free
     return float(np.linalg.norm(delta)) / scale
 
 
@@ -59,6 +62,7 @@ def solve_static(
     safety: float = 0.9,
     steps: int | None = None,
     progress=None,
+    omega2: float | None = None,
 ) -> StaticResult:
     """Static equilibrium under the full loads by damped explicit dynamics (dynamic relaxation).
 
@@ -84,16 +88,22 @@ def solve_static(
 
     ``progress``: called as progress(steps taken, relative residual) after every chunk, for a caller
     that reports to a user who waits (the engine itself prints nothing).
+
+    ``omega2``: omega_max^2 (1/s^2) at rest (``spectra.max_eigenvalue``), where the caller knows it.
     """
     max_steps = _step_budget(model, steps, max_steps)
     state, lo = model.rest_state(), model.loading
     arrived = float(lo.tool_ramp.max()) if len(lo.tool_ramp) else 0.0
     free = lo.free
-    omega2 = max_eigenvalue(model)
+    omega2 = max_eigenvalue(model) if omega2 is None else omega2
     dt_crit = 2.0 / math.sqrt(omega2)
     adaptive = dt is None
     dt = safety * dt_crit if adaptive else dt
     integ, alpha = SymplecticEuler(alpha=0.0), 2.0 * math.sqrt(omega2) * 1e-3
+
+    def force(v):  # the force the steps see (hybrid-tm's hysteresis included)
+        return integ.internal_force(model, v)
+
     taken, residual, best, since_best = 0, np.inf, np.inf, 0
     fmag = float(np.linalg.norm(lo.external_force * free))
     while taken < max_steps:
@@ -110,20 +120,20 @@ def solve_static(
             dt = safety * dt_crit
             continue
         taken += n
-        f = model.internal_force(state.u)
+        f = force(state.u)
         scale = max(fmag, float(np.linalg.norm(model.reaction(state.u))), 1e-300)
         residual = float(np.linalg.norm((f + lo.external_force) * free)) / scale
         if progress is not None:
             progress(taken, residual)
         if state.t >= arrived and steps is None:
             best, since_best = (residual, 0) if residual < 0.9 * best else (best, since_best + 1)
-            if _converged(model, state.u, residual, rtol, scale, f, best, since_best):
+            if _converged(model, state.u, residual, rtol, scale, f, best, since_best, force):
                 break
             if since_best >= STALLED_CHUNKS:
                 raise _not_settled(
                     model, residual, rtol, taken, dt, math.sqrt(omega2) / max(0.5 * alpha, 1e-300), chunk * since_best
                 )
-        alpha = _damping(model, state.u, free, omega2, alpha)
+        alpha = _damping(model, state.u, free, omega2, alpha, force)
     else:
         if steps is None:
             raise _not_settled(model, residual, rtol, taken, dt, math.sqrt(omega2) / max(0.5 * alpha, 1e-300))
@@ -150,13 +160,15 @@ def _not_settled(model: Model, residual: float, rtol: float, taken: int, dt: flo
     )
 
 
-def _converged(model: Model, u, residual: float, rtol: float, scale: float, f, best: float, since_best: int) -> bool:
+def _converged(
+    model: Model, u, residual: float, rtol: float, scale: float, f, best: float, since_best: int, force
+) -> bool:
     """solve_static's stopping rule: the residual below rtol, or within 1000 rtol and below FLOOR_FACTOR
     times its round-off floor, or a plateau within 1000 rtol that has not improved for 50 chunks (the
     residual reached is reported)."""
     if residual < rtol:
         return True
-    if residual < 1e3 * rtol and residual < FLOOR_FACTOR * residual_floor(model, u, scale, f):
+    if residual < 1e3 * rtol and residual < FLOOR_FACTOR * residual_floor(model, u, scale, f, force):
         return True
     return since_best >= 50 and best < 1e3 * rtol
 
@@ -190,18 +202,18 @@ def _step_budget(model: Model, steps, max_steps: int) -> int:
     return int(steps)
 
 
-def _damping(model: Model, u: np.ndarray, free: np.ndarray, omega2: float, alpha: float) -> float:
+def _damping(model: Model, u: np.ndarray, free: np.ndarray, omega2: float, alpha: float, force) -> float:
     """The mass damping 2 omega_1 of the next chunk, omega_1^2 the Rayleigh quotient
     u_f.K(u) u_f / u_f.M u_f of the free displacement u_f, K(u) the tangent stiffness at the current
     state applied to the free part alone (K_fp u_p is no stiffness of the free system): a central
     difference of the force along u_f, exact for a linear model. ``alpha`` where the quotient says
-    nothing (u_f = 0, or a non-positive quotient)."""
+    nothing (u_f = 0, or a non-positive quotient). ``force``: u -> the internal force, as the steps see it."""
     uf = u * free
     den = float(np.sum(model.mass[:, None] * uf * uf))
     if den <= 0.0:
         return alpha
     h = 1e-4 / max(float(np.abs(uf).max()), 1e-300) * float(np.abs(u).max() + 1e-12)
-    kuf = (model.internal_force(u - h * uf) - model.internal_force(u + h * uf)) / (2.0 * h)
+    kuf = (force(u - h * uf) - force(u + h * uf)) / (2.0 * h)
     rq = float(np.sum(kuf * uf)) / den
     return 2.0 * math.sqrt(min(rq, omega2)) if rq > 0.0 else alpha
 
@@ -223,7 +235,7 @@ def solve_static_implicit(
         integ.step(model, state, dt, 1)  # raises NotConvergedError when CG stops short (unless a budget)
         if state.t < arrived:
             continue
-        r = (model.internal_force(state.u) + lo.external_force) * lo.free
+        r = (integ.internal_force(model, state.u) + lo.external_force) * lo.free
         scale = max(fmag, float(np.linalg.norm(model.reaction(state.u))), 1e-300)
         residual = float(np.linalg.norm(r)) / scale
         if residual < 0.9 * best:

@@ -209,6 +209,37 @@ def test_hybrid_limits(rng):
     assert np.array_equal(hinf, lin)  # threshold infinity: the very same kernel path
 
 
+def test_hybrid_vertices_remember_their_law_within_the_band():
+    """hybrid-tm's hysteresis: a vertex turns non-linear past the threshold and back to linear only
+    within RELEASE times it. One vertex is displaced 0.75 thresholds (inside the band): from rest (a
+    fresh scratch) its tetrahedra are linear; after it went 1.5 thresholds out, the same u gives the
+    StVK force on them; back at 0.25 thresholds it is linear again, bit for bit the force from rest."""
+    from realtime.hybrid import RELEASE
+
+    mesh = cylinder()
+    thr = 1e-3
+    assert RELEASE < 0.75 < 1.0 and 0.25 < RELEASE
+    model = build_model("hybrid-tm", mesh.points, mesh.tets, ISO, threshold=thr)
+    lin = build_model("linear-tm", mesh.points, mesh.tets, ISO)
+    k = mesh.n_vertices // 2
+    d = np.array([0.6, -0.48, 0.64])  # a unit vector
+
+    def at(r):
+        u = np.zeros_like(mesh.points)
+        u[k] = r * thr * d
+        return u
+
+    scratch = model.new_scratch()
+    inside = at(0.75)
+    assert np.array_equal(model.force_with(scratch, inside), lin.internal_force(inside))
+    model.force_with(scratch, at(1.5))
+    remembered = model.force_with(scratch, inside)
+    # the StVK correction at a 7.5e-4 m displacement of one vertex on 4 mm edges (strain ~0.2): well
+    # above round-off of the force (1e-12 relative)
+    assert np.linalg.norm(remembered - lin.internal_force(inside)) > 1e-3 * np.linalg.norm(remembered)
+    assert np.array_equal(model.force_with(scratch, at(0.25)), model.internal_force(at(0.25)))
+
+
 def test_mass_spring_calibration():
     """Van Gelder's springs on a structured block in uniaxial tension: measured E and nu.
 
