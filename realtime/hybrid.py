@@ -15,7 +15,6 @@ from .laws import volume_penalty_energy
 from .stvk import stvk_block
 from .tensor_mass import TensorData, linear_tm_energy, linear_tm_force
 
-
 #: A vertex that moved past the threshold stays non-linear until it is back within this share of it
 #: (hysteresis). With one threshold for both ways the hybrid had no equilibrium where a vertex's
 #: displacement under the linear law lay past the threshold and under StVK short of it: its tetrahedra

@@ -37,7 +37,7 @@ from verification.studies.seeds.e4_liver import liver, liver_scene
 from verification.studies.seeds.e5_hybrid_threshold import hybrid_rates
 from verification.studies.seeds.e6_remeshing import remesh_scenes, remeshing
 from verification.studies.seeds.e7_critical_stiffness import critical_stiffness
-from verification.studies.seeds.e8_rates import rates, rates_scenes
+from verification.studies.seeds.e8_rates import rates, rates_cells, rates_scenes
 from verification.studies.seeds.e9_speedups import speedup_scene, speedups
 
 EXPERIMENTS = {
@@ -65,6 +65,10 @@ REFERENCE_SCENES = {
 }
 
 
+#: The settlings each experiment makes that are known before it runs (``prefetch.settle_ahead``'s cells).
+SETTLE_CELLS = {"rates": rates_cells}
+
+
 def reference_jobs(keys, size: Size) -> list[tuple[Scene, dict]]:
     """The references the experiments ``keys`` ask for, as ``prefetch.solve_references`` takes them."""
     jobs = []
@@ -78,13 +82,15 @@ def reference_jobs(keys, size: Size) -> list[tuple[Scene, dict]]:
 
 def run_seeds(only=None, size: Size = FULL) -> dict:
     """Run the experiments (all, or the keys in ``only``) and return {"experiments": [...], "meta"}.
-    Their references are solved first, one process per core (``prefetch.solve_references``); the
-    experiments then find them in the cache, and nothing runs beside the model runs they time."""
-    from verification.studies.prefetch import solve_references
+    Their references are solved first, then the settlings known ahead (SETTLE_CELLS), one process per
+    core (``prefetch``); the experiments then find them in the cache, and nothing runs beside the model
+    runs they time."""
+    from verification.studies.prefetch import settle_ahead, solve_references
 
     keys = list(EXPERIMENTS) if not only else list(only)
     t0 = time.perf_counter()
     solve_references(reference_jobs(keys, size))
+    settle_ahead([], cells=[cell for k in keys for cell in SETTLE_CELLS.get(k, lambda size: [])(size)])
     found = []
     for k in keys:
         t1 = time.perf_counter()

@@ -13,7 +13,15 @@ from verification.report.plots import png
 from verification.runs.row import Row
 from verification.scene import Scene
 from verification.studies.frame import FRAME_SHARE, available_memory, frame_budget, memory_bytes
-from verification.studies.seeds.common import Size, _finding, _ref, _reference_info, _settled, seed_scene
+from verification.studies.seeds.common import (
+    SETTLE_STEPS,
+    Size,
+    _finding,
+    _ref,
+    _reference_info,
+    _settled,
+    seed_scene,
+)
 
 #: Seconds a quasi-static model's precomputation may take in the rates study (its cost grows about
 #: 60-fold per refinement: 251 s for precomputed and 363 s for condensed on the 57856-tetrahedron beam).
@@ -38,6 +46,19 @@ RATES = (("visual", 10.0), ("haptic", 1000.0))
 
 def rates_scenes(size: Size) -> list[Scene]:
     return [seed_scene("rates-beam", refine=level) for level in size.rate_levels]
+
+
+def rates_cells(size: Size) -> list[tuple[Scene, str, str, int]]:
+    """The settlings the study makes (for ``prefetch.settle_ahead``): every time-stepping model on every
+    beam that fits in memory, as ``_settled`` asks for them (symplectic Euler at the default step, at
+    most SETTLE_STEPS). On the largest beam they took 13 minutes one after another in one process."""
+    return [
+        (scene, m, "symplectic-euler", SETTLE_STEPS)
+        for scene in rates_scenes(size)
+        for m in RATE_MODELS
+        if m not in QUASI_STATIC
+        and memory_bytes(m, scene.mesh.n_vertices, len(scene.mesh.surface_vertices)) <= available_memory()
+    ]
 
 
 def rates(size: Size) -> dict:
