@@ -185,22 +185,24 @@ def test_advisor_pick_rerun_with_compare_meets_tolerance_and_rate(capsys):
 
 @pytest.mark.slow
 def test_advisor_names_a_finer_mesh_when_the_mesh_part_exceeds_the_tolerance(capsys):
-    """block-press at 3% among the models that run on the scene's mesh (adaptive-tm refines it itself,
-    and meets 3% there: 2.6%): P1 on its mesh is 5.3% off the truth for every one of them, so none
-    qualifies there; the advisor observes the mesh's order on one refinement, names the refined mesh and
-    a model, and the pick, re-run on that mesh, meets both (at 10 Hz, which every machine holds with a
-    hundredfold margin on the refined mesh: the test is of the mesh, not of the machine's speed)."""
+    """block-press at 4% among the models that run on the scene's mesh (adaptive-tm refines it itself):
+    P1 on its mesh is 5.3% off the truth for every one of them, so none qualifies there; the advisor
+    observes the mesh's order on one refinement, names the refined mesh and a model, and the pick, re-run
+    on that mesh, meets both (at 10 Hz, which every machine holds with a hundredfold margin on the refined
+    mesh: the test is of the mesh, not of the machine's speed). The truth's bar is 0.6%: a candidate
+    qualifies at 3.4% at most, which the mesh refined once allows (at 3%, twice: a 70 000-tetrahedron
+    run)."""
     others = [m for m in MODELS if m != "adaptive-tm"]
-    assert main(["advise", "block-press", "--tol", "0.03", "--rate", "10", "--json", "--models", *others]) == 0
+    assert main(["advise", "block-press", "--tol", "0.04", "--rate", "10", "--json", "--models", *others]) == 0
     out = json.loads(capsys.readouterr().out)
     prop = out["proposal"]
-    assert prop["mesh_part"][0] > 0.03 and prop["observed_order"] > 1.0
+    assert prop["mesh_part"][0] > 0.04 and prop["observed_order"] > 1.0
     assert out["model"] is not None and out["refine"] >= 1, out["why"]
     assert out["mesh"]["n_vertices"] > load_scene("block-press").mesh.n_vertices
     assert "--mesh-refine" in out["command"]
     assert all(line.startswith("on the scene's mesh") for line in out["cheaper_failed"])
     again = _rerun(out, capsys)
-    assert again["rel_l2"] <= 0.03 and again["frame"]["holds"], again["frame"]["why"]
+    assert again["rel_l2"] <= 0.04 and again["frame"]["holds"], again["frame"]["why"]
     assert again["error_budget"]["mesh"] < prop["mesh_part"][0]
 
 
@@ -222,13 +224,13 @@ def test_the_advisor_does_not_run_what_its_rate_rules_out(monkeypatch, capsys, s
     OPTIMISM x FRAME_SHARE of a frame is not run: its row says "over budget" with its step and step time
     and has no error (the stiff beam's adaptive-tm would have taken 2.3 million steps for it). Steps of
     a second each rule out every time-stepping candidate at 10 Hz; steps of a nanosecond rule out none,
-    and every one is run to its error."""
+    and every one is run to its error. Without the run cache: a row another test cached holds a real
+    timing, which the stand-in would not have made."""
     from verification.runs import simulate
 
     monkeypatch.setattr(simulate, "time_steps", _steps_taking(step_us))
-    assert (
-        main(["advise", "cantilever-dynamic", "--tol", "0.05", "--rate", "10", "--json", "--models", "linear-tm"]) == 0
-    )
+    args = ["advise", "cantilever-dynamic", "--tol", "0.05", "--rate", "10", "--json", "--models", "linear-tm"]
+    assert main([*args, "--no-cache"]) == 0
     stepping = [c for c in json.loads(capsys.readouterr().out)["candidates"] if c["integrator"] != "quasi-static"]
     assert {c["integrator"] for c in stepping} == {"symplectic-euler", "implicit-euler"}
     for c in stepping:
@@ -297,3 +299,118 @@ def test_a_candidate_that_does_not_settle_is_a_failed_candidate_not_the_end_of_t
         not c["qualifies"] and "not settled" in c["why"] and "2000000 steps" in c["why"] for c in hybrid
     )
     assert out["model"] == "linear-tm"
+
+
+# ---------------------------------------------------------------------------------------------
+# a truth sharp enough for the question
+
+
+def _judged(err, bar, step_us=10.0):
+    from verification.studies.frame import judgement
+
+    row = _row(err=err, step_us=step_us).replace(ref_err_estimate=bar)
+    row = row.replace(frame=frame_budget(row, 10.0, dynamic=False))
+    return judgement(row, "rel_l2", 0.05)
+
+
+def test_a_verdict_is_decided_only_outside_the_interval_the_references_bar_leaves():
+    """SOFA's liver at 5%: a bar of 2.5% leaves the true error of a run measured at 4.3% anywhere in
+    [1.8%, 6.8%]: undecided, and never picked; 2% is within 5% whatever the truth's own error, 8% is
+    over it. Without a bar the measured error decides, and the line says the truth is unverified."""
+    from verification.studies.frame import FAILS, QUALIFIES, UNDECIDED
+
+    state, line = _judged(0.043, 0.025)
+    assert state == UNDECIDED and "true 0.018 to 0.068" in line and "undecided" in line
+    assert _judged(0.02, 0.025)[0] == QUALIFIES
+    assert _judged(0.08, 0.025)[0] == FAILS
+    assert _judged(0.043, 0.025, step_us=2e5)[0] == FAILS  # a frame it cannot hold decides alone
+    state, line = _judged(0.043, None)
+    assert state == QUALIFIES and "reference unverified" in line
+
+
+def test_the_cost_of_a_sharper_reference_is_predicted_from_the_levels_solved():
+    """SOFA's liver's P2 levels (8 808 and 58 605 dofs in 0.88 and 13.8 s) grow as dofs^1.46; one more
+    refinement solves 58 605 dofs again and 8 times as many: 13.8 (1 + 8^1.46) s. The exponent is kept
+    within nested dissection's [4/3, 2]."""
+    from verification.studies.truth import reference_cost
+
+    meta = {"solves": [{"n_dofs": 8808, "wall_s": 0.8767}, {"n_dofs": 58605, "wall_s": 13.85}]}
+    c = reference_cost(meta)
+    p = np.log(13.85 / 0.8767) / np.log(58605 / 8808)
+    assert c["n_dofs"] == 8 * 58605 and c["exponent"] == pytest.approx(p)
+    assert c["seconds"] == pytest.approx(13.85 * (1 + 8**p))
+    flat = reference_cost({"solves": [{"n_dofs": 1000, "wall_s": 1.0}, {"n_dofs": 8000, "wall_s": 1.0}]})
+    assert flat["exponent"] == pytest.approx(4 / 3)
+    assert reference_cost({}) is None
+
+
+@pytest.mark.parametrize("budget", [1e9, 0.0])
+def test_a_coarse_truth_is_tightened_within_the_budget_or_the_advice_says_it_cannot_decide(monkeypatch, budget):
+    """A truth whose bar (2.5%) is over SHARP of the tolerance (5%) is solved refined once more when that
+    is predicted within TIGHTEN_BUDGET_S, and the advice judges with it; past the budget the advice keeps
+    it and says what a sharper one would take. The references are stand-ins (what is tested is the
+    rule, not the solver): each refinement divides the bar by 8."""
+    from types import SimpleNamespace
+
+    from verification.studies import truth as advise
+
+    asked = []
+
+    def fake(scene, degree=2, refine=0, estimate=True, **kw):
+        asked.append(refine)
+        solves = [{"n_dofs": 1000 * 8**k, "wall_s": 8.0**k} for k in (refine, refine + 1)]
+        return SimpleNamespace(meta={"ref_err_estimate": 0.025 / 8**refine, "solves": solves})
+
+    monkeypatch.setattr(advise, "reference_result", fake)
+    monkeypatch.setattr(advise, "TIGHTEN_BUDGET_S", budget)
+    opts, truth = advise.sharp_reference(load_scene("block-press"), 0.05, "rel_l2")
+    if budget:
+        assert opts["refine"] == 1 and asked == [0, 1] and truth["sharp"]
+        assert truth["bar"] == pytest.approx(0.025 / 8) and "refined once more" in truth["why"]
+    else:
+        assert opts["refine"] == 0 and asked == [0] and not truth["sharp"]
+        assert "predicted to take" in truth["why"] and "undecided" in truth["why"]
+
+
+# ---------------------------------------------------------------------------------------------
+# haptic verdicts: the shape at the visual rate, the tool force at the haptic one
+
+
+def _haptic_row(err=0.02, force_err=0.91, step_us=10.0):
+    row = _row(err=err, step_us=step_us).replace(
+        ref_err_estimate=1e-3, reaction_rel_err=force_err, reference={"ref_reaction_err_estimate": 1e-3}
+    )
+    return row.replace(frame=frame_budget(row, 60.0, False, haptic={"rate": 1000.0, "force_tol": 0.1}))
+
+
+def test_a_tool_force_out_of_tolerance_fails_beside_a_passing_shape():
+    """A liver whose shape is 2% off and whose tool force is 91% off: the shape alone qualifies at 60 Hz,
+    the haptic loop at 1 kHz does not, and the line says so; with the force 5% off it qualifies; with
+    steps too slow for the haptic frame (900 us of a 1 ms frame: over 80%) it fails on the frame."""
+    from verification.studies.frame import FAILS, QUALIFIES, judgement
+
+    state, line = judgement(_haptic_row(), "rel_l2", 0.05)
+    assert state == FAILS and "haptic loop at 1000 Hz: reaction_rel_err 0.91" in line and "> 0.1" in line
+    assert judgement(_haptic_row(force_err=0.05), "rel_l2", 0.05)[0] == QUALIFIES
+    state, line = judgement(_haptic_row(force_err=0.05, step_us=900.0), "rel_l2", 0.05)
+    assert state == FAILS and "over 80% of a 1e+03 us frame" in line
+
+
+def test_haptic_advice_judges_the_tool_force_and_its_pick_holds_the_haptic_rate(capsys):
+    """block-press at 20% and 10 Hz with a 1 kHz haptic loop and the tool force within 20%: every
+    candidate's line judges the force at 1 kHz; the pick, re-run with its printed command (whose rate is
+    the haptic one), holds it, with its force within the tolerance. A scene without a tool has no force
+    for a haptic device: the command says so in one line."""
+    args = ["advise", "block-press", "--tol", "0.2", "--rate", "10", "--haptic-rate", "1000", "--force-tol", "0.2"]
+    assert main([*args, "--json", "--models", "linear-tm", "condensed"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["haptic"] == {"rate": 1000.0, "force_tol": 0.2}
+    ok = [c for c in out["candidates"] if c["qualifies"]]
+    assert all("haptic loop at 1000 Hz" in c["why"] for c in out["candidates"] if c["rel_l2"] is not None)
+    assert out["model"] is not None and ok, out["why"]
+    assert "--rate 1000" in out["command"]
+    again = _rerun(out, capsys)
+    assert again["reaction_rel_err"] <= 0.2 and again["frame"]["holds"], again["frame"]["why"]
+    assert main(["advise", "cantilever", "--tol", "0.2", "--rate", "10", "--haptic-rate", "1000"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--haptic-rate judges the tool's force" in err and "\n" not in err

@@ -276,12 +276,17 @@ def cmd_compare(args) -> int:
 
 def _print_row(scene, args, row) -> None:
     """A compare row as text: its metrics, error budget, frame budget and what the model did not represent."""
-    acc = " (at reference accuracy)" if row.at_reference_accuracy else ""
+    from verification.studies.frame import error_interval, reference_bar
+
     at = "its quasi-static update" if row.dt is None else f"dt = {row.dt:.3g} s"
     print(f"{scene.name} / {args.model} at {at}:")
     for k in (*METRICS, "ref_err_estimate", "step_us", "realtime_factor", "rate_hz"):
         v = getattr(row, k)
-        print(f"  {k:<18} {'-' if v is None else f'{v:.4g}'}{acc if k == 'rel_l2' else ''}")
+        span = (
+            error_interval(v, reference_bar(row, k)) if k in ("rel_l2", "surface_rel_l2", "reaction_rel_err") else None
+        )
+        true = "" if span is None else f"   true error {span[0]:.3g} to {span[1]:.3g} (the reference's bar)"
+        print(f"  {k:<18} {'-' if v is None else f'{v:.4g}'}{true}")
     b = row.error_budget or {}
     if b.get("mesh") is not None:
         parts = ", ".join(f"{p} {b[p]:.3g}" for p in ("mesh", "model", "time") if b.get(p) is not None)
@@ -446,6 +451,8 @@ def cmd_advise(args) -> int:
         use_cache=not args.no_cache,
         comm=comm,
         models=args.models,
+        haptic_rate=args.haptic_rate,
+        force_tol=args.force_tol,
     )
     if _rank0(comm):
         _emit(args, out, format_advice)

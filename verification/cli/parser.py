@@ -255,6 +255,15 @@ def _advise(sub) -> None:
     s.add_argument("--tol", type=_positive, required=True, help="largest acceptable error (relative)")
     s.add_argument("--rate", type=_positive, required=True, help="update rate the model must sustain, Hz")
     s.add_argument("--metric", default="rel_l2", choices=("rel_l2", "surface_rel_l2", "reaction_rel_err"))
+    s.add_argument(
+        "--haptic-rate",
+        type=_positive,
+        metavar="HZ",
+        help="also a haptic loop at this rate (Hz): the model steps there, and the tool's force is judged there",
+    )
+    s.add_argument(
+        "--force-tol", type=_positive, help="largest acceptable error of the tool's force (relative; default --tol)"
+    )
     s.add_argument("--models", nargs="+", help="choose among these only (default: every model, plug-ins' too)")
     s.add_argument("--engine", action="append", metavar="MODULE:CLASS", help=ENGINE_HELP)
     s.add_argument("--no-cache", action="store_true")

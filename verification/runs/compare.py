@@ -194,6 +194,7 @@ def _reference_summary(ref: Result) -> dict:
         "cache_key": ref.meta.get("cache_key"),
         # what the reference's own error is known to be: its bar, or "unverified" without the estimate
         "ref_err_estimate": ref.meta.get("ref_err_estimate"),
+        "ref_reaction_err_estimate": ref.meta.get("ref_reaction_err_estimate"),
         "verified": ref.meta.get("ref_err_estimate") is not None,
         "min_det_F": ref.meta.get("min_det_F"),
         "returned_level": ref.meta.get("returned_level"),

@@ -18,13 +18,11 @@ rate says is needed.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from verification.engines import engine_for, offered
 from verification.progress import Progress
-from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
+from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
 from verification.runs.simulate import step_time_ahead
 from verification.runs.store import compare_or_unsettled
@@ -32,27 +30,30 @@ from verification.scene import Scene, SceneError
 from verification.scene_file import builtin_scenes
 from verification.studies.frame import (
     FRAME_SHARE,
-    available_memory,
+    QUALIFIES,
+    UNDECIDED,
     cost,
+    error_interval,
     frame_budget,
+    judgement,
     label,
-    memory_bytes,
     merge_same_answers,
-    predict,
+    reference_bar,
     verdict,
+    with_bar,
+)
+from verification.studies.proposal import (
+    OPTIMISM,
+    own_part,
+    proposal_summary,
+    propose_mesh,
+    refined_times,
+    run_plans,
 )
 from verification.studies.sweep import sweep
+from verification.studies.truth import sharp_reference
 
 LINEAR_MODELS = ("linear-tm", "precomputed", "condensed")
-#: Models that refine the scene's mesh themselves: their error's mesh part is not P1's on the scene's
-#: mesh, so no finer scene mesh is proposed for them (adaptive-tm refined twice more would be a third
-#: level, at 64 times the cost, for a part the model already cut).
-OWN_MESH = ("adaptive-tm",)
-#: The longest precomputation (a quasi-static model's build) a proposal may ask a user to wait for, s.
-BUILD_LIMIT_S = 120.0
-#: Growth of a quasi-static model's build per refinement: 4 times the surface dofs (right-hand sides),
-#: each solved with a sparse factor of 8^(4/3) = 16 times the entries (nested dissection in 3D).
-BUILD_GROWTH = 64.0
 #: Time-stepping models tried with implicit Euler on static scenes (it settles in tens of steps) and on
 #: dynamic ones.
 IMPLICIT_MODELS = ("linear-tm", "corotational-tm", "stvk-tm")
@@ -60,17 +61,6 @@ IMPLICIT_MODELS = ("linear-tm", "corotational-tm", "stvk-tm")
 #: frame), 4 and 16 (less numerical damping, more work: the runs too slow are screened out). On the
 #: stiff beam at 60 Hz, one step a frame was 16% off, four 1.4%, in 4.4 ms of a 16.7 ms frame.
 IMPLICIT_STEPS_PER_FRAME = (1, 4, 16)
-#: The most uniform refinements the advisor proposes (each multiplies the tetrahedra by 8).
-MAX_LEVEL = 3
-#: Refined candidates the advisor runs before it gives up on a level.
-MAX_TRIALS = 4
-#: A refined candidate is run when its predicted work fits in OPTIMISM x FRAME_SHARE of a frame: the
-#: prediction scales a noisy level-0 timing by 8^L (on the cantilever, 11.4 to 12.6 us per step at
-#: level 0 between two runs, 639 to 734 us measured at level 2).
-OPTIMISM = 1.5
-#: P1's order of convergence of vertex displacements in L2, the most the advisor extrapolates with:
-#: a pre-asymptotic observed order above it would promise a coarser mesh than the one needed.
-P1_ORDER = 2.0
 
 
 def deformation_summary(points: np.ndarray, tets: np.ndarray, u: np.ndarray) -> dict:
@@ -122,14 +112,26 @@ def over_budget(rate: float):
 
 
 def _candidates(
-    scene: Scene, metric: str, rate: float, use_cache: bool, comm, progress_label: str, models=None
+    scene: Scene,
+    metric: str,
+    rate: float,
+    use_cache: bool,
+    comm,
+    progress_label: str,
+    models=None,
+    ref_opts=None,
+    haptic=None,
 ) -> list[Row]:
     """The scene's runs of ``models`` (default all), each with its frame budget, merged by
     ``merge_same_answers``; on a dynamic scene the runs too slow for ``rate`` are not made
-    (``over_budget``)."""
+    (``over_budget``). ``ref_opts``: the reference judged against (default REFERENCE_DEFAULTS);
+    ``haptic``: the haptic loop's rate and force tolerance (``frame_budget``), or None."""
     dynamic = scene.time.mode == "dynamic"
-    screen = over_budget(rate) if dynamic else None
-    res = sweep(scene, models=models, use_cache=use_cache, comm=comm, screen=screen)
+    # the model steps at the haptic loop's rate where there is one: what does not fit its frame cannot qualify
+    stepping = haptic["rate"] if haptic else rate
+    screen = over_budget(stepping) if dynamic else None
+    ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
+    res = sweep(scene, models=models, use_cache=use_cache, comm=comm, screen=screen, ref_opts=ref_opts)
     if comm is not None and comm.size > 1:
         # every rank goes on with the same rows: the reference solves below are collective
         res = comm.bcast(res, root=0)
@@ -138,7 +140,9 @@ def _candidates(
     if not dynamic:
         progress = Progress(len(extra), progress_label)
         for m in extra:
-            rows.append(compare_or_unsettled(scene, m, "implicit-euler", None, None, use_cache=use_cache))
+            rows.append(
+                compare_or_unsettled(scene, m, "implicit-euler", None, None, ref_opts=ref_opts, use_cache=use_cache)
+            )
             progress.step(f"{m} implicit-euler")
     else:
         # implicit Euler at a frame's step and finer: where a stiff body's explicit steps cannot keep up
@@ -146,11 +150,16 @@ def _candidates(
         progress = Progress(len(extra) * len(IMPLICIT_STEPS_PER_FRAME), progress_label)
         for m in extra:
             for k in IMPLICIT_STEPS_PER_FRAME:
-                dt = 1.0 / (k * rate)
+                dt = 1.0 / (k * stepping)
                 row = screen(scene, m, "implicit-euler", dt, None)
-                rows.append(row or compare_or_unsettled(scene, m, "implicit-euler", dt, None, use_cache=use_cache))
+                rows.append(
+                    row
+                    or compare_or_unsettled(
+                        scene, m, "implicit-euler", dt, None, ref_opts=ref_opts, use_cache=use_cache
+                    )
+                )
                 progress.step(f"{m} implicit-euler, dt {dt:.3g} s")
-    rows = [r.replace(frame=frame_budget(r, rate, dynamic)) if r.ok else r for r in rows]
+    rows = [r.replace(frame=frame_budget(r, rate, dynamic, haptic=haptic)) if r.ok else r for r in rows]
     return merge_same_answers(rows, metric, dynamic)
 
 
@@ -159,103 +168,10 @@ def _pick(rows: list[Row], metric: str, tol: float, dynamic: bool):
     return min(ok, key=lambda r: cost(r, dynamic)) if ok else None
 
 
-def propose_mesh(scene: Scene, rows: list[Row], metric: str, tol: float, rate: float, use_cache: bool) -> dict:
-    """The refinement level that the observed convergence of the mesh's part predicts is needed, and
-    the candidates to run there, cheapest predicted first (see the module docstring, step 5)."""
-    budgets = [r.error_budget for r in rows if r.status == "ok" and (r.error_budget or {}).get("mesh")]
-    if not budgets:
-        return {"level": None, "why": "no error budget (no P1 solution on this mesh): no mesh size can be proposed"}
-    e0 = budgets[0]["mesh"]
-    truth = reference_result(scene, **REFERENCE_DEFAULTS)
-    fine = scene.refined(1)
-    p1 = reference_result(fine, **P1_OWN_MESH)
-    n = scene.mesh.n_vertices  # nested: the base vertices come first on the refined mesh
-    scale = float(np.linalg.norm(truth.displacement))
-    e1 = float(np.linalg.norm(p1.displacement[:, :n] - truth.displacement) / scale)
-    observed = math.log2(e0 / e1) if e1 > 0 else math.inf
-    out = {"mesh_part": [e0, e1], "observed_order": observed}
-    if not observed > 0.5:
-        out.update(
-            level=None,
-            why=f"the mesh's part does not fall with refinement ({e0:.3g} -> {e1:.3g}, order {observed:.2f}): "
-            "a finer mesh would not help",
-        )
-        return out
-    order = min(observed, P1_ORDER)
-    dynamic = scene.time.mode == "dynamic"
-    plans = _plans(scene, rows, e1, order, tol, rate)
-    if not plans:
-        out.update(
-            level=None,
-            why=f"even {MAX_LEVEL} refinements (8^{MAX_LEVEL} times the tetrahedra) leave every model above "
-            f"{metric} {tol:g}: the mesh's part would be {e1 / 2.0 ** (order * (MAX_LEVEL - 1)):.3g} at order "
-            f"{order:.2f} and the models' own parts are at least "
-            f"{min((r.error_budget or {}).get('model') or 0.0 for r in rows if r.status == 'ok'):.3g}",
-        )
-        return out
-    plans.sort(
-        key=lambda p: (
-            not (p["predicted"]["holds"] and p["fits_memory"] and p["builds_in_time"]),
-            not (p["hopeful"] and p["fits_memory"] and p["builds_in_time"]),
-            p["level"],
-            p["predicted"]["work_us"] if dynamic else p["predicted"]["time_to_answer_s"],
-        )
-    )
-    out.update(level=plans[0]["level"], order=order, plans=plans)
-    return out
-
-
-def _plans(scene: Scene, rows: list[Row], e1: float, order: float, tol: float, rate: float) -> list[dict]:
-    """For each candidate row, the levels to try it on: from where its predicted total (the mesh's part
-    at ``order`` from ``e1`` on one refinement, and its own) likely meets ``tol`` up to where it surely
-    does, with its predicted frame budget, memory and build time."""
-    dynamic = scene.time.mode == "dynamic"
-    memory = available_memory()
-    n, surface = scene.mesh.n_vertices, len(scene.mesh.surface_vertices)
-    plans = []
-    for r in rows:
-        if r.status != "ok" or r.model in OWN_MESH:
-            continue
-        own = _own(r)
-        for level in range(1, MAX_LEVEL + 1):
-            mesh_part = e1 / 2.0 ** (order * (level - 1))
-            # the parts' errors are distances between solutions: the total is at most their sum and, when
-            # they are unrelated (as P1's locking and a model's linearity are), close to their
-            # root-sum-square. A row is tried from the level where the latter meets the tolerance up to the
-            # one where the former does; the run on the level decides.
-            likely, bound = math.hypot(mesh_part, own), mesh_part + own
-            if likely > tol:
-                continue
-            predicted = predict(r, level, dynamic, rate)
-            # a level-0 timing scaled by 8^L carries its noise 8^L-fold: a candidate a little over the
-            # budget by prediction is still worth a run, which decides
-            hopeful = predict(r, level, dynamic, rate, share=FRAME_SHARE * OPTIMISM)["holds"]
-            need = memory_bytes(r.model, n * 8**level, surface * 4**level)
-            build = (r.build_s or 0.0) * BUILD_GROWTH**level if r.integrator == "quasi-static" else 0.0
-            plans.append(
-                {
-                    "row": r,
-                    "level": level,
-                    "predicted_error": likely,
-                    "error_bound": bound,
-                    "predicted_mesh_part": mesh_part,
-                    "predicted": predicted,
-                    "hopeful": hopeful,
-                    "memory_bytes": need,
-                    "fits_memory": need <= memory,
-                    "predicted_build_s": build,
-                    "builds_in_time": build <= BUILD_LIMIT_S,
-                }
-            )
-            if bound <= tol:
-                break
-    return plans
-
-
-def _summary(scene: Scene, tol: float, rate: float, metric: str) -> tuple[dict, str]:
-    """The advice's header (the question, the reference's deformation and estimate, the mesh) and the
-    deformation in words."""
-    ref = reference_result(scene, **REFERENCE_DEFAULTS)
+def _summary(scene: Scene, tol: float, rate: float, metric: str, ref_opts: dict, truth: dict) -> tuple[dict, str]:
+    """The advice's header (the question, the reference's deformation and estimate, the mesh, and how
+    sharp the truth is: ``truth``, from ``sharp_reference``) and the deformation in words."""
+    ref = reference_result(scene, **ref_opts)
     mesh = scene.mesh
     defo = deformation_summary(
         mesh.points, mesh.tets, ref.displacement[np.argmax(np.abs(ref.displacement).max(axis=(1, 2)))]
@@ -273,19 +189,68 @@ def _summary(scene: Scene, tol: float, rate: float, metric: str) -> tuple[dict, 
         "deformation": defo,
         "mesh": _mesh_summary(scene),
         "reference_err_estimate": ref.meta.get("ref_err_estimate"),
+        "reference": {"options": ref_opts, **truth},
     }
     return out, physics
 
 
 def advise(
-    scene: Scene, tol: float, rate: float, metric: str = "rel_l2", use_cache: bool = True, comm=None, models=None
+    scene: Scene,
+    tol: float,
+    rate: float,
+    metric: str = "rel_l2",
+    use_cache: bool = True,
+    comm=None,
+    models=None,
+    haptic_rate: float | None = None,
+    force_tol: float | None = None,
 ) -> dict:
     """The cheapest (model, integrator, dt, mesh) whose ``metric`` is at most ``tol`` while a simulator
     holds ``rate`` frames per second on this machine (``frame_budget`` with FRAME_SHARE of each frame),
     with the runner-up and why every cheaper option failed, and every candidate on the scene's mesh with
     its step, its error and why it qualifies or not (``candidates``); on a refined mesh when the mesh's own error
     stops every model on the scene's (module docstring). ``models``: the ones to choose from (default
-    all: a simulator may have only some). ``command`` re-runs the pick with compare."""
+    all: a simulator may have only some). ``command`` re-runs the pick with compare.
+
+    ``haptic_rate``: the simulator also runs a haptic loop at that rate (Hz): the model steps there, and
+    a candidate qualifies only if its tool force is within ``force_tol`` (default ``tol``) too, judged
+    at the haptic rate (``frame.judgement``)."""
+    haptic = _question(scene, tol, rate, metric, haptic_rate, force_tol)
+    dynamic = scene.time.mode == "dynamic"
+    ref_opts, truth = sharp_reference(scene, tol, metric)
+    rows = _candidates(scene, metric, rate, use_cache, comm, f"advise {scene.name}", models, ref_opts, haptic)
+    out, physics = _summary(scene, tol, rate, metric, ref_opts, truth)
+    out["haptic"] = haptic
+    choice = _pick(rows, metric, tol, dynamic)
+    proposal = None
+    tried = []
+    if choice is None:
+        blocked_by_mesh = any(
+            r.status == "ok" and (r.error_budget or {}).get("mesh", 0.0) > tol - own_part(r) for r in rows
+        )
+        if blocked_by_mesh:
+            proposal = propose_mesh(scene, rows, metric, tol, rate, use_cache, ref_opts, truth["bar"], haptic)
+            choice, tried = run_plans(scene, proposal, metric, tol, rate, use_cache, ref_opts, haptic)
+    out["undecided"] = [line for r in rows for state, line in [judgement(r, metric, tol)] if state == UNDECIDED]
+    out["undecided"] += [t["why"] for t in tried if t.get("undecided")]
+    ranked = sorted((r for r in rows if r.status == "ok"), key=lambda r: cost(r, dynamic))
+    rejected = [verdict(r, metric, tol)[1] for r in rows if not verdict(r, metric, tol)[0]]
+    out["proposal"] = proposal_summary(proposal, tried)
+    out["candidates"] = [_candidate(r, metric, tol) for r in rows]
+    if choice is None:
+        why = _why_none(rows, metric, tol, rate, proposal, tried)
+        if out["undecided"]:
+            why = f"cannot decide: {truth['why']}; {why}"
+        out.update(model=None, integrator=None, dt=None, why=f"{why}; {physics}", rejected=rejected, runner_up=None)
+        return out
+    out.update(_answer(scene, choice, rows, ranked, rejected, metric, tol, physics, proposal))
+    out["command"] = _command(scene, choice, choice.level, haptic["rate"] if haptic else rate)
+    return out
+
+
+def _question(scene: Scene, tol: float, rate: float, metric: str, haptic_rate, force_tol) -> dict | None:
+    """The question checked against the scene (SceneError in one line), and its haptic part for
+    ``frame_budget``: {"rate", "force_tol" (default ``tol``)}, or None without a haptic rate."""
     if metric == "reaction_rel_err" and not scene.problem.tools:
         raise SceneError(
             f"{scene.path}: --metric reaction_rel_err measures the tool's force, and this scene has no "
@@ -293,27 +258,23 @@ def advise(
         )
     if not (tol > 0 and rate > 0):
         raise SceneError(f"--tol {tol!r} and --rate {rate!r}: both must be positive")
-    dynamic = scene.time.mode == "dynamic"
-    rows = _candidates(scene, metric, rate, use_cache, comm, f"advise {scene.name}", models)
-    out, physics = _summary(scene, tol, rate, metric)
-    choice = _pick(rows, metric, tol, dynamic)
-    proposal = None
-    tried = []
-    if choice is None:
-        blocked_by_mesh = any(
-            r.status == "ok" and (r.error_budget or {}).get("mesh", 0.0) > tol - _own(r) for r in rows
+    if haptic_rate is None:
+        return None
+    if not scene.problem.tools:
+        raise SceneError(
+            f"{scene.path}: --haptic-rate judges the tool's force, and this scene has no displacement "
+            "load (tool) for a haptic device to hold"
         )
-        if blocked_by_mesh:
-            proposal = propose_mesh(scene, rows, metric, tol, rate, use_cache)
-            choice, tried = _run_plans(scene, proposal, metric, tol, rate, use_cache)
-    ranked = sorted((r for r in rows if r.status == "ok"), key=lambda r: cost(r, dynamic))
-    rejected = [verdict(r, metric, tol)[1] for r in rows if not verdict(r, metric, tol)[0]]
-    out["proposal"] = _proposal_summary(proposal, tried)
-    out["candidates"] = [_candidate(r, metric, tol) for r in rows]
-    if choice is None:
-        why = _why_none(rows, metric, tol, rate, proposal, tried)
-        out.update(model=None, integrator=None, dt=None, why=f"{why}; {physics}", rejected=rejected, runner_up=None)
-        return out
+    force_tol = tol if force_tol is None else force_tol
+    if not (haptic_rate > 0 and force_tol > 0):
+        raise SceneError(f"--haptic-rate {haptic_rate!r} and --force-tol {force_tol!r}: both must be positive")
+    return {"rate": float(haptic_rate), "force_tol": float(force_tol)}
+
+
+def _answer(scene, choice: Row, rows, ranked, rejected, metric: str, tol: float, physics: str, proposal) -> dict:
+    """The advice's fields for its pick ``choice``: the run, its mesh, why, the runner-up and every
+    cheaper option with why it failed."""
+    dynamic = scene.time.mode == "dynamic"
     level = choice.level
     target = scene.refined(level) if level else scene
     cheaper = [verdict(r, metric, tol)[1] for r in ranked if cost(r, dynamic) < cost(choice, dynamic)]
@@ -328,12 +289,13 @@ def advise(
             f"refined {refined_times(level)} (observed order {proposal['observed_order']:.2f}) it is "
             f"{(choice.error_budget or {}).get('mesh', float('nan')):.3g}, and {why}"
         )
-    out.update(
+    return dict(
         model=choice.model,
         integrator=choice.integrator,
         dt=choice.dt,
         dt_fraction=choice.fraction,
         value=getattr(choice, metric),
+        interval=error_interval(getattr(choice, metric), reference_bar(choice, metric)),
         error_budget=choice.error_budget,
         step_us=choice.step_us,
         rate_hz=choice.rate_hz,
@@ -351,16 +313,16 @@ def advise(
             "frame": runner.frame,
         },
         cheaper_failed=cheaper,
-        command=_command(scene, choice, level, rate),
     )
-    return out
 
 
 def _candidate(r: Row, metric: str, tol: float) -> dict:
-    """One candidate of the scene's mesh, whatever engine ran it: its step, error and verdict."""
-    ok, why = verdict(r, metric, tol)
+    """One candidate of the scene's mesh, whatever engine ran it: its step, error with the interval the
+    reference's bar leaves (``frame.error_interval``) and verdict."""
+    state, why = judgement(r, metric, tol)
     return {"model": r.model, "integrator": r.integrator, "dt": r.dt, "step_us": r.step_us,
-            metric: getattr(r, metric), "qualifies": ok, "why": why}  # fmt: skip
+            metric: getattr(r, metric), "interval": error_interval(getattr(r, metric), reference_bar(r, metric)),
+            "qualifies": state == QUALIFIES, "verdict": state, "why": why}  # fmt: skip
 
 
 def _runner_up(ranked: list[Row], choice: Row, metric: str, tol: float) -> Row | None:
@@ -402,7 +364,7 @@ def _why_pick(choice: Row, rows: list[Row], metric: str, tol: float, dynamic: bo
         )
     elif level:
         # on the scene's mesh the linear models' totals carry the mesh's part; their own part does not
-        own = [_own(r) for r in rows if r.status == "ok" and r.model in LINEAR_MODELS and r.error_budget]
+        own = [own_part(r) for r in rows if r.status == "ok" and r.model in LINEAR_MODELS and r.error_budget]
         why = f"{choice.model} is the first candidate that qualifies there: {physics}" + (
             f"; the linear models' own part of the error (against P1 on the same mesh) is at least {min(own):.3g}"
             if own
@@ -428,65 +390,6 @@ def _why_pick(choice: Row, rows: list[Row], metric: str, tol: float, dynamic: bo
                 verdict(r, metric, tol)[1] for r in accurate
             )
     return why
-
-
-def _own(r: Row) -> float:
-    b = r.error_budget or {}
-    return (b.get("model") or 0.0) + (b.get("time") or 0.0)
-
-
-def _run_plans(scene: Scene, proposal: dict, metric: str, tol: float, rate: float, use_cache: bool):
-    """Run the proposal's candidates on their refined meshes, cheapest predicted first, the ones
-    predicted to hold the rate and fit in memory only, at most MAX_TRIALS; the first that meets both is
-    the answer. Returns (row or None, what was tried)."""
-    if not proposal or proposal.get("level") is None:
-        return None, []
-    dynamic = scene.time.mode == "dynamic"
-    plans = [p for p in proposal["plans"] if p["hopeful"] and p["fits_memory"] and p["builds_in_time"]][:MAX_TRIALS]
-    tried = []
-    progress = Progress(len(plans), f"advise {scene.name} refined")
-    for p in plans:
-        r0 = p["row"]
-        level_scene = scene.refined(p["level"])
-        fraction = None if r0.dt is None or r0.integrator == "implicit-euler" else min(r0.fraction or 0.9, 0.9)
-        dt = r0.dt if dynamic and r0.integrator == "implicit-euler" else None  # its steps a frame, kept
-        row = compare_or_unsettled(level_scene, r0.model, r0.integrator, dt, fraction, use_cache=use_cache)
-        progress.step(f"{r0.model} level {p['level']}")
-        row = row.replace(frame=frame_budget(row, rate, dynamic) if row.ok else None, level=p["level"])
-        ok, line = verdict(row, metric, tol)
-        tried.append({"level": p["level"], "model": row.model, "integrator": row.integrator, "ok": ok, "why": line})
-        if ok:
-            return row, tried
-    return None, tried
-
-
-def _proposal_summary(proposal: dict | None, tried: list) -> dict | None:
-    if proposal is None:
-        return None
-    out = {k: v for k, v in proposal.items() if k != "plans"}
-    out["tried"] = tried
-    out["predicted"] = [
-        {
-            "model": p["row"].model,
-            "integrator": p["row"].integrator,
-            "level": p["level"],
-            "predicted_error": p["predicted_error"],
-            "error_bound": p["error_bound"],
-            "predicted_frame": p["predicted"]["why"],
-            "holds": p["predicted"]["holds"],
-            "hopeful": p["hopeful"],
-            "memory_gb": p["memory_bytes"] / 1e9,
-            "fits_memory": p["fits_memory"],
-            "predicted_build_s": p["predicted_build_s"],
-            "builds_in_time": p["builds_in_time"],
-        }
-        for p in proposal.get("plans", [])
-    ]
-    return out
-
-
-def refined_times(level: int) -> str:
-    return {1: "once", 2: "twice"}.get(level, f"{level} times")
 
 
 def _mesh_summary(scene: Scene) -> dict:
@@ -519,6 +422,7 @@ def format_advice(out: dict) -> str:
     """The advisor's answer as text."""
     lines = []
     prop = out.get("proposal")
+    truth = (out.get("reference") or {}).get("why")
     if out.get("model") is None:
         lines.append(out["why"])
     else:
@@ -530,8 +434,12 @@ def format_advice(out: dict) -> str:
             else ""
         )
         dt = "quasi-static" if out["dt"] is None else f"{out['integrator']}, dt = {out['dt']:.3g} s"
-        lines.append(f"{out['model']} ({dt}){mesh}: {out['metric']} {out['value']:.3g} <= {out['tol']:g}")
+        bar = (out.get("reference") or {}).get("bar")
+        lines.append(f"{out['model']} ({dt}){mesh}: {out['metric']} {with_bar(out['value'], bar)} <= {out['tol']:g}")
         lines.append(f"frame: {out['frame']['why']} (at most {out['frame_share']:.0%} of each frame)")
+        if out["frame"].get("haptic"):
+            h = out["frame"]["haptic"]
+            lines.append(f"haptic loop at {h['rate']:g} Hz: {h['why']}; tool force within {h['force_tol']:g}")
         lines.append(f"why: {out['why']}")
         if out.get("runner_up"):
             r = out["runner_up"]
@@ -544,6 +452,11 @@ def format_advice(out: dict) -> str:
         )
         for t in prop.get("tried", []):
             lines.append(f"  tried on the mesh refined {refined_times(t['level'])}: {t['why']}")
+    if truth:
+        lines.append(f"truth: {truth}")
+    for line in out.get("undecided") or []:
+        lines.append(f"  undecided: {line}")
     for line in out.get("cheaper_failed") or out.get("rejected") or []:
-        lines.append(f"  rejected: {line}")
+        if line not in (out.get("undecided") or []):
+            lines.append(f"  rejected: {line}")
     return "\n".join(lines)

@@ -20,7 +20,18 @@ FRAME_SHARE = 0.8
 SAME_ANSWER = 1e-6
 
 
-def frame_budget(row: Row, rate: float, dynamic: bool, share: float = FRAME_SHARE) -> dict:
+def frame_budget(row: Row, rate: float, dynamic: bool, share: float = FRAME_SHARE, haptic: dict | None = None) -> dict:
+    """``visual_budget``, and with ``haptic`` ({"rate": Hz, "force_tol": the tool force's tolerance}) the
+    same budget at the haptic rate under "haptic" (with that rate and tolerance): a simulator that runs a
+    haptic loop beside its display steps the model at the haptic rate, and ``judgement`` then judges the
+    tool force there too."""
+    out = visual_budget(row, rate, dynamic, share)
+    if haptic:
+        out["haptic"] = {**visual_budget(row, haptic["rate"], dynamic, share), **haptic}
+    return out
+
+
+def visual_budget(row: Row, rate: float, dynamic: bool, share: float = FRAME_SHARE) -> dict:
     """Whether a run (a ``compare`` row) holds ``rate`` frames per second on this machine, using at
     most ``share`` of each frame (FRAME_SHARE for every command, so that ``compare --rate`` and
     ``advise`` decide alike), and what reaching its answer costs.
@@ -135,25 +146,98 @@ def label(r: Row) -> str:
     return f"{r.model} ({r.integrator}, dt {r.dt:.3g} s)"
 
 
-def verdict(r: Row, metric: str, tol: float) -> tuple[bool, str]:
-    """Whether a candidate qualifies, and a line saying why or why not."""
+def reference_bar(r: Row, metric: str) -> float | None:
+    """The reference's bar on ``metric`` (relative, as the metric): its estimate on the tool force for
+    reaction_rel_err, on the displacements for the others (over every vertex, surface_rel_l2's too);
+    None where the reference is unverified."""
+    if metric == "reaction_rel_err":
+        return (r.reference or {}).get("ref_reaction_err_estimate")
+    return r.ref_err_estimate
+
+
+def error_interval(value: float | None, bar: float | None) -> tuple[float, float] | None:
+    """Where a true relative error lies given the one measured against the reference, ``value``, and the
+    reference's bar, ``bar`` (which bounds the reference's own relative error: reference.driver): by
+    the triangle inequality, within value -/+ bar (to first order in the bar: the two are relative to
+    norms that differ by at most the bar). None without either."""
+    if value is None or bar is None:
+        return None
+    return max(value - bar, 0.0), value + bar
+
+
+def with_bar(value: float | None, bar: float | None, fmt: str = ".3g") -> str:
+    """An error as a user reads it: the value and, where the reference has a bar, the interval the true
+    error lies in ("0.186 (true 0.109 to 0.263)")."""
+    if value is None:
+        return "-"
+    span = error_interval(value, bar)
+    if span is None:
+        return format(value, fmt)
+    return f"{value:{fmt}} (true {span[0]:{fmt}} to {span[1]:{fmt}})"
+
+
+#: What a verdict on an error can be: within the tolerance whatever the reference's own error, over it
+#: whatever, or neither (the tolerance lies inside the interval the reference's bar leaves).
+QUALIFIES, FAILS, UNDECIDED = "qualifies", "fails", "undecided"
+
+
+def _judged(r: Row, metric: str, tol: float) -> tuple[str, str]:
+    """A candidate's verdict on one error and the frame it has, and a line saying why.
+
+    The rule: its true error is within the measured one plus or minus the reference's bar
+    (``error_interval``); it qualifies only when the whole interval is within ``tol`` (and its frame
+    holds), fails when the interval is above it (or its frame does not hold), and is undecided when
+    ``tol`` lies inside: the truth is not sharp enough to say. With an unverified reference (no bar)
+    the measured error decides, and the line says the truth is unverified."""
     if r.status == "diverged":
         ratio = f", {r.dt / r.dt_crit:.2f} x its critical step" if r.dt_crit else ""
-        return False, f"{label(r)}: unstable, diverged at step {r.step}{ratio}"
+        return FAILS, f"{label(r)}: unstable, diverged at step {r.step}{ratio}"
     if r.status != "ok":
-        return False, f"{label(r)}: {r.status} ({r.message or ''})"
-    value = getattr(r, metric)
+        return FAILS, f"{label(r)}: {r.status} ({r.message or ''})"
+    value, bar = getattr(r, metric), reference_bar(r, metric)
+    lo, hi = error_interval(value, bar) or ((value, value) if value is not None else (math.inf, math.inf))
+    shown = f"{metric} {with_bar(value, bar)}" + ("" if bar is not None else " (reference unverified)")
+    without = "".join(f"; ran without {term}" for term in r.unrepresented or [])
     bad = []
-    if value is None or value > tol:
+    if lo > tol:
         b = r.error_budget or {}
         parts = ", ".join(f"{k} {b[k]:.3g}" for k in ("mesh", "model", "time") if b.get(k) is not None)
-        bad.append(f"{metric} {value:.3g} > {tol:g}" + (f" ({parts})" if parts else ""))
+        bad.append(f"{shown} > {tol:g}" + (f" ({parts})" if parts else ""))
     if not r.frame["holds"]:
         bad.append(r.frame["why"])
-    without = "".join(f"; ran without {term}" for term in r.unrepresented or [])
     if bad:
-        return False, f"{label(r)}: {'; '.join(bad)}{without}"
-    return True, f"{label(r)}: {metric} {value:.3g} <= {tol:g}; {r.frame['why']}{without}"
+        return FAILS, f"{label(r)}: {'; '.join(bad)}{without}"
+    if hi > tol:
+        return UNDECIDED, (
+            f"{label(r)}: {shown}: the tolerance {tol:g} lies within the reference's bar {bar:.3g}, "
+            f"undecided; {r.frame['why']}{without}"
+        )
+    return QUALIFIES, f"{label(r)}: {shown} <= {tol:g}; {r.frame['why']}{without}"
+
+
+#: The verdicts from the best to the worst: two judged together give the worse.
+_ORDER = (QUALIFIES, UNDECIDED, FAILS)
+
+
+def judgement(r: Row, metric: str, tol: float) -> tuple[str, str]:
+    """A candidate's verdict (QUALIFIES, FAILS or UNDECIDED) and a line saying why (``_judged``). Where its
+    frame has a haptic budget (``frame_budget`` with ``haptic``), its tool force is judged too, at the
+    haptic rate against its own tolerance, and the verdict is the worse of the two: a shape within the
+    tolerance never hides a tool force out of it (91% off on a liver whose shape passed)."""
+    state, line = _judged(r, metric, tol)
+    haptic = (r.frame or {}).get("haptic") if r.status == "ok" else None
+    if not haptic:
+        return state, line
+    at = {k: v for k, v in haptic.items() if k not in ("rate", "force_tol")}
+    force, why = _judged(r.replace(frame=at), "reaction_rel_err", haptic["force_tol"])
+    why = why.split(": ", 1)[1] if why.startswith(label(r)) else why
+    return max(state, force, key=_ORDER.index), f"{line}; haptic loop at {haptic['rate']:g} Hz: {why}"
+
+
+def verdict(r: Row, metric: str, tol: float) -> tuple[bool, str]:
+    """Whether a candidate surely qualifies (``judgement``), and a line saying why or why not."""
+    state, line = judgement(r, metric, tol)
+    return state == QUALIFIES, line
 
 
 def memory_bytes(model: str, n_vertices: int, n_surface: int) -> float:

@@ -16,6 +16,7 @@ from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, referen
 from verification.runs.row import Row
 from verification.runs.store import compare_or_unsettled, largest_stable_fraction
 from verification.scene import Scene, SceneError
+from verification.studies.frame import error_interval
 
 #: Time steps a sweep tries by default on a dynamic scene, as fractions of each model's critical step.
 DEFAULT_FRACTIONS = (0.25, 0.5, 0.9)
@@ -66,12 +67,21 @@ def sweep_plan(models, fractions, dts, integrator: str) -> list[dict]:
 
 
 def _run_plan(
-    scene: Scene, plan: list[dict], ref, integrator: str, use_cache: bool, float32: bool, rank, size, screen=None
+    scene: Scene,
+    plan: list[dict],
+    ref,
+    ref_opts: dict,
+    integrator: str,
+    use_cache: bool,
+    float32: bool,
+    rank,
+    size,
+    screen=None,
 ):
     """This rank's share of the plan's runs (every size-th from its rank), each through the run cache,
     with its index in the plan; the largest stable step found first where the plan asks for it.
     ``screen(scene, model, integrator, dt, fraction)``: a row that decides a run without making it, or
-    None to make it."""
+    None to make it. ``ref``: the reference, solved with ``ref_opts`` (the run cache's key)."""
     progress = Progress(len(plan), f"sweep {scene.name}") if rank == 0 else None
     rows = []
     for k, item in enumerate(plan):
@@ -82,15 +92,17 @@ def _run_plan(
             fraction = largest_stable_fraction(scene, item["model"], integrator, use_cache=use_cache)["stable"]
             row = screen and screen(scene, item["model"], integrator, None, fraction)
             row = row or compare_or_unsettled(
-                scene, item["model"], integrator, None, fraction, reference=ref, use_cache=use_cache, float32=float32
-            )
+                scene, item["model"], integrator, None, fraction, reference=ref, ref_opts=ref_opts,
+                use_cache=use_cache, float32=float32,
+            )  # fmt: skip
             row = row.replace(largest_stable=True)
         else:
             stepper = item["integrator"] if item["integrator"] != "quasi-static" else integrator
             row = screen and screen(scene, item["model"], stepper, item["dt"], fraction)
             row = row or compare_or_unsettled(
-                scene, item["model"], stepper, item["dt"], fraction, reference=ref, use_cache=use_cache, float32=float32
-            )
+                scene, item["model"], stepper, item["dt"], fraction, reference=ref, ref_opts=ref_opts,
+                use_cache=use_cache, float32=float32,
+            )  # fmt: skip
         rows.append(row.replace(plan_index=k))
         if progress:
             progress.step(f"{item['model']} {fraction}")
@@ -108,6 +120,7 @@ def sweep(
     comm=None,
     float32: bool = False,
     screen=None,
+    ref_opts: dict | None = None,
 ) -> dict:
     """Models x time steps -> rows of metrics and the Pareto front of error (rel_l2) against step_us.
 
@@ -116,7 +129,8 @@ def sweep(
     explicit model at the largest stable fraction that ``largest_stable_fraction`` finds. ``float32``:
     each row of a model that runs in float32 also carries its float32 twin (``runs.compare.float32_twin``), whose
     distance from the float64 run stands beside the model's error. ``screen``: see ``_run_plan`` (the
-    advisor's, which leaves out the runs too slow for its rate).
+    advisor's, which leaves out the runs too slow for its rate). ``ref_opts``: the reference's options
+    (default REFERENCE_DEFAULTS; the advisor's sharper truth, ``advise.sharp_reference``).
     """
     models = list(models or offered())
     if fractions is None and dts is None:
@@ -125,7 +139,8 @@ def sweep(
     if unknown:
         raise SceneError(f"model = {unknown[0]!r}: must be one of {', '.join(offered())}")
     rank, size = (comm.rank, comm.size) if comm is not None else (0, 1)
-    ref = reference_result(scene, **REFERENCE_DEFAULTS)  # collective under MPI; cached afterwards
+    ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
+    ref = reference_result(scene, **ref_opts)  # collective under MPI; cached afterwards
     # the error budget's P1 solution too, before the runs are spread over the ranks: a solve is collective
     try:
         reference_result(scene, **P1_OWN_MESH)
@@ -138,7 +153,7 @@ def sweep(
         for m in models:
             if m not in QUASI_STATIC and integrator != "implicit-euler" and not plug_in(m):
                 plan.append({"model": m, "integrator": integrator, "dt": None, "fraction": "largest-stable"})
-    rows = _run_plan(scene, plan, ref, integrator, use_cache, float32, rank, size, screen)
+    rows = _run_plan(scene, plan, ref, ref_opts, integrator, use_cache, float32, rank, size, screen)
     if comm is not None and size > 1:
         gathered = comm.gather(rows, root=0)
         if rank != 0:
@@ -218,7 +233,8 @@ def format_sweep(result: dict) -> str:
         dt = "-" if r.dt is None else f"{r.dt:.3g}"
         reaction = "-" if r.reaction_rel_err is None else f"{r.reaction_rel_err:.3g}"
         flag = " pareto" if r.pareto else ""
-        flag += " (at reference accuracy)" if r.at_reference_accuracy else ""
+        span = error_interval(r.rel_l2, r.ref_err_estimate)
+        flag += f" (true {span[0]:.3g} to {span[1]:.3g})" if span is not None and r.at_reference_accuracy else ""
         flag += "".join(f" (without {term})" for term in r.unrepresented or [])
         out.append(
             f"{r.model:<16} {dt:>10} {ratio:>8} {r.rel_l2:>10.4g} {reaction:>9} {fmt(r.step_us, '.1f'):>9} "

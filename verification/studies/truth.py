@@ -1,0 +1,86 @@
+"""A truth sharp enough for the question (docs/architecture.md section 9): the advisor's reference,
+refined until its bar leaves room for a verdict at the tolerance asked, within a budget, or said to be
+too coarse, with what a sharper one would take."""
+
+from __future__ import annotations
+
+import math
+
+from verification.progress import log
+from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
+from verification.scene import Scene
+from verification.studies.proposal import refined_times
+
+#: A truth sharp enough for the question: the reference's bar at most this share of the tolerance. A
+#: candidate's true error lies within its measured one plus or minus the bar (``frame.judgement``), so
+#: with a bar of 0.3 tol every candidate measured below 0.7 tol qualifies and every one above 1.3 tol
+#: fails; only those in between are undecided, and they are rarely the cheapest choice. With SOFA's
+#: liver at 5% (a bar of 2.5%) half the errors that could qualify were undecided.
+SHARP = 0.3
+#: The refinements the advisor may add to its reference (each multiplies the reference's elements by 8)
+#: to make it sharp (SHARP), and the longest the sharper reference may take to solve, s, predicted from
+#: the one solved (``reference_cost``). Past either, the advice says it cannot decide the undecided
+#: candidates and what a sharper truth would take.
+TIGHTEN_LEVELS = 1
+TIGHTEN_BUDGET_S = 120.0
+
+
+def reference_cost(meta: dict) -> dict | None:
+    """What the reference one refinement finer (``refine`` + 1, its estimate included) would cost,
+    predicted from a solved one's ``meta`` (its levels' dofs and wall times): dofs 8 times the finest
+    level's, and a solve time growing as dofs^p, p fitted on the two levels solved (a sparse direct
+    solve's factorisation: 1.46 on SOFA's liver, 8 808 -> 58 605 P2 dofs, 0.9 -> 13.8 s), kept within
+    [4/3, 2] (nested dissection's fill and work in 3D). The finer reference solves the finest level
+    again and the next. None when the meta says no levels' costs (a cached reference of an older
+    version)."""
+    solves = [x for x in meta.get("solves") or [] if x.get("n_dofs") and x.get("wall_s")]
+    if not solves:
+        return None
+    last = solves[-1]
+    p = 2.0
+    if len(solves) > 1:
+        prev = solves[-2]
+        p = math.log(last["wall_s"] / prev["wall_s"]) / math.log(last["n_dofs"] / prev["n_dofs"])
+    p = min(max(p, 4.0 / 3.0), 2.0)
+    return {"n_dofs": 8 * last["n_dofs"], "seconds": last["wall_s"] * (1.0 + 8.0**p), "exponent": p}
+
+
+def sharp_reference(scene: Scene, tol: float, metric: str) -> tuple[dict, dict]:
+    """The reference the advice judges with (``reference_result`` options) and what it says of itself:
+    REFERENCE_DEFAULTS, refined by up to TIGHTEN_LEVELS while its bar on ``metric`` is over SHARP x
+    ``tol`` and the finer one is predicted within TIGHTEN_BUDGET_S (``reference_cost``). Returns
+    (options, {"bar", "refine", "sharp", "tightened", "next": the cost of one more refinement or None,
+    "why"})."""
+    opts = dict(REFERENCE_DEFAULTS)
+    key = "ref_reaction_err_estimate" if metric == "reaction_rel_err" else "ref_err_estimate"
+    ref = reference_result(scene, **opts)
+    bar, tightened, nxt = ref.meta.get(key), 0, None
+    while bar is not None and bar > SHARP * tol:
+        nxt = reference_cost(ref.meta)
+        if tightened >= TIGHTEN_LEVELS or nxt is None or nxt["seconds"] > TIGHTEN_BUDGET_S:
+            break
+        opts = {**opts, "refine": opts["refine"] + 1}
+        log(
+            f"advise {scene.name}: the reference's bar {bar:.3g} is over {SHARP:g} x {tol:g}; solving it refined "
+            f"{refined_times(opts['refine'])} more ({nxt['n_dofs']} dofs, about {nxt['seconds']:.0f} s)"
+        )
+        ref, tightened, nxt = reference_result(scene, **opts), tightened + 1, None
+        bar = ref.meta.get(key)
+    sharp = bar is not None and bar <= SHARP * tol
+    if bar is None:
+        why = "the reference has no error estimate: verdicts use the measured errors alone"
+    elif sharp:
+        why = f"the reference's bar {bar:.3g} is within {SHARP:g} of the tolerance {tol:g}" + (
+            f" (refined {refined_times(tightened)} more for it)" if tightened else ""
+        )
+    else:
+        why = f"the reference's bar {bar:.3g} is over {SHARP:g} of the tolerance {tol:g}" + (
+            f" even refined {refined_times(tightened)} more" if tightened else ""
+        )
+        if nxt is not None:
+            why += (
+                f"; a sharper one (P2 refined once more, {nxt['n_dofs']} dofs) is predicted to take "
+                f"{nxt['seconds']:.0f} s, over the advisor's {TIGHTEN_BUDGET_S:.0f} s"
+            )
+        why += ": candidates whose interval contains the tolerance are undecided"
+    return opts, {"bar": bar, "refine": opts["refine"], "sharp": sharp, "tightened": tightened, "next": nxt, "why": why}
