@@ -43,6 +43,15 @@ def twist_scenes(size: Size) -> list[Scene]:
     ]
 
 
+def decide(data: dict) -> str:
+    """The rule on ``data``: the linear model's error over StVK's at the largest angle, and whether the
+    linear error grows with the angle."""
+    ratio = data["linear_over_stvk_at_largest"]
+    if data["linear_error_grows"] and ratio > 5:
+        return "confirmed"
+    return "refuted" if ratio <= 1 else "nuanced"
+
+
 def partial_rotation(size: Size) -> dict:
     out = _finding(
         2,
@@ -76,7 +85,7 @@ def partial_rotation(size: Size) -> dict:
     ratio = last["linear-tm_rel_l2"] / max(last["stvk-tm_rel_l2"], 1e-300)
     growing = all(b > a for a, b in zip(lin, lin[1:], strict=False))
     out["data"] = {"linear_over_stvk_at_largest": ratio, "linear_error_grows": growing}
-    out["verdict"] = "confirmed" if growing and ratio > 5 else ("refuted" if ratio <= 1 else "nuanced")
+    out["verdict"] = decide(out["data"])
     out["decides"] = (
         f"at {last['angle_deg']} degrees the linear model is {last['linear-tm_rel_l2']:.1%} off, "
         f"{ratio:.1f} times StVK's {last['stvk-tm_rel_l2']:.2%}"

@@ -37,6 +37,14 @@ def liver_scene(name: str, size: Size) -> Scene:
     return seed_scene(name, f"-x{size.liver_force:g}", _force_edit(size.liver_force))
 
 
+def decide(data: dict) -> str:
+    """The rule on ``data``: whether the linear and StVK answers differ by more than DIFFER on every
+    liver, and the smallest ratio of the linear model's error to StVK's."""
+    if not data["models_differ"]:
+        return "refuted"
+    return "confirmed" if data["smallest_linear_over_stvk"] > 2 else "nuanced"
+
+
 def liver(size: Size) -> dict:
     out = _finding(
         4,
@@ -84,7 +92,7 @@ def liver(size: Size) -> dict:
     worst = min(rows, key=lambda r: r["linear-tm_rel_l2"] / max(r["stvk-tm_rel_l2"], 1e-300))
     ratio = worst["linear-tm_rel_l2"] / max(worst["stvk-tm_rel_l2"], 1e-300)
     out["data"] = {"smallest_linear_over_stvk": ratio, "models_differ": differ}
-    out["verdict"] = "refuted" if not differ else ("confirmed" if ratio > 2 else "nuanced")
+    out["verdict"] = decide(out["data"])
     est = worst["ref_err_estimate"]
     out["decides"] = (
         f"on {worst['liver']} the linear and StVK shapes are {worst['linear_vs_stvk']:.1%} apart; the linear model "

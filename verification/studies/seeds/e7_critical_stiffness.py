@@ -27,6 +27,18 @@ def formula_dt(model) -> tuple[float, float]:
     return float(dt.min()), float(valence[moving].mean())
 
 
+def decide(data: dict) -> str:
+    """The rule on ``data``: the fitted exponents of the largest stable step in h (None where h was not
+    varied) and in E, and the range of measured over formula steps."""
+    slope_h, slope_e = data["dt_exponent_in_h"], data["dt_exponent_in_E"]
+    lo, hi = data["measured_over_formula"]
+    if slope_h is not None and abs(slope_h - 1.0) >= 0.15:
+        return "refuted"
+    constant = 0.5 <= lo and hi <= 2.0
+    reliable = abs(slope_e + 0.5) < 0.05
+    return "confirmed" if slope_h is not None and constant and reliable else "nuanced"
+
+
 def critical_stiffness(size: Size) -> dict:
     out = _finding(
         7,
@@ -35,9 +47,11 @@ def critical_stiffness(size: Size) -> dict:
         "001 (Liu 2002, after Delingette 98)",
         "A mass-spring network integrated explicitly is stable up to the critical stiffness "
         "K_c ~ M / (n pi^2 dt^2): the time step falls as one over the square root of the stiffness.",
-        "confirmed when the measured largest stable step scales as E^-1/2 (fitted exponent within 0.05) and "
-        "h^1 (within 0.15) and the formula's step is within a factor 2 of it; nuanced when the scaling holds "
-        "but the constant does not; refuted when the scaling fails",
+        "confirmed when the measured largest stable step scales as h^1 (fitted exponent within 0.15) and the "
+        "formula's step is within a factor 2 of it; nuanced when the scaling holds but the constant does "
+        "not, or h was not varied; refuted when the scaling fails. The exponent in E (-1/2 exactly, since a "
+        "linear spring network's eigenvalues scale with E) checks the bisection, not the claim: it is "
+        "reported, and a fit off by more than 0.05 marks the measurement as unreliable (nuanced)",
     )
     rows = [_measured(level, young) for level in size.spring_levels for young in size.spring_youngs]
     out["table"] = rows
@@ -49,14 +63,12 @@ def critical_stiffness(size: Size) -> dict:
         same_e = [r for r in rows if r["young_pa"] == e0]
         slope_h = _slope([r["mean_edge_mm"] for r in same_e], [r["measured_dt_s"] for r in same_e])
     ratios = [r["measured_over_formula"] for r in rows]
-    scaling = abs(slope_e + 0.5) < 0.05 and (slope_h is None or abs(slope_h - 1.0) < 0.15)
-    constant = all(0.5 <= q <= 2.0 for q in ratios)
     out["data"] = {
         "dt_exponent_in_E": slope_e,
         "dt_exponent_in_h": slope_h,
         "measured_over_formula": [min(ratios), max(ratios)],
     }
-    out["verdict"] = "confirmed" if scaling and constant else ("nuanced" if scaling else "refuted")
+    out["verdict"] = decide(out["data"])
     out["decides"] = (
         f"measured dt ~ E^{slope_e:.3f}"
         + (f" h^{slope_h:.2f}" if slope_h is not None else "")

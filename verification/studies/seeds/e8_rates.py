@@ -43,6 +43,10 @@ RATE_MODELS = ("linear-tm", "corotational-tm", "stvk-tm", "hybrid-tm", "mass-spr
 
 RATES = (("visual", 10.0), ("haptic", 1000.0))
 
+#: The source's ideal model is fast and realistic; realistic here: within this relative error of the
+#: truth (the tolerance the report's advice asks for).
+REALISTIC = 0.05
+
 
 def rates_scenes(size: Size) -> list[Scene]:
     return [seed_scene("rates-beam", refine=level) for level in size.rate_levels]
@@ -67,10 +71,11 @@ def rates(size: Size) -> dict:
         "rates",
         "Update rates",
         "001 (Liu 2002: visual >= 10 Hz, haptic >= 1000 Hz)",
-        "A surgical simulator needs 10 updates per second for the eye and 1000 for a haptic device; "
-        "which model holds which rate, on how large a mesh, and at what error, on this machine.",
-        f"confirmed when every model holds both rates on every mesh (using {FRAME_SHARE:.0%} of a frame); "
-        "refuted when none holds the haptic rate even on the smallest; nuanced otherwise",
+        "An ideal deformable model is fast (10 updates per second for the eye, 1000 for a haptic device) "
+        "and realistic: which model holds which rate, on how large a mesh, and at what error, on this machine.",
+        f"confirmed when on every mesh some model holds both rates (using {FRAME_SHARE:.0%} of a frame) within "
+        f"{REALISTIC:.0%} of the truth; refuted when no model holds the haptic rate even on the smallest mesh; "
+        "nuanced otherwise (an ideal model up to some size only, or fast models that are not realistic)",
     )
     rows, estimates, built = [], [], {}
     for scene in rates_scenes(size):
@@ -79,9 +84,8 @@ def rates(size: Size) -> dict:
         rows += [_rate_row(scene, m, ref, size, built) for m in RATE_MODELS]
     out["table"] = rows
     ok = [r for r in rows if "step_us" in r]  # timed: settled or not
-    every = all(r["status"] == "ok" and r["holds_visual"] and r["holds_haptic"] for r in rows)
     smallest = min(r["n_tets"] for r in rows)
-    none_haptic = not any(r["holds_haptic"] for r in ok if r["n_tets"] == smallest)
+    ideal = {n: [r["model"] for r in ok if r["n_tets"] == n and _ideal(r)] for n in sorted({r["n_tets"] for r in rows})}
     largest = {}
     for m in RATE_MODELS:
         for label, _ in RATES:
@@ -90,8 +94,12 @@ def rates(size: Size) -> dict:
             largest.setdefault(m, {})[label] = (
                 None if best is None else {"n_tets": best["n_tets"], "rel_l2": best["rel_l2"], "status": best["status"]}
             )
-    out["data"] = {"largest_mesh_held": largest}
-    out["verdict"] = "confirmed" if every else ("refuted" if none_haptic else "nuanced")
+    out["data"] = {
+        "largest_mesh_held": largest,
+        "ideal_by_mesh": {str(n): models for n, models in ideal.items()},
+        "haptic_on_smallest": [r["model"] for r in ok if r["n_tets"] == smallest and r["holds_haptic"]],
+    }
+    out["verdict"] = decide(out["data"])
 
     def held(v):
         if v is None:
@@ -100,7 +108,11 @@ def rates(size: Size) -> dict:
         return f"{v['n_tets']} tets ({err})"
 
     order = sorted(largest, key=lambda m: -(largest[m]["haptic"] or {"n_tets": 0})["n_tets"])
-    out["decides"] = "largest mesh held at 1 kHz: " + ", ".join(f"{m} {held(largest[m]['haptic'])}" for m in order)
+    ideal_line = "; ".join(f"{n} tets: {', '.join(ms) or 'none'}" for n, ms in ideal.items())
+    out["decides"] = (
+        f"both rates within {REALISTIC:.0%} of the truth: {ideal_line}; largest mesh held at 1 kHz: "
+        + ", ".join(f"{m} {held(largest[m]['haptic'])}" for m in order)
+    )
     out["figure"] = "; ".join(
         f"{m}: 10 Hz up to {held(v['visual'])}, 1 kHz up to {held(v['haptic'])}" for m, v in largest.items()
     )
@@ -109,6 +121,25 @@ def rates(size: Size) -> dict:
         {"alt": "time per update against mesh size with the visual and haptic frames", "png": _plot(ok)}
     )
     return out
+
+
+def _ideal(row: dict) -> bool:
+    """A row of the study holds both rates, settled, within REALISTIC of the truth."""
+    return bool(
+        row["status"] == "ok"
+        and row["holds_visual"]
+        and row["holds_haptic"]
+        and row["rel_l2"] is not None
+        and row["rel_l2"] <= REALISTIC
+    )
+
+
+def decide(data: dict) -> str:
+    """The rule on ``data``: the models that are ideal (``_ideal``) on each mesh, by its tetrahedra, and
+    those that hold the haptic rate on the smallest."""
+    if not data["haptic_on_smallest"]:
+        return "refuted"
+    return "confirmed" if all(data["ideal_by_mesh"].values()) else "nuanced"
 
 
 def _plot(ok: list[dict]) -> str:
