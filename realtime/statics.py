@@ -4,6 +4,7 @@ implicit Euler steps.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -84,12 +85,9 @@ def solve_static(
     ``StaticResult.dt`` is the step in use at the end.
 
     ``steps``: take exactly that many steps and return, whatever the residual (``_step_budget``: a
-    float32 model needs it).
-
-    ``progress``: called as progress(steps taken, relative residual) after every chunk, for a caller
-    that reports to a user who waits (the engine itself prints nothing).
-
-    ``omega2``: omega_max^2 (1/s^2) at rest (``spectra.max_eigenvalue``), where the caller knows it.
+    float32 model needs it). ``progress``: called as progress(steps taken, relative residual) after every chunk, for a caller
+    that reports to a user who waits (the engine itself prints nothing). ``omega2``: omega_max^2
+    (1/s^2) at rest (``spectra.max_eigenvalue``), where the caller knows it.
     """
     max_steps = _step_budget(model, steps, max_steps)
     state, lo = model.rest_state(), model.loading
@@ -100,10 +98,7 @@ def solve_static(
     adaptive = dt is None
     dt = safety * dt_crit if adaptive else dt
     integ, alpha = SymplecticEuler(alpha=0.0), 2.0 * math.sqrt(omega2) * 1e-3
-
-    def force(v):  # the force the steps see (hybrid-tm's hysteresis included)
-        return integ.internal_force(model, v)
-
+    force = functools.partial(integ.internal_force, model)  # as the steps see it (hybrid-tm's memory too)
     taken, residual, best, since_best = 0, np.inf, np.inf, 0
     fmag = float(np.linalg.norm(lo.external_force * free))
     while taken < max_steps:
@@ -130,21 +125,21 @@ def solve_static(
             if _converged(model, state.u, residual, rtol, scale, f, best, since_best, force):
                 break
             if since_best >= STALLED_CHUNKS:
-                raise _not_settled(
-                    model, residual, rtol, taken, dt, math.sqrt(omega2) / max(0.5 * alpha, 1e-300), chunk * since_best
-                )
+                raise _not_settled(model, residual, rtol, taken, dt, omega2, alpha, chunk * since_best)
         alpha = _damping(model, state.u, free, omega2, alpha, force)
     else:
         if steps is None:
-            raise _not_settled(model, residual, rtol, taken, dt, math.sqrt(omega2) / max(0.5 * alpha, 1e-300))
+            raise _not_settled(model, residual, rtol, taken, dt, omega2, alpha)
     state.v[:] = 0.0
     state.steps = taken
     return StaticResult(state=state, steps=taken, residual=residual, dt=dt)
 
 
-def _not_settled(model: Model, residual: float, rtol: float, taken: int, dt: float, slow: float, stalled: int = 0):
+def _not_settled(model: Model, residual, rtol, taken: int, dt: float, omega2: float, alpha: float, stalled: int = 0):
     """The error of a settling that ran out of steps, or (``stalled`` > 0) whose residual has not fallen
-    by 10% in its last ``stalled`` steps; ``slow``: its fastest over its slowest mode, as last estimated."""
+    by 10% in its last ``stalled`` steps; omega2 (1/s^2) and alpha (1/s): its fastest mode and damping,
+    as last estimated (alpha = 2 omega_1)."""
+    slow = math.sqrt(omega2) / max(0.5 * alpha, 1e-300)
     if stalled:
         return NotConvergedError(
             f"{model.name}: damped dynamics reached a relative residual of {residual:.2e} (asked {rtol:.1e}) in "
