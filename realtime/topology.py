@@ -24,7 +24,7 @@ from scipy.sparse.csgraph import connected_components
 from .errors import InputError, index_array
 from .geometry import TET_FACES, signed_volumes
 from .material import Material
-from .model import Loading, Model, check_float64
+from .model import Deferred, Loading, Model, check_float64
 from .threaded import linear_tm_kernel
 
 #: Two vertices are joined only where they coincide: within this fraction of the mesh's size.
@@ -51,32 +51,43 @@ def _masses(model: Model, tm, which: np.ndarray, old: np.ndarray, n: int) -> np.
     return mass
 
 
-def changed_model(model: Model, tm, points, mass, loading: Loading, data=None) -> Model:
+def changed_model(model: Model, tm, points, mass, loading: Loading, data=None, orphans=None) -> Model:
     """The successor of ``model`` after its TensorMass ``tm`` changed (a cut, slit or suture): its alive
     tetrahedra, masses (N,) kg and loading on ``points`` (N, 3) m, a vertex left with no tetrahedron
     held and given a unit mass (never used: it does not move; it keeps 1/m finite). ``data``: the
     kernel's, if the change kept its arrays (a cut); else laid out again from ``tm`` (for as many
-    threads as the model's)."""
-    orphan = np.ones(len(points), dtype=bool)
-    orphan[tm.tets[tm.alive].ravel()] = False
-    free = loading.free.copy()
-    free[orphan] = 0.0
-    mass = mass.copy()
-    mass[orphan] = 1.0
-    loading = Loading(**{**loading.__dict__, "free": free})
-    loading.check(len(points))
+    threads as the model's). ``orphans`` (K,) int: the vertices left with no tetrahedron, where the change knows
+    them (a cut: among its own); then nothing the size of the mesh is read or checked, the loading is
+    kept where no vertex was orphaned, and the tetrahedra and the material are made when first read
+    (``Deferred``), from the alive set as it is now."""
+    known = orphans is not None
+    if not known:
+        unused = np.ones(len(points), dtype=bool)
+        unused[tm.tets[tm.alive].ravel()] = False
+        orphans = np.flatnonzero(unused)
+    if len(orphans):
+        free = loading.free.copy()
+        free[orphans] = 0.0
+        loading = Loading(**{**loading.__dict__, "free": free})
+        mass = mass.copy()
+        mass[orphans] = 1.0
+    if not known:
+        loading.check(len(points))
     extra = {**model.extra, "generation": tm.generation}
-    material = model.material if isinstance(model.material, Material) else tm.materials.subset(tm.alive)
+    alive = tm.alive.copy()  # the next cut changes tm.alive in place
+    given = model.__dict__["material"]  # as given: reading a Deferred would make it
+    material = given if isinstance(given, Material) else Deferred(lambda: tm.materials.subset(alive))
     kernel = {}
     if data is None:
         force, energy, data, scratch = linear_tm_kernel(tm, model.extra.get("threads", 1))
         kernel = {"force_kernel": force, "energy_kernel": energy, "new_scratch": scratch}
+    tets = tm.tets
     return Model(
         **{
             **model.__dict__,
             "material": material,
             "points": points,
-            "tets": tm.tets[tm.alive],
+            "tets": Deferred(lambda: tets[alive]),
             "mass": mass,
             "loading": loading,
             "data": data,

@@ -54,7 +54,7 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     mass-spring, scipy's product) carry their flops, bytes, bound and achieved fraction, and the table
     prints them beside the measured ceilings; the others carry none."""
     from realtime.registry import FLOAT32_MODELS
-    from verification.bench.suite import CALL_ROW, CALLS, format_table, run
+    from verification.bench.suite import CALL_ROW, CALLS, CUTS, format_table, run
 
     out = run(meshes=("beam",), repeats=1, steps=2)
     roof = out["machine"]["roofline"]
@@ -71,6 +71,8 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
         )
         assert r["roofline_fraction"] == pytest.approx(r["roofline_us"] / r["step_us"])
     assert "roofline_us" not in rows["corotational-tm"] and "roofline_us" not in rows["stvk-tm (transverse + penalty)"]
+    cut = rows["linear-tm, cut one tetrahedron"]  # microseconds per cut, timed like every row
+    assert cut["n"] == CUTS and cut["step_us"] > 0 and "roofline_us" not in cut
     call = rows[CALL_ROW]  # the haptic call's own cost, per call: no step's work, so no roofline
     assert call["n"] == CALLS and call["step_us"] > 0
     assert "roofline_us" not in call

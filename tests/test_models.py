@@ -314,6 +314,27 @@ def test_cutting_equals_rebuild():
             cut(cut_model, which)
 
 
+def test_each_cut_model_keeps_its_own_tetrahedra_and_masses_after_later_cuts():
+    """A cut's model makes its tetrahedra when first read (the cut itself costs what it touches): read
+    after two later cuts, the first model's are still its own (the mesh less the first cut), the last
+    one's the mesh less all three, and each model's vertices that lost every tetrahedron are held with
+    a unit mass, the others' masses those of a model built on its tetrahedra."""
+    mesh = stored_mesh("liver")
+    model = build_model("linear-tm", mesh.points, mesh.tets, ISO)
+    around = np.flatnonzero(np.any(mesh.tets == 0, axis=1))  # every tetrahedron of vertex 0
+    one = cut(model, around)
+    two = cut(one, [int(np.setdiff1d(np.arange(mesh.n_tets), around)[0])])
+    three = cut(two, [mesh.n_tets - 1])
+    for m, gone in ((three, 3), (one, 1), (two, 2)):  # read out of order, after every cut
+        removed = np.concatenate([around, np.setdiff1d(np.arange(mesh.n_tets), around)[:1], [mesh.n_tets - 1]][:gone])
+        keep = np.setdiff1d(np.arange(mesh.n_tets), removed)
+        assert np.array_equal(m.tets, mesh.tets[keep])
+        fresh = build_model("linear-tm", mesh.points, mesh.tets[keep], ISO)
+        used = np.unique(mesh.tets[keep])
+        np.testing.assert_allclose(m.mass[used], fresh.mass[used], rtol=1e-12)
+        assert m.mass[0] == 1.0 and np.all(m.loading.free[0] == 0.0)  # vertex 0 has no tetrahedron left
+
+
 def test_corotational_refuses_fibres():
     mesh = cylinder()
     for material in (FIBRE, AROUND):

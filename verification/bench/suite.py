@@ -42,7 +42,7 @@ from realtime import Loading, Material, State, SymplecticEuler, build_model
 from realtime.blocks import BLOCK, GEO_ROWS_U, HOT, gather, scatter_block
 from realtime.geometry import unique_edges
 from realtime.quasistatic import QuasiStatic
-from realtime.registry import FLOAT32_MODELS, nonlinear_fraction
+from realtime.registry import FLOAT32_MODELS, cut, nonlinear_fraction
 from realtime.stvk import stvk_block
 from verification.bench import codegen
 from verification.bench.roofline import Roofline, bsr_work, step_work, stvk_phase_work, thread_loops, thread_scaling
@@ -229,6 +229,7 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
         ceilings = thread_loops(threads, footprint) if threads > 1 else {}
         cases += [{"name": key, "ceiling": True, "n": units, "fn": fn} for key, (fn, units) in ceilings.items()]
         cases.append(_bsr_case(mesh, base, loading, u0))
+        cases.append(_cut_case(mesh, base, loading))
         skipped, quasi = _quasi_static_cases(name, mesh, base, loading)
         rows += skipped
         cases += quasi
@@ -387,6 +388,25 @@ def _bsr_case(mesh, base: dict, loading, u0) -> dict:
             K @ x
 
     return {"name": "scipy-bsr-matvec", "model": None, **base, "nnz_blocks": int(K.nnz // 9), "n": reps, "fn": bsr}
+
+
+#: The cuts one timed call of the cut case makes, one tetrahedron each.
+CUTS = 10
+
+
+def _cut_case(mesh, base: dict, loading) -> dict:
+    """Cutting one tetrahedron out of linear-tm (``realtime.registry.cut``), one after another in a
+    random order across the mesh: what a haptic frame pays for a scalpel's stroke. Microseconds per
+    cut."""
+    state = {"model": build_model("linear-tm", mesh.points, mesh.tets, ISO, loading), "next": 0}
+    order = np.random.default_rng(0).permutation(mesh.n_tets)
+
+    def cuts(state=state, order=order):
+        for _ in range(CUTS):
+            state["model"] = cut(state["model"], [int(order[state["next"]])])
+            state["next"] += 1
+
+    return {"name": "linear-tm, cut one tetrahedron", "model": None, **base, "n": CUTS, "fn": cuts}
 
 
 def _quasi_static_cases(name: str, mesh, base: dict, loading) -> tuple[list, list]:
