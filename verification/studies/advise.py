@@ -43,6 +43,7 @@ from verification.studies.frame import (
     with_bar,
 )
 from verification.studies.proposal import (
+    BUILD_LIMIT_S,
     OPTIMISM,
     own_part,
     proposal_summary,
@@ -346,11 +347,14 @@ def _why_none(rows: list[Row], metric: str, tol: float, rate: float, proposal, t
             f"; the mesh's part ({proposal['mesh_part'][0]:.3g}, observed order "
             f"{proposal['observed_order']:.2f}) leaves room for a model's own only on the mesh refined "
             f"{refined_times(first['level'])}, and there no model is predicted to hold {rate:g} Hz within "
-            f"memory: the first, {label(first['row'])}, "
+            f"memory and time: the first, {label(first['row'])}, "
             + (
                 first["predicted"]["why"]
                 if not first["predicted"]["holds"]
                 else f"would need {first['memory_bytes'] / 1e9:.0f} GB"
+                if not first["fits_memory"]
+                else f"would take {first['predicted_build_s']:.0f} s to its first answer (its precomputation or "
+                f"settling), over {BUILD_LIMIT_S:.0f} s"
             )
         )
     return why
