@@ -435,10 +435,11 @@ def cmd_stability(args) -> int:
 
 
 def cmd_advise(args) -> int:
-    from verification.studies.advise import advise, format_advice
+    from verification.studies.advise import advise, check_question, format_advice
 
     comm = _mpi_comm()
     scene = _scene(args)
+    check_question(scene, args.tol, args.rate, args.metric, args.haptic_rate, args.force_tol)  # before any solve
     if not args.no_cache:  # its three independent references on all the cores first (not under mpirun)
         from verification.studies.prefetch import advice_jobs, solve_references
 

@@ -216,7 +216,7 @@ def advise(
     ``haptic_rate``: the simulator also runs a haptic loop at that rate (Hz): the model steps there, and
     a candidate qualifies only if its tool force is within ``force_tol`` (default ``tol``) too, judged
     at the haptic rate (``frame.judgement``)."""
-    haptic = _question(scene, tol, rate, metric, haptic_rate, force_tol)
+    haptic = check_question(scene, tol, rate, metric, haptic_rate, force_tol)
     dynamic = scene.time.mode == "dynamic"
     ref_opts, truth = sharp_reference(scene, tol, metric)
     rows = _candidates(scene, metric, rate, use_cache, comm, f"advise {scene.name}", models, ref_opts, haptic)
@@ -249,7 +249,7 @@ def advise(
     return out
 
 
-def _question(scene: Scene, tol: float, rate: float, metric: str, haptic_rate, force_tol) -> dict | None:
+def check_question(scene: Scene, tol: float, rate: float, metric: str, haptic_rate, force_tol) -> dict | None:
     """The question checked against the scene (SceneError in one line), and its haptic part for
     ``frame_budget``: {"rate", "force_tol" (default ``tol``)}, or None without a haptic rate."""
     if metric == "reaction_rel_err" and not scene.problem.tools:
