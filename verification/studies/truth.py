@@ -12,8 +12,8 @@ from verification.studies.proposal import refined_times
 #: A truth sharp enough for the question: the reference's bar at most this share of the tolerance. A
 #: candidate's true error lies within its measured one plus or minus the bar (``frame.judgement``), so
 #: with a bar of 0.3 tol every candidate measured below 0.7 tol qualifies and every one above 1.3 tol
-#: fails; only those in between are undecided, and they are rarely the cheapest choice. With SOFA's
-#: liver at 5% (a bar of 2.5%) half the errors that could qualify were undecided.
+#: fails; only those in between are undecided. With SOFA's liver at 5% (a bar of 2.5%) every error
+#: measured between 2.5% and 7.5% is undecided, and only one below 2.5% can qualify.
 SHARP = 0.3
 #: The refinements the advisor may add to its reference (each multiplies the reference's elements by 8)
 #: to make it sharp (SHARP), and the longest the sharper reference may take to solve, s, predicted from
@@ -74,9 +74,11 @@ def sharp_reference(scene: Scene, tol: float, metric: str) -> tuple[dict, dict]:
             f" even refined {refined_times(tightened)} more" if tightened else ""
         )
         if nxt is not None:
+            why += f"; a sharper one (P2 refined once more, {nxt['n_dofs']} dofs) is predicted to take {nxt['seconds']:.0f} s"
             why += (
-                f"; a sharper one (P2 refined once more, {nxt['n_dofs']} dofs) is predicted to take "
-                f"{nxt['seconds']:.0f} s, over the advisor's {TIGHTEN_BUDGET_S:.0f} s"
+                f", over the advisor's {TIGHTEN_BUDGET_S:.0f} s"
+                if nxt["seconds"] > TIGHTEN_BUDGET_S
+                else f"; the advisor refines its truth {refined_times(TIGHTEN_LEVELS)} at most"
             )
         why += ": candidates whose interval contains the tolerance are undecided"
     return opts, {"bar": bar, "refine": opts["refine"], "sharp": sharp, "tightened": tightened, "next": nxt, "why": why}
