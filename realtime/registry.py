@@ -92,16 +92,15 @@ def cut(model: Model, which) -> Model:
     check_float64(model, "cut")
     which = np.unique(index_array("cut: which", which, len(tm.tets)))
     tm.remove(which)
-    removed = tm.tets[which]
+    touched = tm.tets[which].ravel()
     mass = model.mass.copy()
-    vol = np.abs(signed_volumes(model.points, removed))
     mats = tm.materials
     density = np.array([m.density for m in mats.materials])[mats.index[which]]  # per_tet reads all M
-    np.subtract.at(mass, removed.ravel(), np.repeat(density * vol / 4.0, 4))
-    touched = np.unique(removed)
+    np.subtract.at(mass, touched, np.repeat(density * tm.volumes[which] / 4.0, 4))
+    alone = tm.valence[touched] == 0
+    orphans = np.unique(touched[alone]) if alone.any() else touched[:0]
     from .topology import changed_model
 
-    orphans = touched[tm.valence[touched] == 0]
     return changed_model(model, tm, model.points, mass, model.loading, data=model.data, orphans=orphans)
 
 

@@ -37,7 +37,7 @@ import scipy.sparse as sp
 
 from .blocks import U1, U2, U3, U4, U5, U6, U7, U8, U9
 from .errors import InputError
-from .geometry import shape_gradients, unique_edges
+from .geometry import shape_gradients, signed_volumes, unique_edges
 from .laws import linear_elasticity_tensor
 from .material import Material, Materials
 
@@ -124,6 +124,19 @@ def scatter_blocks(vertex_tensors, edge_tensors, tets, tet_edges, ke, which, sig
                     edge_tensors[g, i, j] += sign * ke[e, a, b, i, j]
 
 
+@nb.njit(**_JIT)
+def remove_blocks(vertex_tensors, edge_tensors, tets, tet_edges, ke, which, local_edges, valence, alive):
+    """A cut's update of the tensors in one compiled call: ``scatter_blocks`` with sign -1 for tetrahedra
+    ``which`` (K,) int64, each of their vertices' count of alive tetrahedra valence (N,) int64 less one,
+    and alive (M,) bool False for them."""
+    scatter_blocks(vertex_tensors, edge_tensors, tets, tet_edges, ke, which, -1.0, local_edges)
+    for w in range(which.shape[0]):
+        e = which[w]
+        alive[e] = False
+        for a in range(4):
+            valence[tets[e, a]] -= 1
+
+
 class TensorData(NamedTuple):
     """linear_tm_force's data: vertex_tensors (N, 3, 3) N/m, cols (E,) int64 (the larger end j of each edge),
     edge_tensors (E, 3, 3) N/m, row_start (N + 1,) int64 (the edges (i, j > i) of vertex i are
@@ -145,6 +158,7 @@ class TensorMass:
         edge_tensors: (E, 3, 3) float64, N/m: T_ij for edge (i, j), i < j.
         tet_edges: (M, 6) int64, the edge index of each local edge (LOCAL_EDGES order).
         ke: (M, 4, 4, 3, 3) float64, the element blocks, kept for local updates (cutting).
+        volumes: (M,) float64, m^3, each tetrahedron's rest volume.
         materials: the Materials of the M tetrahedra.
         generation: the number of cuts made (``remove`` calls).
     """
@@ -155,6 +169,7 @@ class TensorMass:
         self.materials = Materials.of(material, len(self.tets))
         self.edges = unique_edges(self.tets)
         self.ke = element_stiffness(points, self.tets, self.materials)
+        self.volumes = np.abs(signed_volumes(points, self.tets))  # (M,) m^3: a cut's masses read them
         pairs = self.tets[:, LOCAL_EDGES]  # (M, 6, 2)
         self.tet_edges = edge_index(self.edges, self.n_vertices, pairs.reshape(-1, 2)).reshape(-1, 6)
         self.vertex_tensors = np.zeros((self.n_vertices, 3, 3))
@@ -173,12 +188,11 @@ class TensorMass:
         edges (Cotin et al. 2000). An edge left with no tetrahedron keeps a zero tensor."""
         which = np.unique(np.asarray(which, dtype=np.int64))
         alive = self.alive
-        if np.any(~alive[which]):
+        if not alive[which].all():
             bad = int(which[~alive[which]][0])
             raise InputError(f"cut: tetrahedron {bad} was already removed")
-        self._scatter(which, -1.0)
-        np.subtract.at(self.valence, self.tets[which].ravel(), 1)
-        alive[which] = False
+        remove_blocks(self.vertex_tensors, self.edge_tensors, self.tets, self.tet_edges, self.ke, which,
+                      LOCAL_EDGES, self.valence, alive)  # fmt: skip
         self.generation += 1
 
     def relabel(self, which, new_tets: np.ndarray, n_vertices: int) -> None:
