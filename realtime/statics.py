@@ -214,11 +214,18 @@ def _damping(model: Model, u: np.ndarray, free: np.ndarray, omega2: float, alpha
 
 
 def solve_static_implicit(
-    model: Model, dt: float, rtol: float = 1e-10, max_steps: int = 20_000, integrator: ImplicitEuler | None = None
+    model: Model,
+    dt: float,
+    rtol: float = 1e-10,
+    max_steps: int = 20_000,
+    integrator: ImplicitEuler | None = None,
+    progress=None,
 ) -> StaticResult:
     """Static equilibrium by implicit Euler steps of dt (its numerical damping settles every mode a
     large step resolves poorly): the tools follow their ramps, then the loop stops when the free
-    residual is below rtol times the load scale. Raises NotConvergedError past ``max_steps``."""
+    residual is below rtol times the load scale. Raises NotConvergedError past ``max_steps``.
+    ``progress``: called as progress(steps taken, relative residual or None before the tools arrive)
+    after every step, as solve_static's (a step of a large body's CG can take seconds)."""
     integ = integrator if integrator is not None else ImplicitEuler(tol=min(1e-10, rtol))
     lo = model.loading
     state = model.rest_state()
@@ -229,10 +236,14 @@ def solve_static_implicit(
     for k in range(1, max_steps + 1):
         integ.step(model, state, dt, 1)  # raises NotConvergedError when CG stops short (unless a budget)
         if state.t < arrived:
+            if progress is not None:
+                progress(k, None)
             continue
         r = (integ.internal_force(model, state.u) + lo.external_force) * lo.free
         scale = max(fmag, float(np.linalg.norm(model.reaction(state.u))), 1e-300)
         residual = float(np.linalg.norm(r)) / scale
+        if progress is not None:
+            progress(k, residual)
         if residual < 0.9 * best:
             best, since_best = residual, 0
         else:

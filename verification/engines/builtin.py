@@ -136,8 +136,16 @@ def settled(
         dt_crit = SymplecticEuler().critical_dt(model, omega2)
         if dt is None:
             dt = 2.0 / math.sqrt(min_eigenvalue(model)) if dt_fraction is None else dt_fraction * dt_crit
+        ticker = Progress(f"settling: {inputs.name} / {model.name}, implicit step", rank=_rank())
         static = solve_static_implicit(
-            model, dt, rtol=rtol, integrator=integ, max_steps=min(max_steps, IMPLICIT_MAX_STEPS)
+            model,
+            dt,
+            rtol=rtol,
+            integrator=integ,
+            max_steps=min(max_steps, IMPLICIT_MAX_STEPS),
+            progress=lambda k, res: ticker.tick(
+                k, ": the tools on their way" if res is None else f": residual {res:.2e} of the load (asked {rtol:.0e})"
+            ),
         )
         cg = integ.iterations
     else:
