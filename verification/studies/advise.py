@@ -3,15 +3,18 @@ an error tolerance while a simulator holds a frame rate on this machine, on the 
 the mesh's own error is what stops every model, on the refinement of it that the observed convergence
 rate says is needed.
 
+0. The reference is made sharp enough for the tolerance where that is affordable (``truth``).
 1. Every model runs on the scene at the sweep's steps (and, on a static scene, with implicit Euler).
-2. Each run's frame budget (``frame_budget``) says whether it holds the rate and what it costs.
+2. Each run's frame budget (``frame_budget``) says whether it holds the rate and what it costs (and at
+   the haptic rate, where one is asked).
 3. Runs of one model and integrator whose errors agree (the step changes nothing, as on a static
    scene) are one candidate, the one that reaches its answer soonest.
-4. The cheapest candidate within the tolerance that holds the rate is the answer; every cheaper one is
-   named with the reason it failed: its error (with the budget's mesh, model and time parts), its
-   frame budget or its stability.
-5. When none qualifies and the budget's mesh part is what stops them, the P1 solution on one uniform
-   refinement gives the observed order of the mesh's error; the coarsest level whose predicted mesh
+4. The cheapest candidate within the tolerance, whatever the reference's own error (``frame.judgement``:
+   its error's whole interval), that holds the rate is the answer; every cheaper one is named with the
+   reason it failed: its error (with the budget's mesh, model and time parts), its frame budget or its
+   stability, or that the truth's bar leaves it undecided.
+5. When none qualifies and the budget's mesh part is what stops them (``proposal``), the P1 solution
+   on one uniform refinement gives the observed order of the mesh's error; the coarsest level whose predicted mesh
    part leaves room for a model's own part is proposed, and the models are run there, cheapest
    predicted first, until one meets both. The answer is a measured run, never a prediction.
 """
