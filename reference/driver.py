@@ -176,6 +176,27 @@ def evaluate_static(problems: list, meta: dict, points: np.ndarray) -> dict:
     return {"displacement": values[-1], "reaction": reactions[-1], "meta": meta}
 
 
+def _dynamic_bars(u: tuple, r: tuple, refine: int) -> dict:
+    """A dynamic reference's bars from its runs' displacements u = (u_R, u_R+1, u_R at dt / 2), each
+    (T, N, 3) m, and tool forces r, the same three (T, 3) N: space + 2 time for each, relative."""
+    space = float(np.linalg.norm(u[0] - u[1]) / max(np.linalg.norm(u[1]), 1e-300))
+    tim = float(np.linalg.norm(u[0] - u[2]) / max(np.linalg.norm(u[2]), 1e-300))
+    # the tools' force by the same rule (what a haptic verdict is judged against); none without a tool
+    f_space, f_time = _relative(r[0], r[1]), _relative(r[0], r[2])
+    return dict(
+        ref_err_estimate=space + 2.0 * tim,
+        ref_err_space=space,
+        ref_err_time=tim,
+        ref_reaction_err_estimate=None if f_space is None or f_time is None else f_space + 2.0 * f_time,
+        ref_reaction_err_space=f_space,
+        ref_reaction_err_time=f_time,
+        returned_level=refine + 1,
+        estimate=f"|u_R - u_R+1| + 2 |u_dt - u_dt/2| (relative, over vertices and output times, R = {refine}); "
+        "the returned trajectory is u_R+1 at dt, and the estimate bounds its error when halving h or dt at "
+        "least halves each part",
+    )
+
+
 def _relative(coarse: np.ndarray, fine: np.ndarray) -> float | None:
     """|coarse - fine| / |fine| over every entry (the tools' forces at every output time); None where the
     finer one is zero (a scene without a tool has no force to estimate: 0 / 0)."""
@@ -249,22 +270,7 @@ def solve_dynamic(
         _, fine_space, fine_reac, i2 = run(refine + 1, dt)
         _, fine_time, fine_time_reac, i3 = run(refine, dt / 2)
         solves += [i2, i3]
-        space = float(np.linalg.norm(vals - fine_space) / max(np.linalg.norm(fine_space), 1e-300))
-        tim = float(np.linalg.norm(vals - fine_time) / max(np.linalg.norm(fine_time), 1e-300))
-        # the tools' force by the same rule (what a haptic verdict is judged against); none without a tool
-        f_space, f_time = _relative(reac, fine_reac), _relative(reac, fine_time_reac)
-        meta.update(
-            ref_err_estimate=space + 2.0 * tim,
-            ref_err_space=space,
-            ref_err_time=tim,
-            ref_reaction_err_estimate=None if f_space is None or f_time is None else f_space + 2.0 * f_time,
-            ref_reaction_err_space=f_space,
-            ref_reaction_err_time=f_time,
-            returned_level=refine + 1,
-            estimate=f"|u_R - u_R+1| + 2 |u_dt - u_dt/2| (relative, over vertices and output times, R = {refine}); "
-            "the returned trajectory is u_R+1 at dt, and the estimate bounds its error when halving h or dt at "
-            "least halves each part",
-        )
+        meta.update(_dynamic_bars((vals, fine_space, fine_time), (reac, fine_reac, fine_time_reac), refine))
         vals, reac = fine_space, fine_reac
     meta["solves"] = solves
     return {"times": times, "displacement": vals, "reaction": reac, "meta": meta}
