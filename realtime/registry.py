@@ -90,8 +90,7 @@ def cut(model: Model, which) -> Model:
     if model.name != "linear-tm" or tm is None:
         raise InputError(f"cut: {model.name} does not support cutting (linear-tm does)")
     check_float64(model, "cut")
-    which = np.unique(index_array("cut: which", which, len(tm.tets)))
-    tm.remove(which)
+    which = tm.remove(index_array("cut: which", which, len(tm.tets)))
     touched = tm.tets[which].ravel()
     mass = model.mass.copy()
     mats = tm.materials

@@ -85,9 +85,9 @@ def solve_static(
     ``StaticResult.dt`` is the step in use at the end.
 
     ``steps``: take exactly that many steps and return, whatever the residual (``_step_budget``: a
-    float32 model needs it). ``progress``: called as progress(steps taken, relative residual) after every chunk, for a caller
-    that reports to a user who waits (the engine itself prints nothing). ``omega2``: omega_max^2
-    (1/s^2) at rest (``spectra.max_eigenvalue``), where the caller knows it.
+    float32 model needs it). ``progress``: called as progress(steps taken, relative residual) after
+    every chunk, for a caller that reports to a user who waits (the engine itself prints nothing).
+    ``omega2``: omega_max^2 (1/s^2) at rest (``spectra.max_eigenvalue``), where the caller knows it.
     """
     max_steps = _step_budget(model, steps, max_steps)
     state, lo = model.rest_state(), model.loading

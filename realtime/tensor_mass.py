@@ -183,9 +183,10 @@ class TensorMass:
         scatter_blocks(self.vertex_tensors, self.edge_tensors, self.tets, self.tet_edges, self.ke,
                        np.asarray(which, dtype=np.int64), float(sign), LOCAL_EDGES)  # fmt: skip
 
-    def remove(self, which) -> None:
+    def remove(self, which) -> np.ndarray:
         """Cut: remove tetrahedra ``which`` (K,) int, updating only the tensors of their vertices and
-        edges (Cotin et al. 2000). An edge left with no tetrahedron keeps a zero tensor."""
+        edges (Cotin et al. 2000). An edge left with no tetrahedron keeps a zero tensor. Returns the
+        tetrahedra removed, sorted and once each (K',) int64."""
         which = np.unique(np.asarray(which, dtype=np.int64))
         alive = self.alive
         if not alive[which].all():
@@ -194,6 +195,7 @@ class TensorMass:
         remove_blocks(self.vertex_tensors, self.edge_tensors, self.tets, self.tet_edges, self.ke, which,
                       LOCAL_EDGES, self.valence, alive)  # fmt: skip
         self.generation += 1
+        return which
 
     def relabel(self, which, new_tets: np.ndarray, n_vertices: int) -> None:
         """Give tetrahedra ``which`` (K,) int the vertices ``new_tets`` (K, 4) int64, on a mesh of

@@ -349,7 +349,7 @@ def test_a_coarse_truth_is_tightened_within_the_budget_or_the_advice_says_it_can
     rule, not the solver): each refinement divides the bar by 8."""
     from types import SimpleNamespace
 
-    from verification.studies import truth as advise
+    from verification.studies import truth
 
     asked = []
 
@@ -358,15 +358,15 @@ def test_a_coarse_truth_is_tightened_within_the_budget_or_the_advice_says_it_can
         solves = [{"n_dofs": 1000 * 8**k, "wall_s": 8.0**k} for k in (refine, refine + 1)]
         return SimpleNamespace(meta={"ref_err_estimate": 0.025 / 8**refine, "solves": solves})
 
-    monkeypatch.setattr(advise, "reference_result", fake)
-    monkeypatch.setattr(advise, "TIGHTEN_BUDGET_S", budget)
-    opts, truth = advise.sharp_reference(load_scene("block-press"), 0.05, "rel_l2")
+    monkeypatch.setattr(truth, "reference_result", fake)
+    monkeypatch.setattr(truth, "TIGHTEN_BUDGET_S", budget)
+    opts, said = truth.sharp_reference(load_scene("block-press"), 0.05, "rel_l2")
     if budget:
-        assert opts["refine"] == 1 and asked == [0, 1] and truth["sharp"]
-        assert truth["bar"] == pytest.approx(0.025 / 8) and "refined once more" in truth["why"]
+        assert opts["refine"] == 1 and asked == [0, 1] and said["sharp"]
+        assert said["bar"] == pytest.approx(0.025 / 8) and "refined once more" in said["why"]
     else:
-        assert opts["refine"] == 0 and asked == [0] and not truth["sharp"]
-        assert "predicted to take" in truth["why"] and "undecided" in truth["why"]
+        assert opts["refine"] == 0 and asked == [0] and not said["sharp"]
+        assert "predicted to take" in said["why"] and "undecided" in said["why"]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -276,16 +276,14 @@ def cmd_compare(args) -> int:
 
 def _print_row(scene, args, row) -> None:
     """A compare row as text: its metrics, error budget, frame budget and what the model did not represent."""
-    from verification.studies.frame import error_interval, reference_bar
+    from verification.studies.frame import reference_bar, true_range
 
     at = "its quasi-static update" if row.dt is None else f"dt = {row.dt:.3g} s"
     print(f"{scene.name} / {args.model} at {at}:")
     for k in (*METRICS, "ref_err_estimate", "step_us", "realtime_factor", "rate_hz"):
         v = getattr(row, k)
-        span = (
-            error_interval(v, reference_bar(row, k)) if k in ("rel_l2", "surface_rel_l2", "reaction_rel_err") else None
-        )
-        true = "" if span is None else f"   true error {span[0]:.3g} to {span[1]:.3g} (the reference's bar)"
+        span = true_range(v, reference_bar(row, k)) if k in ("rel_l2", "surface_rel_l2", "reaction_rel_err") else ""
+        true = f"   {span} (the reference's bar)" if span else ""
         print(f"  {k:<18} {'-' if v is None else f'{v:.4g}'}{true}")
     b = row.error_budget or {}
     if b.get("mesh") is not None:

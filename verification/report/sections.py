@@ -26,7 +26,7 @@ from verification.runs.simulate import run_model
 from verification.scene_file import load_scene
 from verification.studies.advise import advise, refined_times
 from verification.studies.converge import converge_manufactured, converge_time
-from verification.studies.frame import error_interval, with_bar
+from verification.studies.frame import true_range, with_bar
 from verification.studies.stability import stability
 from verification.studies.sweep import default_fractions, sweep
 
@@ -88,8 +88,8 @@ def _sweep_table(rows: list[Row]) -> str:
                 f"<td>{ratio}</td><td colspan='9'>{what}</td></tr>"
             )
             continue
-        span = error_interval(r.rel_l2, r.ref_err_estimate)
-        acc = f" <em>(true {span[0]:.3g} to {span[1]:.3g})</em>" if span is not None and r.at_reference_accuracy else ""
+        span = true_range(r.rel_l2, r.ref_err_estimate)
+        acc = f" <em>({span})</em>" if span and r.at_reference_accuracy else ""
         acc += "".join(f" <em>(ran without {html.escape(t)})</em>" for t in r.unrepresented or [])
         out.append(
             f"<tr><td>{r.model}</td><td>{r.integrator}</td><td>{fmt(r.dt)}</td><td>{ratio}</td>"

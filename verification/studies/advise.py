@@ -36,12 +36,11 @@ from verification.studies.frame import (
     QUALIFIES,
     UNDECIDED,
     cost,
-    error_interval,
     frame_budget,
     judgement,
     label,
     merge_same_answers,
-    reference_bar,
+    row_interval,
     verdict,
     with_bar,
 )
@@ -299,7 +298,7 @@ def _answer(scene, choice: Row, rows, ranked, rejected, metric: str, tol: float,
         dt=choice.dt,
         dt_fraction=choice.fraction,
         value=getattr(choice, metric),
-        interval=error_interval(getattr(choice, metric), reference_bar(choice, metric)),
+        interval=row_interval(choice, metric),
         error_budget=choice.error_budget,
         step_us=choice.step_us,
         rate_hz=choice.rate_hz,
@@ -322,10 +321,10 @@ def _answer(scene, choice: Row, rows, ranked, rejected, metric: str, tol: float,
 
 def _candidate(r: Row, metric: str, tol: float) -> dict:
     """One candidate of the scene's mesh, whatever engine ran it: its step, error with the interval the
-    reference's bar leaves (``frame.error_interval``) and verdict."""
+    reference's bar leaves (``frame.row_interval``) and verdict."""
     state, why = judgement(r, metric, tol)
     return {"model": r.model, "integrator": r.integrator, "dt": r.dt, "step_us": r.step_us,
-            metric: getattr(r, metric), "interval": error_interval(getattr(r, metric), reference_bar(r, metric)),
+            metric: getattr(r, metric), "interval": row_interval(r, metric),
             "qualifies": state == QUALIFIES, "verdict": state, "why": why}  # fmt: skip
 
 

@@ -165,15 +165,24 @@ def error_interval(value: float | None, bar: float | None) -> tuple[float, float
     return max(value - bar, 0.0), value + bar
 
 
+def row_interval(r: Row, metric: str) -> tuple[float, float] | None:
+    """``error_interval`` of a row's ``metric`` with the reference's bar on it (``reference_bar``)."""
+    return error_interval(getattr(r, metric), reference_bar(r, metric))
+
+
+def true_range(value: float | None, bar: float | None, fmt: str = ".3g") -> str:
+    """The interval ``error_interval`` leaves, as a user reads it ("true 0.109 to 0.263"); "" without."""
+    span = error_interval(value, bar)
+    return "" if span is None else f"true {span[0]:{fmt}} to {span[1]:{fmt}}"
+
+
 def with_bar(value: float | None, bar: float | None, fmt: str = ".3g") -> str:
     """An error as a user reads it: the value and, where the reference has a bar, the interval the true
     error lies in ("0.186 (true 0.109 to 0.263)")."""
     if value is None:
         return "-"
-    span = error_interval(value, bar)
-    if span is None:
-        return format(value, fmt)
-    return f"{value:{fmt}} (true {span[0]:{fmt}} to {span[1]:{fmt}})"
+    span = true_range(value, bar, fmt)
+    return format(value, fmt) + (f" ({span})" if span else "")
 
 
 #: What a verdict on an error can be: within the tolerance whatever the reference's own error, over it

@@ -115,7 +115,7 @@ def scene_jobs(scenes: list[Scene]) -> list[tuple[Scene, dict]]:
 def advice_jobs(scenes: list[Scene]) -> list[tuple[Scene, dict]]:
     """What advice on each scene asks for: ``scene_jobs``, and on a static scene also the P1 solution on
     its mesh refined once, from which the advisor's mesh proposal reads the observed order of the mesh's
-    error (``advise.propose_mesh``). Solved ahead, it leaves the advice's serial part (7 s on the
+    error (``proposal.propose_mesh``). Solved ahead, it leaves the advice's serial part (7 s on the
     report's cantilever, whose refined mesh has 22 837 vertices)."""
     jobs = scene_jobs(scenes)
     return jobs + [(scene.refined(1), P1_OWN_MESH) for scene in scenes if scene.time.mode == "static"]

@@ -16,7 +16,7 @@ from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, referen
 from verification.runs.row import Row
 from verification.runs.store import compare_or_unsettled, largest_stable_fraction
 from verification.scene import Scene, SceneError
-from verification.studies.frame import error_interval
+from verification.studies.frame import true_range
 
 #: Time steps a sweep tries by default on a dynamic scene, as fractions of each model's critical step.
 DEFAULT_FRACTIONS = (0.25, 0.5, 0.9)
@@ -88,22 +88,16 @@ def _run_plan(
         if k % size != rank:
             continue
         fraction = item["fraction"]
-        if fraction == "largest-stable":
+        largest = fraction == "largest-stable"
+        if largest:
             fraction = largest_stable_fraction(scene, item["model"], integrator, use_cache=use_cache)["stable"]
-            row = screen and screen(scene, item["model"], integrator, None, fraction)
-            row = row or compare_or_unsettled(
-                scene, item["model"], integrator, None, fraction, reference=ref, ref_opts=ref_opts,
-                use_cache=use_cache, float32=float32,
-            )  # fmt: skip
-            row = row.replace(largest_stable=True)
-        else:
-            stepper = item["integrator"] if item["integrator"] != "quasi-static" else integrator
-            row = screen and screen(scene, item["model"], stepper, item["dt"], fraction)
-            row = row or compare_or_unsettled(
-                scene, item["model"], stepper, item["dt"], fraction, reference=ref, ref_opts=ref_opts,
-                use_cache=use_cache, float32=float32,
-            )  # fmt: skip
-        rows.append(row.replace(plan_index=k))
+        stepper = item["integrator"] if item["integrator"] != "quasi-static" else integrator
+        row = screen and screen(scene, item["model"], stepper, item["dt"], fraction)
+        row = row or compare_or_unsettled(
+            scene, item["model"], stepper, item["dt"], fraction, reference=ref, ref_opts=ref_opts,
+            use_cache=use_cache, float32=float32,
+        )  # fmt: skip
+        rows.append(row.replace(plan_index=k, **({"largest_stable": True} if largest else {})))
         if progress:
             progress.step(f"{item['model']} {fraction}")
     return rows
@@ -130,7 +124,7 @@ def sweep(
     each row of a model that runs in float32 also carries its float32 twin (``runs.compare.float32_twin``), whose
     distance from the float64 run stands beside the model's error. ``screen``: see ``_run_plan`` (the
     advisor's, which leaves out the runs too slow for its rate). ``ref_opts``: the reference's options
-    (default REFERENCE_DEFAULTS; the advisor's sharper truth, ``advise.sharp_reference``).
+    (default REFERENCE_DEFAULTS; the advisor's sharper truth, ``truth.sharp_reference``).
     """
     models = list(models or offered())
     if fractions is None and dts is None:
@@ -233,8 +227,8 @@ def format_sweep(result: dict) -> str:
         dt = "-" if r.dt is None else f"{r.dt:.3g}"
         reaction = "-" if r.reaction_rel_err is None else f"{r.reaction_rel_err:.3g}"
         flag = " pareto" if r.pareto else ""
-        span = error_interval(r.rel_l2, r.ref_err_estimate)
-        flag += f" (true {span[0]:.3g} to {span[1]:.3g})" if span is not None and r.at_reference_accuracy else ""
+        span = true_range(r.rel_l2, r.ref_err_estimate)
+        flag += f" ({span})" if span and r.at_reference_accuracy else ""
         flag += "".join(f" (without {term})" for term in r.unrepresented or [])
         out.append(
             f"{r.model:<16} {dt:>10} {ratio:>8} {r.rel_l2:>10.4g} {reaction:>9} {fmt(r.step_us, '.1f'):>9} "
