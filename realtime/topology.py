@@ -97,60 +97,74 @@ def changed_model(model: Model, tm, points, mass, loading: Loading, data=None, o
     )
 
 
-def slit(model: Model, faces) -> tuple[Model, np.ndarray]:
-    """Separate a linear tensor-mass model along interior triangles ``faces`` (F, 3) int (vertex
-    indices, any order), each shared by two tetrahedra of the model.
+def slit_tets(tets: np.ndarray, n: int, faces, what: str = "slit") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The vertex splitting of a slit, on a mesh's tetrahedra ``tets`` (M, 4) int64 over ``n`` vertices,
+    along interior triangles ``faces`` (F, 3) int (vertex indices, any order), each shared by two
+    tetrahedra (InputError naming the first that is not, ``what`` leading the message).
 
     Around each vertex of the slit, the tetrahedra that still connect through faces off the slit form
-    one side; each side but the first gets a copy of the vertex, appended after the mesh's vertices (a
-    vertex where the slit ends inside the body has one side and stays whole). The copies take their
-    share of the vertex's external force by mass (exact for gravity) and its constraints; tools keep
-    driving the originals. Returns the new model and the pairs (K, 2) int64 (original, copy), which
-    ``suture`` takes to join them back.
-    """
-    tm = _tensors(model, "slit")
-    n = model.n_vertices
-    faces = index_array("slit: face", faces, n, width=3)
-    alive = np.flatnonzero(tm.alive)
-    tet_faces = np.sort(tm.tets[alive][:, TET_FACES].reshape(-1, 3), axis=1)  # (4 A, 3)
+    one side; each side but the first gets a copy of the vertex, numbered n, n + 1, ... in order (a
+    vertex where the slit ends inside the body has one side and stays whole). Returns the positions
+    (C,) int64 of the tetrahedra whose vertices changed, their new rows (C, 4) int64, and the pairs
+    (K, 2) int64 (original, copy)."""
+    faces = index_array(f"{what}: face", faces, n, width=3)
+    m = len(tets)
+    tet_faces = np.sort(tets[:, TET_FACES].reshape(-1, 3), axis=1)  # (4 M, 3)
     key = (tet_faces[:, 0] * n + tet_faces[:, 1]) * n + tet_faces[:, 2]
     slit_keys = set()
     for f in np.sort(faces, axis=1):
         k = (f[0] * n + f[1]) * n + f[2]
         if np.count_nonzero(key == k) != 2:
             raise InputError(
-                f"slit: face {f.tolist()} is not an interior triangle of the mesh (shared by two tetrahedra)"
+                f"{what}: face {f.tolist()} is not an interior triangle of the mesh (shared by two tetrahedra)"
             )
         slit_keys.add(int(k))
-    owner = np.repeat(alive, 4)
+    slit_list = np.array(sorted(slit_keys), dtype=np.int64)
+    owner = np.repeat(np.arange(m), 4)
     new_tets = {}
     copies = []
     for v in np.unique(faces):
-        around = alive[np.any(tm.tets[alive] == v, axis=1)]
-        local = {int(t): i for i, t in enumerate(around)}
+        around = np.flatnonzero(np.any(tets == v, axis=1))
+        local = np.full(m, -1, dtype=np.int64)
+        local[around] = np.arange(len(around))
         # the faces through v of the tetrahedra around it, paired where two tetrahedra share one off the slit
-        mine = np.isin(owner, around) & np.any(tet_faces == v, axis=1)
+        mine = (local[owner] >= 0) & np.any(tet_faces == v, axis=1)
         fk, ft = key[mine], owner[mine]
         order = np.argsort(fk, kind="stable")
         fk, ft = fk[order], ft[order]
-        same = (fk[1:] == fk[:-1]) & ~np.isin(fk[1:], list(slit_keys))
-        a = np.array([local[int(t)] for t in ft[:-1][same]], dtype=np.int64)
-        b = np.array([local[int(t)] for t in ft[1:][same]], dtype=np.int64)
+        same = (fk[1:] == fk[:-1]) & ~np.isin(fk[1:], slit_list)
+        a, b = local[ft[:-1][same]], local[ft[1:][same]]
         graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(len(around), len(around)))
         count, side = connected_components(graph, directed=False)
         for k in range(1, count):
             copy = n + len(copies)
             copies.append((int(v), copy))
             for t in around[side == k]:
-                row = new_tets.setdefault(int(t), tm.tets[t].copy())
+                row = new_tets.setdefault(int(t), tets[t].copy())
                 row[row == v] = copy
-    if not copies:
-        return model, np.zeros((0, 2), dtype=np.int64)
-    pairs = np.array(copies, dtype=np.int64)
-    which = np.array(sorted(new_tets), dtype=np.int64)
+    changed = np.array(sorted(new_tets), dtype=np.int64)
+    rows = np.array([new_tets[int(t)] for t in changed], dtype=np.int64).reshape(-1, 4)
+    return changed, rows, np.array(copies, dtype=np.int64).reshape(-1, 2)
+
+
+def slit(model: Model, faces) -> tuple[Model, np.ndarray]:
+    """Separate a linear tensor-mass model along interior triangles ``faces`` (F, 3) int (vertex
+    indices, any order), each shared by two tetrahedra of the model: its vertices split as
+    ``slit_tets`` splits them, the copies appended after the mesh's vertices. The copies take their
+    share of the vertex's external force by mass (exact for gravity) and its constraints; tools keep
+    driving the originals. Returns the new model and the pairs (K, 2) int64 (original, copy), which
+    ``suture`` takes to join them back.
+    """
+    tm = _tensors(model, "slit")
+    n = model.n_vertices
+    alive = np.flatnonzero(tm.alive)
+    changed, rows, pairs = slit_tets(tm.tets[alive], n, faces, "slit")
+    if not len(pairs):
+        return model, pairs
+    which = alive[changed]
     old = tm.tets[which].copy()
     n_new = n + len(pairs)
-    tm.relabel(which, np.array([new_tets[int(t)] for t in which]), n_new)
+    tm.relabel(which, rows, n_new)
     points = np.concatenate([model.points, model.points[pairs[:, 0]]])
     mass = _masses(model, tm, which, old, n_new)
     lo = model.loading
