@@ -64,6 +64,8 @@ class Scene:
     #: [[material]] tables: ((region, Material), ...), a tetrahedron taking the last whose region holds
     #: it; None for one [material] everywhere (then ``material`` is it; otherwise the first table's).
     zones: tuple | None = None
+    #: [[event]] tables (``verification.events.Event``): cuts and sutures at times; () for none.
+    events: tuple = ()
 
     @property
     def mesh(self) -> TetMesh:
@@ -96,6 +98,7 @@ class Scene:
         mesh and the mesh's tags (a region or a material drawn by tag changes with them alone)."""
         text = json.dumps(self.raw, sort_keys=True, default=str)
         parsed = repr((self.material, self.problem, self.time, self.manufactured, self.level, self.zones))
+        parsed += repr(self.events) if self.events else ""
         mesh = self.mesh.sha256() + self.mesh.tags_sha256()
         return hashlib.sha256((text + parsed + mesh).encode()).hexdigest()
 

@@ -276,7 +276,10 @@ def parse(path: Path, data: dict) -> Scene:
     loads = [ld for ld in (errors.section(_load, lr) for lr in errors.section(_tables, top, "load") or []) if ld]
     tspec = errors.section(_time, top)
     manufactured = errors.section(_manufactured, top) if top.has("manufactured") else None
-    errors.section(top.finish, ("name", "description", "mesh", "material", "fixed", "load", "time", "manufactured"))
+    events = errors.section(_events, top, tspec and tspec.mode) or ()
+    errors.section(
+        top.finish, ("name", "description", "mesh", "material", "fixed", "load", "time", "manufactured", "event")
+    )
     errors.check()
     if zones and manufactured:
         top.fail("manufactured", "a manufactured solution is for one [material]; this scene has [[material]] tables")
@@ -301,6 +304,7 @@ def parse(path: Path, data: dict) -> Scene:
         raw=data,
         manufactured=manufactured,
         zones=zones,
+        events=events,
     )
 
 
@@ -376,6 +380,40 @@ def _time(top: _Reader) -> TimeSpec:
                 f"({n_out:.6g} outputs): both sides are compared at the output times 0, output_every, ..., end",
             )
     return tspec
+
+
+def _event(r: _Reader):
+    """One [[event]] table: a cut (a plane, a box bounding the part cut) or a suture (a box bounding the
+    lips joined) at a time > 0 s (``verification.events``)."""
+    from verification.events import EVENT_KINDS, Event
+
+    time = r.number("time", positive=True)
+    kind = r.string("kind", EVENT_KINDS)
+    box = None
+    if r.has("box"):
+        region = _region(r, ("box",))
+        box = (region.lo, region.hi)
+    if kind == "suture":
+        r.finish(("time", "kind", "box"))
+        return Event(time, kind, box=box)
+    plane = _Reader(r.path, r.get("plane"), r.key("plane"))
+    point, normal = plane.vec3("point"), np.asarray(plane.vec3("normal"))
+    if not np.linalg.norm(normal) > 0:
+        plane.fail("normal", "must be a non-zero vector")
+    plane.finish(("point", "normal"))
+    r.finish(("time", "kind", "plane", "box"))
+    return Event(time, kind, point, tuple((normal / np.linalg.norm(normal)).tolist()), box)
+
+
+def _events(top: _Reader, mode: str | None) -> tuple:
+    """The [[event]] tables in time order: a static scene's states (a dynamic scene takes none yet)."""
+    tables = _tables(top, "event")
+    if tables and mode == "dynamic":
+        top.fail("event", "cuts and sutures are events of a static scene (mode = 'static'); a dynamic one takes none")
+    events = sorted((_event(t) for t in tables), key=lambda e: e.time)
+    if events and events[0].kind == "suture":
+        top.fail("event", f"the first event (t = {events[0].time:g} s) is a suture: there is no cut to join yet")
+    return tuple(events)
 
 
 def _manufactured(top: _Reader) -> dict:

@@ -66,6 +66,11 @@ def _scene(args, warn: bool = True, solves: bool = True):
             f"tissuebench converge {args.scene})"
         )
     check_held(scene)
+    if scene.events:  # each state's body must be held too: a cut right through frees a piece
+        from verification.events import states
+
+        for state in states(scene)[1:]:
+            check_held(state.scene)
     if warn:
         from verification.progress import log
 
@@ -136,6 +141,7 @@ def cmd_check(args) -> int:
         "dt_crit_element_s": realtime.element_critical_dt(model),
         "extent_m": {"min": lo.tolist(), "max": hi.tolist(), "size": (hi - lo).tolist()},
         "warnings": implausible(scene),
+        "states": _states(scene),
     }
 
     def text(o):
@@ -160,10 +166,33 @@ def cmd_check(args) -> int:
         ]
         lines += [f"  {r['table']}: {r['region']} holds {r['vertices']} vertices" for r in o["regions"]]
         lines.append(f"  element estimate of the explicit critical step: {o['dt_crit_element_s']:.3g} s")
+        lines += [
+            f"  state t = {st['time']:g} s: {st['label']}: {st['n_vertices']} vertices, {st['n_tets']} tetrahedra, "
+            f"{st['boundary_faces']} boundary faces"
+            for st in o["states"]
+        ]
         return "\n".join(lines)
 
     _emit(args, out, text)
     return 0
+
+
+def _states(scene) -> list[dict]:
+    """A scene with events: each state's time, events and mesh (a cut adds vertices and boundary faces)."""
+    if not scene.events:
+        return []
+    from verification.events import states
+
+    return [
+        {
+            "time": s.time,
+            "label": s.label,
+            "n_vertices": s.scene.mesh.n_vertices,
+            "n_tets": s.scene.mesh.n_tets,
+            "boundary_faces": len(s.scene.mesh.boundary),
+        }
+        for s in states(scene)
+    ]
 
 
 def cmd_reference(args) -> int:
@@ -276,7 +305,7 @@ def cmd_compare(args) -> int:
 
 def _print_row(scene, args, row) -> None:
     """A compare row as text: its metrics, error budget, frame budget and what the model did not represent."""
-    from verification.studies.frame import reference_bar, true_range
+    from verification.studies.frame import reference_bar, true_range, with_bar
 
     at = "its quasi-static update" if row.dt is None else f"dt = {row.dt:.3g} s"
     print(f"{scene.name} / {args.model} at {at}:")
@@ -289,6 +318,12 @@ def _print_row(scene, args, row) -> None:
     if b.get("mesh") is not None:
         parts = ", ".join(f"{p} {b[p]:.3g}" for p in ("mesh", "model", "time") if b.get(p) is not None)
         print(f"  {'error_budget':<18} {parts}: the {b['dominant']}'s part dominates")
+    for k, st in enumerate(row.states):
+        model = (b.get("states") or [{}] * len(row.states))[k].get("model")
+        part = "" if model is None else f", model part {model:.3g}"
+        print(
+            f"  state t = {st['time']:g} s   rel_l2 {with_bar(st['rel_l2'], st['ref_err_estimate'])}{part}: {st['label']}"
+        )
     if row.frame:
         f = row.frame
         print(f"  {'frame':<18} {'holds' if f['holds'] else 'does not hold'} {args.rate:g} Hz: {f['why']}")

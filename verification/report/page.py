@@ -19,6 +19,7 @@ from pathlib import Path
 
 from verification.cache import git_commit, versions
 from verification.report.common import CSS, REPORTS, make_report_dir
+from verification.report.cutting import CUT_SCENE, cut_cells, cutting_section
 from verification.report.sections import (
     STABILITY_MODELS,
     STABILITY_SCENE,
@@ -31,7 +32,7 @@ from verification.report.sections import (
 from verification.runs.results import atomic_write_text
 from verification.runs.row import jsonable
 from verification.scene_file import load_scene
-from verification.studies.prefetch import advice_jobs, settle_ahead, solve_references
+from verification.studies.prefetch import advice_jobs, scene_jobs, settle_ahead, solve_references
 from verification.studies.stability import FAILED_REFERENCES, reference_jobs, settle_cells
 from verification.studies.sweep import default_fractions, sweep_csv
 
@@ -60,7 +61,7 @@ def write_report(
     t0 = time.perf_counter()
     jobs = advice_jobs([load_scene(s) for s in scenes])  # every scene's section ends with advice
     if studies:
-        jobs += reference_jobs(load_scene(STABILITY_SCENE))
+        jobs += reference_jobs(load_scene(STABILITY_SCENE)) + scene_jobs([load_scene(CUT_SCENE)])
     FAILED_REFERENCES.update(solve_references(jobs))  # the stability study does not solve these again
     # the sections' steps, the advisor's (its sweep runs the default ones) and the stability study's cells
     settle_ahead(
@@ -68,7 +69,7 @@ def write_report(
             (scene, tuple(dict.fromkeys([*section_fractions(scene, fractions), *default_fractions(scene)])))
             for scene in map(load_scene, scenes)
         ],
-        cells=settle_cells(load_scene(STABILITY_SCENE), STABILITY_MODELS) if studies else (),
+        cells=[*settle_cells(load_scene(STABILITY_SCENE), STABILITY_MODELS), *cut_cells()] if studies else (),
     )
     sections, data = [], {"scenes": []}
     for s in scenes:
@@ -76,7 +77,11 @@ def write_report(
         sections.append(sec)
         data["scenes"].append(d)
     if studies:
-        for fn, key in ((convergence_section, "convergence"), (stability_section, "stability")):
+        for fn, key in (
+            (convergence_section, "convergence"),
+            (stability_section, "stability"),
+            (cutting_section, "cutting"),
+        ):
             sec, d = fn()
             sections.append(sec)
             data[key] = d

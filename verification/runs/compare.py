@@ -30,7 +30,8 @@ def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integr
     - ``time`` (dynamic scenes, time-stepping models): the model at its step against the same model at
       an eighth of it; the model part is then taken at the eighth, so the parts do not overlap.
 
-    ``dominant`` names the largest. The parts are distances between solutions over one norm, so by the
+    ``dominant`` names the largest; a scene with events also has each state's mesh and model parts
+    (``states``, relative to that state's reference). The parts are distances between solutions over one norm, so by the
     triangle inequality |mesh - model| - time <= total <= mesh + model + time; a total far below the sum
     is errors cancelling (mass-spring's missing Poisson effect against P1's locking). A P1 reference that
     cannot solve leaves ``mesh`` None with the reason.
@@ -56,6 +57,11 @@ def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integr
         out["time"] = distance(res.displacement, fine.displacement)
         model_u = fine.displacement
     out["model"] = distance(model_u, p1.displacement)
+    if scene.events:  # each state's parts, relative to that state's reference
+        out["states"] = [
+            {"mesh": rel_l2(p1.displacement[k], ref.displacement[k]), "model": rel_l2(model_u[k], p1.displacement[k])}
+            for k in range(len(ref.times))
+        ]
     out["dominant"] = max((k for k in ("mesh", "model", "time") if out[k] is not None), key=lambda k: out[k])
     return out
 
@@ -168,12 +174,11 @@ def _write_vtk(vtk: str, scene: Scene, model_name: str, res: Result, ref: Result
     """Both displacements and the pointwise error at every output time as one ParaView series."""
     from verification.report.vtk import write_series
 
-    mesh = scene.mesh
     write_series(
         vtk,
         f"{scene.name}-{model_name}",
-        mesh.points,
-        mesh.tets,
+        res.points,  # the scene's mesh, or with events the union of its states' (runs.staged)
+        res.tets,
         ref.times,
         {
             "reference_displacement": ref.displacement,
@@ -222,13 +227,31 @@ def _diverged(exc: DivergenceError) -> dict:
 
 
 def _metrics(scene: Scene, res: Result, ref: Result) -> dict:
-    """The run's metrics against its reference (``metrics.compute``), the tool force where there are tools."""
+    """The run's metrics against its reference (``metrics.compute``), the tool force where there are tools.
+    A scene with events is measured on the union of its states' vertices (``runs.staged``), its surface
+    every state's (a cut's lips included), and each state's rel_l2 and bar are listed in ``states``."""
     mesh = scene.mesh
     has_tools = bool(scene.problem.tools) and bool(np.all(np.isfinite(res.reaction)))  # NaN: an engine gave none
-    return compute(
-        mesh.points,
-        mesh.tets,
-        mesh.surface_vertices,
+    surface = mesh.surface_vertices
+    per_state = {}
+    if scene.events:
+        from verification.events import states
+
+        parts = states(scene)
+        surface = np.unique(np.concatenate([s.union[s.scene.mesh.surface_vertices] for s in parts]))
+        per_state["states"] = tuple(
+            {
+                "time": s.time,
+                "label": s.label,
+                "rel_l2": rel_l2(res.displacement[k], ref.displacement[k]),
+                "ref_err_estimate": ref.meta["states"][k].get("ref_err_estimate"),
+            }
+            for k, s in enumerate(parts)
+        )
+    return per_state | compute(
+        res.points,
+        res.tets,
+        surface,
         res.displacement,
         ref.displacement,
         res.reaction if has_tools else None,

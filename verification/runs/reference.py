@@ -145,6 +145,15 @@ def reference_result(
     cached = read_cached(path, Result.load) if use_cache else None
     if cached is not None:
         return cached
+    if scene.events:  # one static reference per state (``runs.staged``)
+        from .staged import staged_reference
+
+        opts = dict(degree=degree, refine=refine, estimate=estimate, use_cache=use_cache, newton_steps=newton_steps)
+        opts.update(min_increment=min_increment, own_mesh=own_mesh, petsc_options=petsc_options)
+        res = staged_reference(scene, lambda state, points: reference_at(state, points, **opts))
+        if use_cache and MPI.COMM_WORLD.rank == 0:
+            res.save(path)
+        return res
     mesh = scene.mesh
     solved = scene if own_mesh or not scene.level else scene.base
     where = f" on the base mesh at the {mesh.n_vertices} vertices of level {scene.level}" if solved is not scene else ""
@@ -274,14 +283,15 @@ def reference_at(scene: Scene, points: np.ndarray, **options) -> Result:
         res = Result(points, empty, sol["times"], sol["displacement"], sol["reaction"], {**base.meta, **sol["meta"]})
         res.save(path)
         return res
-    memo = _memo(scene, options["degree"], options["refine"], options["estimate"], 1, 1e-4, None)
-    fields = _fields_path(reference_path(scene, options["degree"], options["refine"], options["estimate"]))
+    degree, refine, estimate = options["degree"], options["refine"], options["estimate"]
+    newton = (options.get("newton_steps", 1), options.get("min_increment", 1e-4))
+    petsc = options.get("petsc_options")
+    memo = _memo(scene, degree, refine, estimate, *newton, petsc)
+    fields = _fields_path(reference_path(scene, degree, refine, estimate, *newton, False, petsc))
     if memo not in _SOLVED and fields.exists():
-        _restore_solved(memo, fields, scene, scene.body_material(), options["degree"], options["refine"])
+        _restore_solved(memo, fields, scene, scene.body_material(), degree, refine)
     if memo not in _SOLVED:  # nothing kept to evaluate: solve again there
-        sol = _solve_static(
-            scene, scene, options["degree"], options["refine"], options["estimate"], (1, 1e-4), None, False, points
-        )
+        sol = _solve_static(scene, scene, degree, refine, estimate, newton, petsc, False, points)
     else:
         sol = evaluate_static(*_SOLVED[memo], points)
     return Result(

@@ -72,6 +72,9 @@ class Row:
     engine: dict | None = None
     n_vertices: int | None = None
     n_tets: int | None = None
+    #: A scene with events (verification.events): each state's time, label, rel_l2 and reference bar;
+    #: the row's own metrics are over every state at once.
+    states: tuple = ()
     # a run that did not finish
     step: int | None = None
     message: str | None = None
@@ -104,6 +107,7 @@ class Row:
         out = dataclasses.asdict(self)
         out["unrepresented"] = list(self.unrepresented)
         out["merged_dt"] = list(self.merged_dt)
+        out["states"] = list(self.states)
         return out
 
     @classmethod
@@ -115,7 +119,7 @@ class Row:
         if unknown:
             raise ValueError(f"not a row's field: {sorted(unknown)[0]}")
         try:
-            tuples = {k: tuple(data.get(k) or ()) for k in ("unrepresented", "merged_dt")}
+            tuples = {k: tuple(data.get(k) or ()) for k in ("unrepresented", "merged_dt", "states")}
             return cls(**{**data, **tuples})
         except TypeError as exc:
             raise ValueError(f"not a row: {exc}") from None

@@ -87,12 +87,19 @@ def run_model(
     engine=None,
 ) -> Result:
     """Run a model on a scene: on a static scene to equilibrium (``Simulation.settle``: at most
-    ``max_steps``, else NotConvergedError), then timing; on a dynamic one the trajectory from rest.
+    ``max_steps``, else NotConvergedError), then timing; on a dynamic one the trajectory from rest; on
+    one with events each state's equilibrium (``runs.staged``).
 
     dt defaults to ``dt_fraction`` (default 0.9, implicit Euler 10 on a dynamic scene) times the
     engine's critical step. A diverging run raises DivergenceError. ``options`` go to the model's
     builder (hybrid-tm's ``threshold``, m). ``engine`` defaults to the one offering ``model_name``."""
     engine = engine if engine is not None else engine_for(model_name)
+    if scene.events:  # one static run per state (``runs.staged``)
+        from .staged import staged_run
+
+        return staged_run(
+            scene, lambda s: run_model(s, model_name, dt, dt_fraction, integrator, rtol, max_steps, options, engine)
+        )
     if engine is not BUILTIN:
         return _plug_in(scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options)
     return _run(scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options)

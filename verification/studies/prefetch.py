@@ -108,8 +108,12 @@ def static_displacements(jobs: list[dict], workers: int | None = None, done=None
 
 def scene_jobs(scenes: list[Scene]) -> list[tuple[Scene, dict]]:
     """What a sweep, compare or advice on each scene asks for first: its P2 reference with the estimate and
-    its P1 solution on its own mesh (the error budget's mesh part)."""
-    return [(scene, options) for scene in scenes for options in (REFERENCE_DEFAULTS, P1_OWN_MESH)]
+    its P1 solution on its own mesh (the error budget's mesh part); for a scene with events, each of its
+    states' (``verification.events``), which its reference then evaluates."""
+    from verification.events import states
+
+    solved = [s for scene in scenes for s in ([st.scene for st in states(scene)] if scene.events else [scene])]
+    return [(scene, options) for scene in solved for options in (REFERENCE_DEFAULTS, P1_OWN_MESH)]
 
 
 def advice_jobs(scenes: list[Scene]) -> list[tuple[Scene, dict]]:
