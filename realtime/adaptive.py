@@ -1,23 +1,21 @@
 """Adaptive resolution (Wu, Downes, Goktekin & Tendick 2001): fine where the body deforms, coarse elsewhere.
 
-The hierarchy has two levels of one body: the scene's mesh and its red refinement (each tetrahedron
-into eight, ``geometry.red_refinement``; the coarse vertices come first). A linear predictor, the
-static linear response of the coarse mesh to the model's loads with the tools at their final place,
-gives each coarse tetrahedron its strain; the tetrahedra whose strain norm |eps|_F reaches
-``threshold`` times the largest are replaced by their eight children, the others kept whole. The
-threshold is the model's knob: 0 refines everything (the StVK tensor-mass of the refined mesh), above 1
-nothing (that of the coarse mesh).
+The hierarchy (``realtime.hierarchy``) holds ``levels`` nested red refinements of the scene's mesh
+(each tetrahedron into eight; the coarser vertices come first). Built alone (a static scene), the model
+refines by a linear predictor, the static linear response of the scene's mesh to the model's loads with
+the tools at their final place: a level-0 tetrahedron whose strain norm |eps|_F reaches ``threshold``
+(k + 1) times the largest is refined down to level k + 1, and the levels are balanced (neighbours
+within one level). The threshold is the knob: 0 refines everything (the StVK tensor-mass of the mesh
+refined ``levels`` times), above 1 nothing (that of the scene's mesh). On a dynamic scene the run
+re-adapts as the deformation moves (``realtime.readapt``, driven by ``verification.engines.readapting``).
 
 Where a refined tetrahedron meets a kept one, the midpoint of their common edge belongs to the fine
 side only: it *hangs*, and its displacement is the mean of its edge's ends, u_m = (u_a + u_b) / 2, so
 that the field stays continuous (the usual constraint of non-conforming refinement). The model's
-vertices are the coarse ones (first, in their order) and the midpoints that do not hang; the force
-kernel expands u to the hanging midpoints, runs the StVK element kernel on the mixed mesh, and gives
-each hanging midpoint's force half to each end (the transpose of the expansion, so the force is still
-minus the gradient of the energy). Masses and loads fold the same way.
-
-What this does not do (yet): re-adapt during a run. The refinement is decided once, from the predictor,
-when the model is built; Wu et al. refine and coarsen as the deformation moves.
+vertices are the scene's (first, in their order) and the midpoints that do not hang; the force kernel
+expands u to the hanging midpoints, runs the StVK element kernel on the mixed mesh, and gives each
+hanging midpoint's force half to each end (the transpose of the expansion, so the force is still minus
+the gradient of the energy). Masses and loads fold the same way.
 """
 
 from __future__ import annotations
@@ -26,12 +24,12 @@ from typing import NamedTuple
 
 import numba as nb
 import numpy as np
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .blocks import BLOCK, HOT, JIT, BlockData, block_data
 from .errors import InputError
-from .geometry import red_refinement, shape_gradients, unique_edges
+from .geometry import shape_gradients
+from .hierarchy import Hierarchy, balance, exists, hierarchy, mixed, prolongation, scalar_prolongation
 from .material import Material, Materials
 from .model import Loading, Model, lumped_masses, prepare_mesh
 from .stvk import stvk_energy, stvk_force
@@ -39,29 +37,33 @@ from .tensor_mass import TensorMass
 
 #: The default threshold: refine the tetrahedra strained at least 30% as much as the most strained.
 DEFAULT_THRESHOLD = 0.3
+#: The most levels of refinement (8^levels times the tetrahedra where all are refined).
+MAX_LEVELS = 3
 
 
 class AdaptivePlan(NamedTuple):
-    """The mixed mesh of an adaptive model.
+    """The mixed mesh of an adaptive model: a ``hierarchy.Mixed`` (points, tets, level, parent, index,
+    hanging, ends, ids, n_model; see there) with what chose it.
 
-    points: (V, 3) float64 m, the model's vertices (coarse ones first, then the midpoints that do not
-        hang), then the H hanging midpoints; n_model = V - H.
-    tets: (K, 4) int64 into points, positively oriented: the kept coarse tetrahedra, then the children.
-    parent: (K,) int64 the coarse tetrahedron each one is or comes from.
-    hanging: (H, 2) int64 the two model vertices whose mean each hanging midpoint follows.
-    ends: (n_model - N, 2) int64 the two coarse vertices at the ends of each non-hanging midpoint's edge.
-    refined: (M,) bool which coarse tetrahedra were refined.
-    strain: (M,) float64 the predictor's strain norm of each coarse tetrahedron.
+    refined: (M,) bool which level-0 tetrahedra are refined.
+    strain: (M,) float64 the predictor's strain norm of each level-0 tetrahedron.
+    hierarchy: the levels it is drawn from (``hierarchy.Hierarchy``).
+    sets: the refined sets R_k, (M_k,) bool for each level k below the finest.
     """
 
     points: np.ndarray
     tets: np.ndarray
+    level: np.ndarray
     parent: np.ndarray
+    index: np.ndarray
     hanging: np.ndarray
     ends: np.ndarray
+    ids: np.ndarray
     n_model: int
     refined: np.ndarray
     strain: np.ndarray
+    hierarchy: Hierarchy
+    sets: tuple
 
 
 class AdaptiveData(NamedTuple):
@@ -99,86 +101,72 @@ def predictor_strain(points, tets, material, loading: Loading) -> np.ndarray:
     return np.sqrt(np.einsum("eij,eij->e", eps, eps))
 
 
-def adaptive_plan(points, tets, material, loading: Loading, threshold: float = DEFAULT_THRESHOLD) -> AdaptivePlan:
-    """The mixed mesh for ``threshold`` (module docstring): points (N, 3) m and tets (M, 4) the coarse
-    mesh, ``loading`` on it."""
+def adaptive_plan(
+    points, tets, material, loading: Loading, threshold: float = DEFAULT_THRESHOLD, levels: int = 1
+) -> AdaptivePlan:
+    """The mixed mesh for ``threshold`` (module docstring) over ``levels`` refinements: points (N, 3) m
+    and tets (M, 4) the level-0 mesh, ``loading`` on it. A level-0 tetrahedron whose predictor strain
+    reaches threshold (k + 1) times the largest is refined down to level k + 1 (a graded rule: the
+    most strained finest), then the levels are balanced (``hierarchy.balance``)."""
     if not (isinstance(threshold, (int, float)) and threshold >= 0.0):
         raise InputError(f"adaptive-tm: threshold = {threshold!r}: a number >= 0 (a fraction of the largest strain)")
+    if not (isinstance(levels, int) and not isinstance(levels, bool) and 1 <= levels <= MAX_LEVELS):
+        raise InputError(f"adaptive-tm: levels = {levels!r}: a whole number from 1 to {MAX_LEVELS}")
     points, tets = prepare_mesh(points, tets)
     strain = predictor_strain(points, tets, material, loading)
     top = float(strain.max()) if len(strain) else 0.0
-    refined = strain >= threshold * top if top > 0.0 else np.full(len(tets), threshold == 0.0)
-    n, m = len(points), len(tets)
-    fine_points, fine_tets = red_refinement(points, tets)
-    children = fine_tets[np.tile(refined, 8)]
-    mixed = np.concatenate([tets[~refined], children])
-    parent = np.concatenate([np.flatnonzero(~refined), np.tile(np.arange(m), 8)[np.tile(refined, 8)]])
-    edges = unique_edges(tets)  # midpoint n + k sits on edges[k]
-    used = np.unique(mixed)
-    mids = used[used >= n]
-    kept_edges = unique_edges(tets[~refined]) if (~refined).any() else np.zeros((0, 2), dtype=np.int64)
-    kept_keys = kept_edges[:, 0] * n + kept_edges[:, 1]
-    ends = edges[mids - n]
-    hangs = np.isin(ends[:, 0] * n + ends[:, 1], kept_keys)
-    order = np.concatenate([np.arange(n), mids[~hangs], mids[hangs]])
-    number = np.full(len(fine_points), -1, dtype=np.int64)
-    number[order] = np.arange(len(order))
-    n_model = n + int(np.count_nonzero(~hangs))
-    return AdaptivePlan(
-        points=fine_points[order],
-        tets=number[mixed],
-        parent=parent,
-        hanging=ends[hangs].astype(np.int64),
-        ends=ends[~hangs].astype(np.int64),
-        n_model=n_model,
-        refined=refined,
-        strain=strain,
-    )
+    h = hierarchy(points, tets, levels)
+    sets = []
+    for k in range(levels):
+        bar = threshold * (k + 1)
+        deep = strain >= bar * top if top > 0.0 else np.full(len(tets), threshold == 0.0)
+        sets.append(deep[np.arange(h.count(k)) % len(tets)] & exists(h, sets, k))
+    return plan_of(h, balance(h, sets), strain)
+
+
+def plan_of(h: Hierarchy, sets: list, strain: np.ndarray | None = None) -> AdaptivePlan:
+    """The AdaptivePlan of balanced refined sets of ``h``."""
+    m = mixed(h, sets)
+    strain = np.zeros(h.count(0)) if strain is None else strain
+    return AdaptivePlan(*m, refined=sets[0].copy(), strain=strain, hierarchy=h, sets=tuple(s.copy() for s in sets))
 
 
 def fold(values: np.ndarray, hanging: np.ndarray, n_model: int) -> np.ndarray:
     """P^T values: per-vertex values (V, ...) of the mixed mesh onto the model's vertices (n_model, ...),
-    each hanging midpoint's half to each end of its edge."""
-    out = values[:n_model].copy()
-    h = values[n_model:]
-    np.add.at(out, hanging[:, 0], 0.5 * h)
-    np.add.at(out, hanging[:, 1], 0.5 * h)
-    return out
+    each hanging vertex's half to each end of its edge (``hierarchy.scalar_prolongation``)."""
+    P = scalar_prolongation(hanging, n_model)
+    return (P.T @ values.reshape(len(values), -1)).reshape(n_model, *values.shape[1:])
 
 
 def expand(u: np.ndarray, hanging: np.ndarray) -> np.ndarray:
-    """P u: the model's displacements (n_model, 3) and the hanging midpoints' means, (V, 3)."""
-    return np.concatenate([u, 0.5 * (u[hanging[:, 0]] + u[hanging[:, 1]])])
+    """P u: the model's displacements (n_model, 3) and the hanging vertices' values, (V, 3)."""
+    return scalar_prolongation(hanging, len(u)) @ u
 
 
 def carried_loading(plan: AdaptivePlan, loading: Loading) -> Loading:
     """The coarse ``loading`` on the model's vertices: a midpoint is held (per component) or driven by a
-    tool when both ends of its edge are (the rule the reference applies to its refined meshes); the
-    external forces stay on the coarse vertices (the coarse load vector: its total force and moment,
-    not its finer distribution; verification passes the mixed mesh's own loading instead)."""
+    tool when both ends of its edge are (the rule the reference applies to its refined meshes; the ends
+    of a finer midpoint are coarser vertices, carried first); the external forces stay on the coarse
+    vertices (the coarse load vector: its total force and moment, not its finer distribution;
+    verification passes the mixed mesh's own loading instead)."""
     n = len(loading.free)
-    ends = plan.ends
-    free = np.concatenate([loading.free, np.maximum(loading.free[ends[:, 0]], loading.free[ends[:, 1]])])
-    tv, tm, tid = [loading.tool_vertex], [loading.tool_mask], [loading.tool_id]
-    where = {int(v): k for k, v in enumerate(loading.tool_vertex)}
-    for j, (a, b) in enumerate(ends):
-        ka, kb = where.get(int(a)), where.get(int(b))
-        if ka is None or kb is None or loading.tool_id[ka] != loading.tool_id[kb]:
-            continue
-        mask = np.minimum(loading.tool_mask[ka], loading.tool_mask[kb])
-        if mask.any():
-            tv.append(np.array([n + j]))
-            tm.append(mask[None, :])
-            tid.append(np.array([loading.tool_id[ka]]))
+    free = np.concatenate([loading.free, np.zeros((plan.n_model - n, 3))])
+    tool = {int(v): (int(loading.tool_id[k]), loading.tool_mask[k]) for k, v in enumerate(loading.tool_vertex)}
+    for j, (a, b) in enumerate(plan.ends):  # in the model's order: the ends come first
+        free[n + j] = np.maximum(free[a], free[b])
+        ta, tb = tool.get(int(a)), tool.get(int(b))
+        if ta is not None and tb is not None and ta[0] == tb[0] and np.minimum(ta[1], tb[1]).any():
+            tool[n + j] = (ta[0], np.minimum(ta[1], tb[1]))
+    driven = np.array(sorted(tool), dtype=np.int64)
     fext = np.concatenate([loading.external_force, np.zeros((plan.n_model - n, 3))])
     return Loading(
         **{
             **loading.__dict__,
             "free": free,
             "external_force": fext,
-            "tool_vertex": np.concatenate(tv).astype(np.int64),
-            "tool_mask": np.concatenate(tm).astype(np.float64),
-            "tool_id": np.concatenate(tid).astype(np.int64),
+            "tool_vertex": driven,
+            "tool_mask": np.array([tool[int(v)][1] for v in driven], dtype=np.float64).reshape(-1, 3),
+            "tool_id": np.array([tool[int(v)][0] for v in driven], dtype=np.int64),
         }
     )
 
@@ -186,6 +174,7 @@ def carried_loading(plan: AdaptivePlan, loading: Loading) -> Loading:
 @nb.njit(**HOT)
 def adaptive_force(data, scratch, u, f):
     """The StVK force of the mixed mesh on the model's vertices: P^T f_stvk(P u) (module docstring).
+    Hanging vertices are expanded in order and folded back in reverse order (an end may hang itself).
 
     data: AdaptiveData.   scratch: (uf (V, 3), ff (V, 3), W (9 BLOCK,)) float64.
     u: (n_model, 3) float64 displacement, m.   f: (n_model, 3) float64 force, N (overwritten).
@@ -197,14 +186,14 @@ def adaptive_force(data, scratch, u, f):
     for h in range(hanging.shape[0]):
         a, b = hanging[h, 0], hanging[h, 1]
         for c in range(3):
-            uf[nm + h, c] = 0.5 * (u[a, c] + u[b, c])
+            uf[nm + h, c] = 0.5 * (uf[a, c] + uf[b, c])
     stvk_force(inner, (W,), uf, ff)
-    f[:] = ff[:nm]
-    for h in range(hanging.shape[0]):
+    for h in range(hanging.shape[0] - 1, -1, -1):
         a, b = hanging[h, 0], hanging[h, 1]
         for c in range(3):
-            f[a, c] += 0.5 * ff[nm + h, c]
-            f[b, c] += 0.5 * ff[nm + h, c]
+            ff[a, c] += 0.5 * ff[nm + h, c]
+            ff[b, c] += 0.5 * ff[nm + h, c]
+    f[:] = ff[:nm]
 
 
 @nb.njit(**JIT)
@@ -216,7 +205,7 @@ def adaptive_energy(data, u):
     uf[:nm] = u
     for h in range(hanging.shape[0]):
         for c in range(3):
-            uf[nm + h, c] = 0.5 * (u[hanging[h, 0], c] + u[hanging[h, 1], c])
+            uf[nm + h, c] = 0.5 * (uf[hanging[h, 0], c] + uf[hanging[h, 1], c])
     return stvk_energy(inner, uf)
 
 
@@ -228,6 +217,7 @@ def build_adaptive_tm(
     threshold: float = DEFAULT_THRESHOLD,
     plan: AdaptivePlan | None = None,
     mixed_loading: Loading | None = None,
+    levels: int = 1,
 ) -> Model:
     """StVK tensor-mass on the mesh refined where the predictor's strain reaches ``threshold`` times its
     largest (module docstring). ``points``, ``tets``, ``material`` and ``loading`` describe the coarse
@@ -239,7 +229,7 @@ def build_adaptive_tm(
     loading = loading if loading is not None else Loading.free_body(len(points))
     loading.check(len(points))
     if plan is None:
-        plan = adaptive_plan(points, tets, material, loading, threshold)
+        plan = adaptive_plan(points, tets, material, loading, threshold, levels)
     mats = Materials.of(material, len(tets)).subset(plan.parent)
     nm, hanging = plan.n_model, plan.hanging
     btets, geo, prm = block_data(plan.points, plan.tets, mats)
@@ -266,7 +256,7 @@ def build_adaptive_tm(
         return (np.zeros((n_full, 3)), np.zeros((n_full, 3)), np.zeros(9 * BLOCK))
 
     def rest(model):
-        P = _prolongation(hanging, nm, n_full)
+        P = prolongation(hanging, nm)
         return (P.T @ TensorMass(plan.points, plan.tets, mats).matrix() @ P).tocsr()
 
     def bound(model):
@@ -290,21 +280,4 @@ def build_adaptive_tm(
         eigenvalue_bound_of=bound,
         linear=False,
         extra={"plan": plan, "observed": len(points)},
-    )
-
-
-def _prolongation(hanging: np.ndarray, n_model: int, n_full: int) -> sp.csr_matrix:
-    """P (3 V, 3 n_model): u_full = P u, dof 3 i + c."""
-    rows = [np.arange(3 * n_model)]
-    cols = [np.arange(3 * n_model)]
-    vals = [np.ones(3 * n_model)]
-    for end in (0, 1):
-        h = np.arange(len(hanging))
-        r = (3 * (n_model + h)[:, None] + np.arange(3)).ravel()
-        c = (3 * hanging[:, end][:, None] + np.arange(3)).ravel()
-        rows.append(r)
-        cols.append(c)
-        vals.append(np.full(len(r), 0.5))
-    return sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n_full, 3 * n_model)
     )

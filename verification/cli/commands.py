@@ -318,6 +318,12 @@ def _print_row(scene, args, row) -> None:
     if b.get("mesh") is not None:
         parts = ", ".join(f"{p} {b[p]:.3g}" for p in ("mesh", "model", "time") if b.get(p) is not None)
         print(f"  {'error_budget':<18} {parts}: the {b['dominant']}'s part dominates")
+    if row.adaptation:
+        a = row.adaptation
+        print(
+            f"  {'adaptation':<18} {a['tets_first']} tetrahedra at rest, {a['tets_max']} at most, {a['tets_last']} at the "
+            f"end ({a['changes']} changes in {a['checks']} checks)"
+        )
     for k, st in enumerate(row.states):
         model = (b.get("states") or [{}] * len(row.states))[k].get("model")
         part = "" if model is None else f", model part {model:.3g}"

@@ -273,6 +273,7 @@ class BuiltinSimulation:
         self.state = model.rest_state()
         self.dt, self.dt_step_crit = None, None
         self._sample = None  # (u (V, 3), reaction (3,)) held at an instant, or None: the state's
+        self.readapt = None  # a dynamic adaptive-tm run's re-adaptation (engines.readapting.Readapting)
 
     def critical_dt(self) -> float | None:
         """The explicit (symplectic Euler) critical step at rest, s; None for a quasi-static update."""
@@ -287,10 +288,29 @@ class BuiltinSimulation:
         """Rest, stepping with dt (s), the integrator's blow-up guard armed with the critical step."""
         self.state = self.model_obj.rest_state()
         self.dt, self.dt_step_crit, self._sample = dt, self.critical_dt(), None
+        if self.readapt is not None:
+            self.readapt.start()
+
+    @property
+    def adaptation(self) -> list | None:
+        """A re-adapting run's record (time, active tetrahedra and vertices, step at each check), or None."""
+        return None if self.readapt is None else self.readapt.adaptation
 
     def advance_to(self, t: float) -> None:
         """Step until the step that passes t, holding the state at t by linear interpolation between the
-        two steps around it (quasi-static: the equilibrium with the tools where they are at t)."""
+        two steps around it (quasi-static: the equilibrium with the tools where they are at t). A
+        re-adapting run stops at each check due by t, re-adapts, and goes on (the state at a check that
+        falls on t is sampled before the mesh changes)."""
+        last = None
+        while self.readapt is not None and (due := self.readapt.due(t)) is not None:
+            self._advance(due)
+            sample = self._sample
+            self.readapt.check()
+            self._sample, last = sample, due
+        if last is None or last < t - 1e-12:
+            self._advance(t)
+
+    def _advance(self, t: float) -> None:
         model, state = self.model_obj, self.state
         if self.quasi_static:
             self._sample = self.integ.equilibrium(model, t)
@@ -370,6 +390,13 @@ class BuiltinEngine:
 
     def build(self, inputs: SceneInputs, model: str, integrator: str = "symplectic-euler", options: dict | None = None):
         options = dict(options or {})
+        if model == "adaptive-tm" and inputs.time.mode == "dynamic" and inputs.loading_on is not None:
+            from .readapting import Readapting, initial_model, readapting_options
+
+            options = readapting_options(options)
+            sim = BuiltinSimulation(inputs, initial_model(inputs, options), integrator, options)
+            sim.readapt = Readapting(sim, options)
+            return sim
         return BuiltinSimulation(inputs, model_for(inputs, model, **options), integrator, options)
 
 

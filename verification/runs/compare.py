@@ -167,7 +167,23 @@ def compare(
         engine=m.get("engine"),
         n_vertices=mesh.n_vertices,
         n_tets=mesh.n_tets,
+        adaptation=_adaptation(m.get("adaptation")),
     )
+
+
+def _adaptation(record: list | None) -> dict | None:
+    """A re-adapting run's record (``engines.readapting``) as the row keeps it."""
+    if not record:
+        return None
+    tets = [r["tets"] for r in record]
+    return {
+        "tets_first": tets[0],
+        "tets_max": max(tets),
+        "tets_last": tets[-1],
+        "checks": len(record) - 1,
+        "changes": sum(a != b for a, b in zip(tets, tets[1:], strict=False)),
+        "record": [(r["t"], r["tets"]) for r in record],
+    }
 
 
 def _write_vtk(vtk: str, scene: Scene, model_name: str, res: Result, ref: Result) -> None:

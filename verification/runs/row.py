@@ -75,6 +75,9 @@ class Row:
     #: A scene with events (verification.events): each state's time, label, rel_l2 and reference bar;
     #: the row's own metrics are over every state at once.
     states: tuple = ()
+    #: A re-adapting run (adaptive-tm on a dynamic scene): its tetrahedra first, largest and last, its
+    #: checks and the changes among them, and (t, tetrahedra) at each check.
+    adaptation: dict | None = None
     # a run that did not finish
     step: int | None = None
     message: str | None = None

@@ -276,9 +276,12 @@ def _run_dynamic(scene: Scene, sim: Simulation, dt, dt_fraction, build_s: float,
     t1 = time.perf_counter()
     u, reaction = trajectory(sim, times, label)
     run_s = time.perf_counter() - t1
-    dt = dt if dt is not None else sim.dt  # the step it chose
+    adaptation = getattr(sim, "adaptation", None)  # a re-adapting run ends on its finest step
+    dt = sim.dt if dt is None or adaptation else dt  # the step it chose
     timing = _timing(sim, sim.timing[0] if sim.timing else 0, 7)
     meta = _meta(scene, sim, solver, dt, dt_crit, build_s, timing)
+    if adaptation:
+        meta["adaptation"] = adaptation
     meta.update(
         dt_crit_rest=dt_crit,
         mode="dynamic",
