@@ -181,7 +181,7 @@ def test_an_adapter_without_its_venv_is_one_line(monkeypatch, capsys):
 def test_a_knob_without_its_value_is_one_line(capsys):
     with pytest.raises(SystemExit) as stop:  # argparse's own exit, with its one line
         main(["compare", "cantilever", "--model", "linear-tm", "--engine-option", "iterations"])
-    assert stop.value.code == 2 and "KEY=INTEGER" in capsys.readouterr().err
+    assert stop.value.code == 2 and "KEY=VALUE" in capsys.readouterr().err
 
 
 # --- the engines study's rules, on constructed cases ------------------------------------------------------

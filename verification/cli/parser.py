@@ -158,7 +158,7 @@ def _run_compare(sub) -> None:
             type=_engine_option,
             action=_Merge,
             metavar="KEY=VALUE",
-            help="a knob of an adapter's model (iterations=50, substeps=4); repeatable",
+            help="a knob of the model (iterations=50, substeps=4, criterion=stress, levels=3); repeatable",
         )
         s.add_argument("--integrator", default="symplectic-euler", choices=sorted(INTEGRATORS))
         s.add_argument("--max-steps", type=_count, default=2_000_000, help="steps a static scene may take to settle")
@@ -339,14 +339,17 @@ def _judge(sub) -> None:
 
 
 def _engine_option(text: str) -> dict:
-    """KEY=VALUE with an integer VALUE: one knob of an adapter's model."""
+    """KEY=VALUE: one knob of a model, VALUE an integer, a number or a name (iterations=50,
+    threshold=0.5, criterion=stress)."""
     key, sep, value = text.partition("=")
-    try:
-        if not sep or not key:
-            raise ValueError
-        return {key: int(value)}
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: give KEY=INTEGER (iterations=50)") from None
+    if not sep or not key or not value:
+        raise argparse.ArgumentTypeError(f"{text!r}: give KEY=VALUE (iterations=50, threshold=0.5, criterion=stress)")
+    for kind in (int, float):
+        try:
+            return {key: kind(value)}
+        except ValueError:
+            pass
+    return {key: value}
 
 
 def _engines(sub) -> None:

@@ -61,6 +61,9 @@ class AdapterEngine:
         unknown = sorted(set(options) - set(self.knobs) - {"probe"})  # probe: studies.engines' stability test
         if unknown:
             raise InputError(f"{model}: no option {unknown[0]!r}; it takes {', '.join(self.knobs) or 'none'}")
+        for key, value in options.items():
+            if key in self.knobs and not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise InputError(f"{model}: {key} = {value!r}: a whole number >= 1")
         return AdapterSimulation(self, inputs, model, dict(options))
 
 
