@@ -53,7 +53,12 @@ def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integr
     model_u = res.displacement
     dt = res.meta.get("dt")
     if scene.time.mode == "dynamic" and dt is not None and model_name not in QUASI_STATIC:
-        fine = run_model(scene, model_name, dt=dt / 8.0, integrator=integrator, max_steps=max_steps)
+        record = res.meta.get("adaptation")
+        if record:  # a re-adapting run's step follows its mesh: an eighth of its fraction of each one's
+            fraction = record[0]["dt"] / res.meta["dt_crit"] / 8.0
+            fine = run_model(scene, model_name, dt_fraction=fraction, integrator=integrator, max_steps=max_steps)
+        else:
+            fine = run_model(scene, model_name, dt=dt / 8.0, integrator=integrator, max_steps=max_steps)
         out["time"] = distance(res.displacement, fine.displacement)
         model_u = fine.displacement
     out["model"] = distance(model_u, p1.displacement)
