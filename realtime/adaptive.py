@@ -29,7 +29,7 @@ import scipy.sparse.linalg as spla
 from .blocks import BLOCK, HOT, JIT, BlockData, block_data
 from .errors import InputError
 from .geometry import shape_gradients
-from .hierarchy import Hierarchy, balance, exists, hierarchy, mixed, prolongation, scalar_prolongation
+from .hierarchy import Hierarchy, Mixed, balance, exists, hierarchy, mixed, prolongation, scalar_prolongation
 from .material import Material, Materials
 from .model import Loading, Model, lumped_masses, prepare_mesh
 from .stvk import stvk_energy, stvk_force
@@ -41,9 +41,12 @@ DEFAULT_THRESHOLD = 0.3
 MAX_LEVELS = 3
 
 
-class AdaptivePlan(NamedTuple):
-    """The mixed mesh of an adaptive model: a ``hierarchy.Mixed`` (points, tets, level, parent, index,
-    hanging, ends, ids, n_model; see there) with what chose it.
+_PLAN_FIELDS = [*Mixed.__annotations__.items(), ("refined", "np.ndarray"), ("strain", "np.ndarray")]
+
+
+class AdaptivePlan(NamedTuple("_Plan", [*_PLAN_FIELDS, ("hierarchy", "Hierarchy"), ("sets", "tuple")])):
+    """The mixed mesh of an adaptive model: a ``hierarchy.Mixed``'s fields (points, tets, level,
+    parent, index, hanging, ends, ids, n_model; see there), then what chose it.
 
     refined: (M,) bool which level-0 tetrahedra are refined.
     strain: (M,) float64 the predictor's strain norm of each level-0 tetrahedron.
@@ -51,19 +54,7 @@ class AdaptivePlan(NamedTuple):
     sets: the refined sets R_k, (M_k,) bool for each level k below the finest.
     """
 
-    points: np.ndarray
-    tets: np.ndarray
-    level: np.ndarray
-    parent: np.ndarray
-    index: np.ndarray
-    hanging: np.ndarray
-    ends: np.ndarray
-    ids: np.ndarray
-    n_model: int
-    refined: np.ndarray
-    strain: np.ndarray
-    hierarchy: Hierarchy
-    sets: tuple
+    __slots__ = ()
 
 
 class AdaptiveData(NamedTuple):
