@@ -29,7 +29,17 @@ import scipy.sparse.linalg as spla
 from .blocks import BLOCK, HOT, JIT, BlockData, block_data
 from .errors import InputError
 from .geometry import shape_gradients
-from .hierarchy import Hierarchy, Mixed, balance, exists, hierarchy, mixed, prolongation, scalar_prolongation
+from .hierarchy import (
+    Hierarchy,
+    Mixed,
+    balance,
+    exists,
+    hierarchy,
+    mixed,
+    none_refined,
+    prolongation,
+    scalar_prolongation,
+)
 from .material import Material, Materials
 from .model import Loading, Model, lumped_masses, prepare_mesh
 from .stvk import stvk_energy, stvk_force
@@ -101,8 +111,7 @@ def adaptive_plan(
     most strained finest), then the levels are balanced (``hierarchy.balance``)."""
     if not (isinstance(threshold, (int, float)) and threshold >= 0.0):
         raise InputError(f"adaptive-tm: threshold = {threshold!r}: a number >= 0 (a fraction of the largest strain)")
-    if not (isinstance(levels, int) and not isinstance(levels, bool) and 1 <= levels <= MAX_LEVELS):
-        raise InputError(f"adaptive-tm: levels = {levels!r}: a whole number from 1 to {MAX_LEVELS}")
+    _check_levels(levels)
     points, tets = prepare_mesh(points, tets)
     strain = predictor_strain(points, tets, material, loading)
     top = float(strain.max()) if len(strain) else 0.0
@@ -113,6 +122,20 @@ def adaptive_plan(
         deep = strain >= bar * top if top > 0.0 else np.full(len(tets), threshold == 0.0)
         sets.append(deep[np.arange(h.count(k)) % len(tets)] & exists(h, sets, k))
     return plan_of(h, balance(h, sets), strain)
+
+
+def coarse_plan(points, tets, levels: int) -> AdaptivePlan:
+    """The plan of the level-0 mesh alone (points (N, 3) m, tets (M, 4)) in a hierarchy ``levels``
+    deep: where a run that re-adapts starts."""
+    _check_levels(levels)
+    points, tets = prepare_mesh(points, tets)
+    h = hierarchy(points, tets, levels)
+    return plan_of(h, none_refined(h))
+
+
+def _check_levels(levels) -> None:
+    if not (isinstance(levels, int) and not isinstance(levels, bool) and 1 <= levels <= MAX_LEVELS):
+        raise InputError(f"adaptive-tm: levels = {levels!r}: a whole number from 1 to {MAX_LEVELS}")
 
 
 def plan_of(h: Hierarchy, sets: list, strain: np.ndarray | None = None) -> AdaptivePlan:

@@ -6,16 +6,15 @@ refines and merges (``readapt.adapted_sets``), rebuilds the model on the new mix
 scene's loading on it (``SceneInputs.loading_on``) and carries the state over. Smaller tetrahedra
 have a shorter critical step, and a deformed StVK body a shorter one than at rest: after each change the
 step is the run's fraction of the new model's critical step at rest or at the state reached, whichever
-is shorter, and at most MIXED_FRACTION of it. ``adaptation`` records, at each check, the
+is shorter, and for an explicit integrator at most MIXED_FRACTION of it. ``adaptation`` records, at each check, the
 time, the active tetrahedra and vertices and the step: the result's meta carries it.
 """
 
 from __future__ import annotations
 
 from realtime import build_model
-from realtime.adaptive import expand, plan_of
-from realtime.hierarchy import none_refined
-from realtime.integrators import SymplecticEuler
+from realtime.adaptive import coarse_plan, expand, plan_of
+from realtime.integrators import ImplicitEuler, SymplecticEuler
 from realtime.model import State
 from realtime.readapt import INDICATORS, adapted_sets, carried, indicator
 from realtime.spectra import max_eigenvalue
@@ -48,16 +47,14 @@ def readapting_options(options: dict) -> dict:
         raise InputError(f"adaptive-tm: criterion = {out['criterion']!r}: one of {', '.join(INDICATORS)}")
     if "every" in out and not (isinstance(out["every"], (int, float)) and out["every"] > 0):
         raise InputError(f"adaptive-tm: every = {out['every']!r}: seconds between checks, > 0")
+    if not (isinstance(out["threshold"], (int, float)) and 0.0 <= out["threshold"] <= 1.0):
+        raise InputError(f"adaptive-tm: threshold = {out['threshold']!r}: a fraction of the largest indicator, 0 to 1")
     return out
 
 
 def initial_model(inputs: SceneInputs, options: dict):
     """adaptive-tm on the scene's mesh alone, its hierarchy ``levels`` deep."""
-    from realtime.adaptive import adaptive_plan
-
-    plan = adaptive_plan(inputs.points, inputs.tets, inputs.material, inputs.loading, 2.0, options["levels"])
-    plan = plan_of(plan.hierarchy, none_refined(plan.hierarchy), plan.strain)
-    return _model(inputs, plan)
+    return _model(inputs, coarse_plan(inputs.points, inputs.tets, options["levels"]))
 
 
 def _model(inputs: SceneInputs, plan):
@@ -122,7 +119,9 @@ class Readapting:
                 ts = sim.inputs.time
                 omega2 = max(max_eigenvalue(new), max_eigenvalue(new, u))  # StVK stiffens as it deforms
                 crit = SymplecticEuler(ts.damping_mass, ts.damping_stiffness).critical_dt(new, omega2)
-                sim.dt, sim.dt_step_crit = min(self.fraction, MIXED_FRACTION) * crit, crit
+                explicit = not isinstance(sim.integ, ImplicitEuler)  # implicit Euler steps over the limit
+                sim.dt = (min(self.fraction, MIXED_FRACTION) if explicit else self.fraction) * crit
+                sim.dt_step_crit = crit
         self.adaptation.append(self._record())
         last = self.adaptation[-1]
         self.ticker.tick(
