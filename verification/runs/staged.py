@@ -34,7 +34,7 @@ def stitched(scene, parts: list[tuple[State, Result]]) -> Result:
     """One Result on the union of the states' vertices from each state's Result (T = 1 each): times the
     states' times, displacement (S, U, 3) m, reaction (S, 3) N. Its meta is the last state's, with
     ``states`` (each one's time, label, vertices and STATE_KEYS), the largest of the states' error bars
-    and step times (the conservative ones), and the sum of their wall times."""
+    and step times (the conservative ones), and the sum of their solves' wall times."""
     points = union_points([s for s, _ in parts])
     cut = max(parts, key=lambda p: p[0].scene.mesh.n_vertices)[0]  # the most vertices: the cut open
     tets = cut.union[cut.scene.mesh.tets]
@@ -58,8 +58,8 @@ def stitched(scene, parts: list[tuple[State, Result]]) -> Result:
     if meta.get("step_us"):
         meta["rate_hz"] = 1e6 / meta["step_us"]
         meta["realtime_factor"] = None if meta.get("dt") is None else meta["dt"] / (meta["step_us"] * 1e-6)
-    if all("wall_s" in r.meta for _, r in parts):
-        meta["wall_s"] = sum(r.meta["wall_s"] for _, r in parts)
+    if all("wall_s" in r.meta for _, r in parts):  # a state solved once counts once (the sutured body)
+        meta["wall_s"] = sum({r.meta.get("cache_key", k): r.meta["wall_s"] for k, (_, r) in enumerate(parts)}.values())
     meta.update(scene=scene.name, scene_sha256=scene.sha256(), mesh_sha256=scene.mesh.sha256(), mode="events")
     return Result(points, tets, times, u, reaction, meta)
 
@@ -67,17 +67,17 @@ def stitched(scene, parts: list[tuple[State, Result]]) -> Result:
 def staged_reference(scene, at) -> Result:
     """The reference of every state at its nudged vertices: ``at(state_scene, points)`` returns it
     (``runs.reference.reference_at`` with the options asked)."""
-    parts = []
-    for k, s in enumerate(states(scene)):
-        log(f"reference: {scene.name}, state {k + 1} of {len(scene.events) + 1}: {s.label}")
+    parts, every = [], states(scene)
+    for k, s in enumerate(every):
+        log(f"reference: {scene.name}, state {k + 1} of {len(every)}: {s.label}")
         parts.append((s, at(s.scene, nudged(s))))
     return stitched(scene, parts)
 
 
 def staged_run(scene, run) -> Result:
     """A model's run on every state: ``run(state_scene)`` returns its Result (a static run)."""
-    parts = []
-    for k, s in enumerate(states(scene)):
-        log(f"run: {scene.name}, state {k + 1} of {len(scene.events) + 1}: {s.label}")
+    parts, every = [], states(scene)
+    for k, s in enumerate(every):
+        log(f"run: {scene.name}, state {k + 1} of {len(every)}: {s.label}")
         parts.append((s, run(s.scene)))
     return stitched(scene, parts)
