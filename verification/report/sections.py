@@ -28,7 +28,7 @@ from verification.studies.advise import advise, refined_times
 from verification.studies.converge import converge_manufactured, converge_time
 from verification.studies.frame import true_range, with_bar
 from verification.studies.stability import stability
-from verification.studies.sweep import default_fractions, sweep
+from verification.studies.sweep import default_fractions, re_adapted, sweep
 
 #: The convergence plots' error axes: the manufactured solution's L2 (m) and H1-seminorm (dimensionless)
 #: errors against the exact field on the unit cube, and the integrators' relative L2 distance from their
@@ -91,6 +91,7 @@ def _sweep_table(rows: list[Row]) -> str:
         span = true_range(r.rel_l2, r.ref_err_estimate)
         acc = f" <em>({span})</em>" if span and r.at_reference_accuracy else ""
         acc += "".join(f" <em>(ran without {html.escape(t)})</em>" for t in r.unrepresented or [])
+        acc += f" <em>{html.escape(re_adapted(r).strip())}</em>" if r.adaptation else ""
         out.append(
             f"<tr><td>{r.model}</td><td>{r.integrator}</td><td>{fmt(r.dt)}</td><td>{ratio}</td>"
             f"<td>{fmt(r.rel_l2)}{acc}</td><td>{fmt(r.surface_rel_l2)}</td><td>{fmt(r.max_err)}</td>"

@@ -230,6 +230,7 @@ def format_sweep(result: dict) -> str:
         span = true_range(r.rel_l2, r.ref_err_estimate)
         flag += f" ({span})" if span and r.at_reference_accuracy else ""
         flag += "".join(f" (without {term})" for term in r.unrepresented or [])
+        flag += re_adapted(r)
         out.append(
             f"{r.model:<16} {dt:>10} {ratio:>8} {r.rel_l2:>10.4g} {reaction:>9} {fmt(r.step_us, '.1f'):>9} "
             f"{fmt(r.rate_hz, '.0f'):>9}{_float32_cells(r) if twins else ''} {flag}"
@@ -237,6 +238,13 @@ def format_sweep(result: dict) -> str:
     out.append(f"Pareto front (error against step time): {', '.join(result['pareto'])}")
     out.append(f"{result['computed']} runs computed, {result['cached']} from the cache")
     return "\n".join(out)
+
+
+def re_adapted(r: Row) -> str:
+    """What a re-adapting run's row adds to a table (its mesh over time: its dt is its last mesh's,
+    against the first mesh's critical step), or ""."""
+    a = r.adaptation
+    return "" if not a else f" (re-adapted: {a['tets_first']} to {a['tets_max']} tetrahedra, dt of the last mesh)"
 
 
 def fmt(v, spec: str) -> str:
