@@ -10,9 +10,10 @@ a tetrahedron exists when its parent is refined (level 0 always), and is *active
 mixed mesh) when it exists and is not refined. ``balance`` keeps neighbours within one level of each
 other: a tetrahedron of level k + 1 may be refined only when every tetrahedron of level k that shares a
 vertex with its parent is refined. Then the only non-conforming vertices (*hanging*) are midpoints of
-an active tetrahedron's edges used by its finer neighbours; each follows the mean of its edge's ends,
-which may hang themselves (on a coarser edge): ``mixed`` orders them coarse first, so that one pass in
-that order expands a displacement and one pass in the reverse order folds a force back.
+an active tetrahedron's edges used by its finer neighbours; each follows the mean of its edge's ends.
+Balanced, an end never hangs itself (tested); ``mixed`` orders the hanging vertices coarse first all the
+same, so that one pass in that order would expand a displacement through a chain and one pass in the
+reverse order fold a force back.
 """
 
 from __future__ import annotations
@@ -24,9 +25,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from .geometry import red_refinement, unique_edges
-
-#: A tetrahedron's six edges, as pairs of its local vertices.
-EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
 
 
 @dataclass(frozen=True)
@@ -157,7 +155,7 @@ def mixed(h: Hierarchy, refined: list[np.ndarray]) -> Mixed:
         mine = tets[level == k]
         if not len(mine):
             continue
-        e = np.unique(np.sort(mine[:, EDGES].reshape(-1, 2), axis=1), axis=0)
+        e = unique_edges(mine)
         n = h.n[k]
         keys = h.edges[k][:, 0] * n + h.edges[k][:, 1]
         mid = h.n[k] + np.searchsorted(keys, e[:, 0] * n + e[:, 1])

@@ -24,7 +24,8 @@ from __future__ import annotations
 import numpy as np
 
 from .geometry import shape_gradients, signed_volumes
-from .hierarchy import EDGES, balance, carry_values, exists
+from .hierarchy import balance, carry_values, exists
+from .tensor_mass import LOCAL_EDGES
 
 #: A refined tetrahedron is merged back when all its children's indicators fall below this fraction of
 #: the refining bar: the band between keeps a tetrahedron near the bar from flipping at every check.
@@ -127,7 +128,7 @@ def merge_jumps(plan, k: int, which: np.ndarray, u_full: np.ndarray) -> np.ndarr
     keys = h.edges[k][:, 0] * n + h.edges[k][:, 1]
     out = np.zeros(len(which))
     shortest = np.full(len(which), np.inf)
-    for a, b in EDGES:
+    for a, b in LOCAL_EDGES:
         lo, hi = np.minimum(tets[:, a], tets[:, b]), np.maximum(tets[:, a], tets[:, b])
         mid = where[n + np.searchsorted(keys, lo * n + hi)]
         ua, ub = u_full[where[tets[:, a]]], u_full[where[tets[:, b]]]

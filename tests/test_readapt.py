@@ -94,7 +94,7 @@ def test_re_adaptation_refines_over_the_bar_and_merges_only_what_does_not_move(r
     assert (jumps > MERGE_JUMP).sum() > 0.5 * len(refined) and kept[0][refined[jumps > MERGE_JUMP]].all()
 
 
-def test_a_wrong_criterion_is_one_line(rng):
+def test_a_wrong_criterion_is_one_line():
     from verification.engines.readapting import readapting_options
 
     with pytest.raises(InputError, match="criterion = 'strain'.*one of displacement, stress, estimator"):
