@@ -1,6 +1,7 @@
 # tissuebench: the two commands of the README, and their helpers.
 #   make report   install what is missing, then write the default report under reports/
 #   make test     install what is missing (the engines' venv too), then lint and run the test suite
+#   make check    lint and the suite without the slow tests or the engines' venv: a contributor's loop
 # Both first compile the engine's kernels ahead (realtime.precompile) when they are not cached yet.
 # Set-up is idempotent: it checks Debian packages and the venv, and reinstalls the project only when
 # pyproject.toml changed.
@@ -15,7 +16,7 @@ export OMPI_ALLOW_RUN_AS_ROOT := 1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM := 1
 export OMPI_MCA_rmaps_base_oversubscribe := 1
 
-.PHONY: setup apt venv precompile engines report test lint bench bench-peers clean-cache
+.PHONY: setup apt venv precompile engines report test check lint bench bench-peers clean-cache
 
 setup: apt $(STAMP) precompile
 
@@ -28,12 +29,16 @@ apt:
 	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q --no-install-recommends $$missing; \
 	fi
 
-$(VENV)/bin/python:
+# Every target that makes, installs into or runs a venv waits for the Debian packages (order-only: apt
+# is phony), or under -j2 pip runs before Debian's numpy exists; tests/test_makefile_order.py reads make's
+# own database to hold every target to it.
+$(VENV)/bin/python: | apt
 	/usr/bin/python3 -m venv --system-site-packages $(VENV)
 
-# numpy is pinned to Debian's own version: dolfinx and scipy are compiled against it.
-$(STAMP): pyproject.toml | $(VENV)/bin/python
-	echo "numpy==$$(/usr/bin/python3 -c 'import numpy; print(numpy.__version__)')" > $(VENV)/constraints.txt
+# numpy is pinned to Debian's own version: dolfinx and scipy are compiled against it. No numpy, no
+# constraint: the line fails rather than write "numpy==".
+$(STAMP): pyproject.toml | apt $(VENV)/bin/python
+	version=$$(/usr/bin/python3 -c 'import numpy; print(numpy.__version__)') && echo "numpy==$$version" > $(VENV)/constraints.txt
 	$(PY) -m pip install -q -c $(VENV)/constraints.txt -e '.[dev]'
 	$(PY) -c "import dolfinx, gmsh, meshio, numba, numpy; assert numpy.__version__.startswith('1.')"
 	touch $(STAMP)
@@ -73,6 +78,12 @@ test:
 	$(MAKE) --no-print-directory -j2 setup engines
 	$(MAKE) --no-print-directory lint
 	TISSUEBENCH_REQUIRE_ENGINES=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist worksteal
+
+# The contributor's fast loop: lint and the suite without the slow tests and without the engines' venv
+# (docs/contributing.md); make test stays the full one.
+check: setup
+	$(MAKE) --no-print-directory lint
+	TISSUEBENCH_NO_ENGINES=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist worksteal -m "not slow"
 
 bench: setup
 	$(VENV)/bin/tissuebench bench --out reports/bench.json --markdown docs/benchmarks.md
