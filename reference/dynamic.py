@@ -14,7 +14,7 @@ from petsc4py import PETSc
 
 from .errors import ReferenceSolveError
 from .progress import Heartbeat, Progress
-from .solver import Newton, _mumps_info, configure, grow_ksp_workspace, solver_options
+from .solver import Newton, _mumps_info, chosen_options, configure, grow_ksp_workspace
 
 #: The relative residual to which the initial acceleration's mass solve is taken: round-off for a system
 #: whose scaled condition number is in the tens.
@@ -146,7 +146,7 @@ class DynamicSolves:
         old = fem.Function(V), fem.Function(V), fem.Function(V)  # u, v, a at the last step
         coefficients = (1.0 / (beta * dt * dt), 1.0 / (beta * dt), (1.0 - 2.0 * beta) / (2.0 * beta), dt, gamma)
         residual = self._newmark_residual(old, coefficients, rayleigh)
-        opts = solver_options(self.n_dofs, petsc_options, linear=self.linear, comm=self.comm)
+        opts, record = chosen_options(self.n_dofs, petsc_options, linear=self.linear, comm=self.comm)
         modes = self.rigid_body_modes() if opts.get("pc_type") == "gamg" else None
         times, values, reactions = [0.0], [self.evaluate(points)], [self.reaction()]
         self._newmark_start(old)
@@ -184,6 +184,7 @@ class DynamicSolves:
         self.velocity, self.acceleration = old[1], old[2]  # the state at the end, m/s and m/s^2
         info = {
             "solver": "newmark",
+            **record,
             "beta": beta,
             "gamma": gamma,
             "dt": dt,

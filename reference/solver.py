@@ -124,6 +124,21 @@ def fallback_options(opts: dict, n_dofs: int, user: dict | None, comm=None) -> t
     return {**GAMG_STRONGER, "ksp_rtol": opts.get("ksp_rtol", GAMG_STRONGER["ksp_rtol"]), **(user or {})}, stronger
 
 
+def solver_family(opts: dict) -> str:
+    """Which kind of solve PETSc options ask for: "direct" (a factorisation) or "iterative" (a Krylov
+    method). A reference records the kind its size chose before any fallback (``chosen``), and a cached
+    one is read only where the same size would choose the same kind on this machine now: the answers
+    differ by the iterative tolerance, and the free memory decides."""
+    return "direct" if opts.get("ksp_type") == "preonly" or opts.get("pc_type") in ("lu", "cholesky") else "iterative"
+
+
+def chosen_options(n_dofs: int, user: dict | None = None, linear: bool = False, comm=None) -> tuple[dict, dict]:
+    """``solver_options`` and the record of the choice a solve keeps in its meta: its size, whether it is
+    linear and the kind chosen before any fallback (``solver_family``)."""
+    opts = solver_options(n_dofs, user, linear=linear, comm=comm)
+    return opts, {"n_dofs": n_dofs, "linear": linear, "chosen": solver_family(opts)}
+
+
 def solver_options(n_dofs: int, user: dict | None = None, linear: bool = False, comm=None) -> dict:
     """The PETSc options of a solve with ``n_dofs`` unknowns: MUMPS LDL^T wherever its factor is predicted
     to fit in DIRECT_MEMORY_SHARE of the available memory (``direct_fits``), GAMG elsewhere, and the

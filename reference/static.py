@@ -12,7 +12,15 @@ from dolfinx import fem
 from dolfinx.fem.petsc import LinearProblem
 
 from .errors import ReferenceSolveError
-from .solver import DIVERGED, Newton, _mumps_info, _watched, fallback_options, grow_ksp_workspace, solver_options
+from .solver import (
+    DIVERGED,
+    Newton,
+    _mumps_info,
+    _watched,
+    chosen_options,
+    fallback_options,
+    grow_ksp_workspace,
+)
 
 
 class StaticSolves:
@@ -22,7 +30,7 @@ class StaticSolves:
         """One linear solve (law = linear): K u = f with the Dirichlet conditions."""
         if not self.linear:
             raise ValueError("solve_linear needs law = linear and no volume penalty; use solve_newton")
-        opts = solver_options(self.n_dofs, petsc_options, linear=True, comm=self.comm)
+        opts, record = chosen_options(self.n_dofs, petsc_options, linear=True, comm=self.comm)
         du = ufl.TrialFunction(self.V)
         zero = fem.Function(self.V)
         a = ufl.replace(ufl.derivative(self.residual, self.u, du), {self.u: zero})
@@ -56,7 +64,7 @@ class StaticSolves:
         self.timings["solve_s"] = time.perf_counter() - t0
         # recorded, not enforced: linear elasticity has no notion of inversion, but a user should see
         # when its answer means elements turned inside out
-        return {"solver": "linear", "petsc_options": opts, "iterations": 1, "min_det_F": self.min_det_F()}
+        return {"solver": "linear", **record, "petsc_options": opts, "iterations": 1, "min_det_F": self.min_det_F()}
 
     def solve_newton(
         self,
@@ -78,7 +86,7 @@ class StaticSolves:
         increment became smaller than ``min_increment`` or the solve took more than ``time_limit``
         seconds. Each load step's Newton iterations go to stderr.
         """
-        opts = solver_options(self.n_dofs, petsc_options, comm=self.comm)
+        opts, record = chosen_options(self.n_dofs, petsc_options, comm=self.comm)  # record: before any fallback
         du = ufl.TrialFunction(self.V)
         solver = Newton(
             self.comm,
@@ -128,6 +136,7 @@ class StaticSolves:
         self.timings["solve_s"] = time.perf_counter() - t0
         return {
             "solver": "newton",
+            **record,
             "petsc_options": opts,
             "load_steps": history,
             "iterations": sum(h["iterations"] for h in history),

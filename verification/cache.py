@@ -89,6 +89,61 @@ def machine_id() -> dict:
     return {"arch": platform.machine(), "cpu": model, "cores": os.cpu_count()}
 
 
+#: The Python distributions a cached result's numbers depend on: the engine's arrays and kernels (numpy,
+#: numba and its LLVM), the reference's finite elements and solvers (dolfinx with its form compiler,
+#: PETSc's bindings, MPI's), scipy's sparse algebra and meshio's readers.
+LIBRARIES = (
+    "numpy",
+    "scipy",
+    "numba",
+    "llvmlite",
+    "fenics-dolfinx",
+    "fenics-basix",
+    "fenics-ffcx",
+    "fenics-ufl",
+    "petsc4py",
+    "mpi4py",
+    "meshio",
+)
+
+
+@functools.cache
+def library_versions() -> dict:
+    """The installed versions of LIBRARIES (None for one that is not installed) and of the PETSc library
+    itself (Debian updates it apart from its bindings): part of the run and reference keys, so that a
+    result cached before an upgrade is not read as this installation's."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for name in LIBRARIES:
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = None
+    try:
+        from petsc4py import PETSc
+
+        out["PETSc"] = ".".join(str(v) for v in PETSc.Sys.getVersion())
+    except ImportError:
+        out["PETSc"] = None
+    return out
+
+
+@functools.cache
+def installed_versions(python: Path) -> dict:
+    """Every distribution installed for the interpreter ``python`` (another venv's: the engines'), name
+    -> version, read by that interpreter; {} when it is not there or does not answer. Part of an adapter
+    run's key: the requirements file pins what the engines' venv was asked to hold, not what it holds."""
+    code = "import importlib.metadata as m, json; print(json.dumps({d.metadata['Name']: d.version for d in m.distributions()}))"
+    if not Path(python).exists():
+        return {}
+    try:
+        run = subprocess.run([str(python), "-c", code], capture_output=True, text=True, timeout=60)
+        return dict(sorted(json.loads(run.stdout).items())) if run.returncode == 0 else {}
+    except (OSError, ValueError, subprocess.SubprocessError):
+        return {}
+
+
 def versions() -> dict:
     import numba
     import scipy

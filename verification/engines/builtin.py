@@ -25,7 +25,7 @@ from realtime.spectra import max_eigenvalue, min_eigenvalue
 from realtime.statics import solve_static_implicit
 from reference.progress import Progress
 
-from ..cache import RUN_CODE, cache_dir, code_digest, digest, read_cached
+from ..cache import RUN_CODE, cache_dir, code_digest, digest, library_versions, machine_id, read_cached
 from ..progress import _rank
 from .protocol import SceneInputs, Settling
 
@@ -83,9 +83,12 @@ class Settled:
 def settled_path(
     inputs: SceneInputs, model_name: str, integrator: str, dt, dt_fraction, rtol, max_steps, options
 ) -> Path:
-    """Where ``settled`` keeps a settling (it holds no timing, so no machine in its key)."""
+    """Where ``settled`` keeps a settling: it holds the settling's wall time, so the machine is in its key,
+    and its state depends on the libraries' versions (numba's and numpy's arithmetic)."""
     fields = {
         "code": code_digest(RUN_CODE),
+        "libraries": library_versions(),
+        "machine": machine_id(),
         "scene": inputs.sha256,
         "model": model_name,
         "integrator": integrator,

@@ -17,7 +17,7 @@ import numpy as np
 
 from meshes.io import atomic_savez
 
-from ..cache import REFERENCE_CODE, cache_dir, code_digest, digest, git_commit, read_cached
+from ..cache import REFERENCE_CODE, cache_dir, code_digest, digest, git_commit, library_versions, read_cached
 from ..progress import log
 from ..scene import Scene
 from .results import Result
@@ -29,6 +29,26 @@ REFERENCE_DEFAULTS = {"degree": 2, "refine": 0, "estimate": True}
 
 #: The P1 solution of a scene on its own mesh (the error budget's mesh part).
 P1_OWN_MESH = {"degree": 1, "refine": 0, "estimate": False, "own_mesh": True}
+
+
+def solver_changed(meta: dict, petsc_options: dict | None) -> str:
+    """Why a kept reference is not what solving it here now would give, or "": its key holds the rule
+    that chooses a direct or an iterative solve by the free memory (``reference.solver.solver_options``),
+    and each of its solves records the kind the rule chose then (``chosen``); a solve of that size on
+    this machine now must choose the same. A solve that records no choice (a result of an older version)
+    is unknown, and unknown is not the same."""
+    from reference.solver import solver_family, solver_options
+
+    for s in meta.get("solves") or []:
+        n = s.get("n_dofs")
+        if n is None:
+            continue
+        linear = s.get("solver") == "linear" or bool(s.get("linear"))
+        now = solver_family(solver_options(n, petsc_options, linear=linear))
+        if s.get("chosen") != now:
+            then = s.get("chosen") or "unrecorded"
+            return f"its {n}-dof solve was {then}; this machine now chooses {now} for it"
+    return ""
 
 
 def reference_key(
@@ -58,6 +78,7 @@ def reference_key(
             },
             "version": REFERENCE_VERSION,
             "code": code_digest(REFERENCE_CODE),
+            "libraries": library_versions(),
         }
     )
 
@@ -143,6 +164,9 @@ def reference_result(
 
     path = reference_path(scene, degree, refine, estimate, newton_steps, min_increment, own_mesh, petsc_options)
     cached = read_cached(path, Result.load) if use_cache else None
+    if cached is not None and (changed := solver_changed(cached.meta, petsc_options)):
+        log(f"reference: {path.name}: {changed}: solving it again")
+        cached = None
     if cached is not None:
         return cached
     if scene.events:  # one static reference per state (``runs.staged``)

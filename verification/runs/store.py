@@ -11,7 +11,16 @@ from __future__ import annotations
 
 import json
 
-from verification.cache import RUN_CODE, cache_dir, code_digest, digest, machine_id, read_cached
+from verification.cache import (
+    RUN_CODE,
+    cache_dir,
+    code_digest,
+    digest,
+    installed_versions,
+    library_versions,
+    machine_id,
+    read_cached,
+)
 from verification.engines import engine_for, plug_in
 from verification.engines.builtin import STABLE_STEPS
 from verification.runs.compare import compare
@@ -32,9 +41,11 @@ def run_key(
     options: dict | None = None,
 ) -> str:
     """The cache key of a run; ``options`` are what else makes it (a model builder's options, how it
-    was run), absent for a sweep's rows."""
+    was run), absent for a sweep's rows. The libraries' versions are in it, and for an adapter's model
+    the engines' venv's installed versions (``engine_versions``)."""
     fields = {
         "code": code_digest(RUN_CODE),
+        "libraries": library_versions(),
         "machine": machine_id(),  # a row holds timings: another machine's are not this one's
         "scene": scene.sha256(),
         "model": model,
@@ -46,7 +57,20 @@ def run_key(
     }
     if options:
         fields["options"] = options
+    engines = engine_versions(model)
+    if engines:
+        fields["engines"] = engines
     return digest(fields)
+
+
+def engine_versions(model: str) -> dict:
+    """What the engines' venv holds (every installed distribution and its version) when ``model`` runs
+    there, an adapter's; {} for the built-in engine's and a plug-in's own models."""
+    from verification.engines.adapters import ADAPTERS, engines_python
+
+    if any(model in a.models for a in ADAPTERS.values()):
+        return installed_versions(engines_python())
+    return {}
 
 
 def cached_compare(
@@ -124,6 +148,7 @@ def largest_stable_fraction(
     key = digest(
         {
             "code": code_digest(RUN_CODE),
+            "libraries": library_versions(),  # where a run blows up depends on the arithmetic
             "scene": scene.sha256(),
             "model": model_name,
             "integrator": integrator,
