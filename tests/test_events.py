@@ -84,18 +84,18 @@ def test_every_state_matches_dolfinx_on_the_same_body_within_its_bar(tmp_path):
     tip = int(np.argmax(ref.points[:, 0] + ref.points[:, 2]))
     assert -ref.displacement[1, tip, 2] > -ref.displacement[0, tip, 2]  # the beam sags more
     assert rel_l2(ref.displacement[0], ref.displacement[1]) > bars[0] + bars[1]
-    np.testing.assert_array_equal(ref.displacement[2], ref.displacement[0])  # sutured: the uncut body
-    # the lips open: a copy's x displacement differs from its original's
+    # the lips open: a copy's x displacement differs from its original's; sutured, the stitching on the
+    # union gives each copy its original's value again (the lips closed)
     n = scene.mesh.n_vertices
     whole, cut, _ = states(scene)
     gap = ref.displacement[1, n:, 0] - ref.displacement[1, whole.of_union[n:], 0]
     assert np.abs(gap).max() > 0.1 * np.abs(ref.displacement[1, :, 0]).max()
+    np.testing.assert_array_equal(ref.displacement[2, n:], ref.displacement[2, whole.of_union[n:]])
     rows = {}
     for model in ("linear-tm", "corotational-tm", "stvk-tm", "hybrid-tm", "mass-spring"):
         row = rows[model] = compare(scene, model, reference=ref)
         assert row.ok and len(row.states) == 3, model
         assert [s["time"] for s in row.states] == [0.0, 1.0, 2.0]
-        assert row.states[2]["rel_l2"] == pytest.approx(row.states[0]["rel_l2"], rel=1e-9)
         parts = row.error_budget["states"]
         if model == "stvk-tm":
             for k, bar in enumerate(bars):

@@ -420,39 +420,56 @@ def test_precomputed_tool_force_equals_the_full_update():
     np.testing.assert_allclose(pc.tool_force(k, d), F, rtol=1e-10)
 
 
-@pytest.mark.parametrize(
-    "model_name, kernel",
-    [
-        ("linear-tm", "tensor_mass.linear_tm_force"),
-        ("stvk-tm", "stvk.stvk_force"),
-        ("mass-spring", "springs.spring_force"),
-    ],
-)
-def test_the_indexed_loops_do_not_wrap_signed_indices(model_name, kernel):
-    """The indexed loops (linear-tm's edges, the element kernels' gather and scatter, the springs) read
-    flat views with unsigned offsets. A signed index is wrapped around by numba when negative: an
-    arithmetic shift by 63 to take its sign, then an and and an add, at every access, which would also
-    let a corrupt negative index read the array's far end instead of out of it. With signed indexing the
-    compiled kernels held 11 to 33 such shifts each (d7d124b); with unsigned ones at most 1, outside the
-    loops, on every x86-64 target tried (NUMBA_CPU_NAME haswell, znver1, znver3, skylake-avx512,
-    icelake-server, sapphirerapids and the host). The bound 2 sits between the two. How many other
-    instructions the loops take (packed arithmetic, stride multiplications) varies by target and is
-    reported by make bench (verification.bench.codegen). corotational-tm and hybrid-tm share stvk-tm's gather
-    and scatter. Compiled afresh: numba shows no assembly for cached code."""
-    import importlib
-    import platform
+#: The only array reads the force kernels may index with a signed integer: once per block of tetrahedra
+#: (stvk-tm's material row) and twice per vertex row (linear-tm's row bounds), outside the loops over
+#: edges and tetrahedra, whose every access takes an unsigned offset.
+SIGNED_ALLOWED = {
+    "linear-tm": {"for e in range(np.uint64(row_start[i]), np.uint64(row_start[i + 1])):"},
+    "stvk-tm": {"stvk_block(W, geo, np.uint64(b) * GEO_ROWS_U, prm[b], False)"},
+    "mass-spring": set(),
+}
 
-    from realtime import blocks
+
+@pytest.mark.parametrize("model_name", sorted(SIGNED_ALLOWED))
+def test_the_indexed_loops_index_with_unsigned_offsets(model_name):
+    """The indexed loops (linear-tm's edges, the element kernels' gather and scatter, the springs) read
+    flat views with unsigned offsets: numba wraps a signed index around when it is negative, at every
+    access (an arithmetic shift, an and and an add on x86-64), which also lets a corrupt negative index
+    read the array's far end instead of out of it. Read from numba's typed IR, the same on every
+    machine; corotational-tm and hybrid-tm share stvk-tm's gather and scatter. make bench reports what
+    the loops compile to on the machine it runs on (verification.bench.codegen)."""
     from verification.bench import codegen
 
-    if platform.machine() not in ("x86_64", "AMD64"):
-        pytest.skip("the assembly checked is x86-64's")
-    module, name = kernel.split(".")
-    compiled = codegen._fresh(getattr(importlib.import_module(f"realtime.{module}"), name), blocks.HOT)
-    mesh = structured_box((0.04, 0.01, 0.01), (4, 1, 1))
-    model = build_model(model_name, mesh.points, mesh.tets, ISO)
-    compiled(model.data, model.new_scratch(), np.zeros_like(mesh.points), np.zeros_like(mesh.points))
-    assert codegen._count(codegen.SIGN_SHIFT, codegen._asm(compiled)) <= 2, "a signed index is wrapped around again"
+    found = codegen.signed_indexing(codegen._force_kernel(model_name))
+    unexpected = [line for line in found if line.split(": ", 1)[1] not in SIGNED_ALLOWED[model_name]]
+    assert not unexpected, "a signed index in the force kernel: " + "; ".join(unexpected)
+
+
+def test_the_signed_index_check_finds_a_signed_gather():
+    """The check above can fail: a gather whose loop counter and index array are int64 is named, with its
+    line's source; the same gather with uint64 ones is not."""
+    import numba
+
+    from verification.bench import codegen
+
+    def signed_gather(a, idx):
+        s = 0.0
+        for k in range(idx.shape[0]):
+            s += a[idx[k]]
+        return s
+
+    def unsigned_gather(a, idx):
+        s = 0.0
+        for k in range(np.uint64(idx.shape[0])):
+            s += a[idx[k]]
+        return s
+
+    signed = numba.njit(cache=False)(signed_gather)
+    signed(np.ones(4), np.arange(4, dtype=np.int64))
+    assert [line.split(": ", 1)[1] for line in codegen.signed_indexing(signed)] == ["s += a[idx[k]]"]
+    unsigned = numba.njit(cache=False)(unsigned_gather)
+    unsigned(np.ones(4), np.arange(4, dtype=np.uint64))
+    assert codegen.signed_indexing(unsigned) == []
 
 
 def _corotational_force_by_svd(mesh, u):

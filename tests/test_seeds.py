@@ -60,7 +60,11 @@ def test_partial_rotation_linear_error_is_first_order_in_the_angle():
     slope = math.log(b["linear_vs_stvk"] / a["linear_vs_stvk"]) / math.log(b["angle_deg"] / a["angle_deg"])
     assert abs(slope - 1.0) < 0.05
     assert b["linear-tm_rel_l2"] > b["stvk-tm_rel_l2"]
-    assert f["plots"] and f["verdict"] in ("confirmed", "nuanced", "refuted")
+    # at the small size's 8 degrees the linear model's own error (6% of the displacement, first order in
+    # the angle) adds to the mesh's, which StVK shares (3%): over StVK's but not five times it, so the
+    # rule says nuanced; the full size's 180 degrees decides the claim
+    assert 1.0 < b["linear-tm_rel_l2"] / b["stvk-tm_rel_l2"] < 5.0
+    assert f["plots"] and f["verdict"] == "nuanced"
 
 
 def test_tube_fibres_along_the_axis_follow_beam_theory():
@@ -177,7 +181,7 @@ def test_seeds_json_lists_nine_findings(capsys):
     data = json.loads(json.dumps(seeds.without_pictures(res), default=str))
     assert [f["number"] for f in data["experiments"]] == list(range(1, 10))
     for f in data["experiments"]:
-        assert f["verdict"] in ("confirmed", "refuted", "nuanced")
+        assert f["verdict"] in ("confirmed", "refuted", "nuanced", "undecided")
         for k in ("claim", "source", "figure", "decides", "rule", "reference", "table", "plots"):
             assert f[k], (f["key"], k)
         assert "ref_err_estimate" in f["reference"]

@@ -56,6 +56,11 @@ def fma_peak_loop() -> dict:
 def _force_asm(name: str) -> str:
     """The machine code of a model's force kernel (``name``: linear-tm, stvk-tm or mass-spring), compiled
     afresh on a small beam; once per process, as two counts read the same stvk-tm force."""
+    return _asm(_force_kernel(name))
+
+
+def _force_kernel(name: str):
+    """A model's force kernel compiled afresh and run once on a small beam (its types are then known)."""
     import importlib
 
     from meshes import structured_box
@@ -66,7 +71,31 @@ def _force_asm(name: str) -> str:
     compiled = _fresh(getattr(importlib.import_module(f"realtime.{module}"), fn), blocks.HOT)
     model = build_model(name, mesh.points, mesh.tets, Material(1e4, 0.3, 1000.0, law="stvk"))
     compiled(model.data, model.new_scratch(), np.zeros_like(mesh.points), np.zeros_like(mesh.points))
-    return _asm(compiled)
+    return compiled
+
+
+def signed_indexing(dispatcher) -> list[str]:
+    """Every array access of a compiled function (its inlined helpers included) whose index numba typed
+    as a signed integer, as "file:line: source": numba wraps such an index around when negative, at
+    every access. Read from numba's typed IR, which is the same on every target, unlike the machine
+    code the wrap-around compiles to."""
+    import linecache
+    from pathlib import Path
+
+    from numba.core import ir, types
+
+    out = set()
+    for sig in dispatcher.signatures:
+        calltypes = dispatcher.overloads[sig].type_annotation.calltypes
+        for expr, called in calltypes.items():
+            access = isinstance(expr, ir.SetItem) or (isinstance(expr, ir.Expr) and expr.op == "getitem")
+            if not access or called is None or len(called.args) < 2:
+                continue
+            array, index = called.args[0], called.args[1]
+            if isinstance(array, types.Array) and isinstance(index, types.Integer) and index.signed:
+                source = linecache.getline(expr.loc.filename, expr.loc.line).strip()
+                out.add(f"{Path(expr.loc.filename).name}:{expr.loc.line}: {source}")
+    return sorted(out)
 
 
 #: Each model's force kernel, module.function in realtime.
