@@ -316,7 +316,7 @@ def _judged(err, bar, step_us=10.0):
 def test_a_verdict_is_decided_only_outside_the_interval_the_references_bar_leaves():
     """SOFA's liver at 5%: a bar of 2.5% leaves the true error of a run measured at 4.3% anywhere in
     [1.8%, 6.8%]: undecided, and never picked; 2% is within 5% whatever the truth's own error, 8% is
-    over it. Without a bar the measured error decides, and the line says the truth is unverified."""
+    over it. Without a bar nothing bounds the truth's own error: undecided, naming the missing bar."""
     from verification.studies.frame import FAILS, QUALIFIES, UNDECIDED
 
     state, line = _judged(0.043, 0.025)
@@ -325,7 +325,7 @@ def test_a_verdict_is_decided_only_outside_the_interval_the_references_bar_leave
     assert _judged(0.08, 0.025)[0] == FAILS
     assert _judged(0.043, 0.025, step_us=2e5)[0] == FAILS  # a frame it cannot hold decides alone
     state, line = _judged(0.043, None)
-    assert state == QUALIFIES and "reference unverified" in line
+    assert state == UNDECIDED and "the reference's bar on rel_l2 is unknown" in line
 
 
 def test_the_cost_of_a_sharper_reference_is_predicted_from_the_levels_solved():

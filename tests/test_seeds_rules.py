@@ -54,6 +54,7 @@ def test_partial_rotation_rule(ratio, grows, verdict):
         (0.4, 0.02, 1e-3, "confirmed"),
         (0.005, 0.02, 1e-3, "refuted"),  # fibres that move the tip by 0.5%, five times the truth's bar
         (0.4, 0.3, 1e-3, "nuanced"),  # stvk-tm 30% off the fibres' effect
+        (0.005, 0.02, None, "undecided"),  # no estimate: a 0.5% change is not measurable against nothing
     ],
 )
 def test_tubes_rule(change, miss, estimate, verdict):

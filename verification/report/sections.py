@@ -89,7 +89,7 @@ def _sweep_table(rows: list[Row]) -> str:
             )
             continue
         span = true_range(r.rel_l2, r.ref_err_estimate)
-        acc = f" <em>({span})</em>" if span and r.at_reference_accuracy else ""
+        acc = f" <em>({span})</em>" if span else ""
         acc += "".join(f" <em>(ran without {html.escape(t)})</em>" for t in r.unrepresented or [])
         acc += f" <em>{html.escape(re_adapted(r).strip())}</em>" if r.adaptation else ""
         out.append(

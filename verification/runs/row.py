@@ -5,7 +5,7 @@ run cache keeps it, ``from_json`` reads it back.
 
 Which fields hold a value depends on ``status``:
 
-- "ok": the metrics (``rel_l2`` ... ``at_reference_accuracy``), the step timing (``step_us`` ...
+- "ok": the metrics (``rel_l2`` ... ``rel_l2_interval``), the step timing (``step_us`` ...
   ``build_s``), the error budget, the float32 twin, the reference's summary and the mesh size;
 - "diverged": the ``step`` it blew up at, the ``message``, and whether the scene's own answer is what is
   unbounded (``unbounded``);
@@ -50,7 +50,7 @@ class Row:
     volume_err: float | None = None
     reaction_rel_err: float | None = None
     ref_err_estimate: float | None = None
-    at_reference_accuracy: bool | None = None
+    rel_l2_interval: tuple[float, float] | None = None
     # what it cost: a step's median and spread (us), dt over a step's wall time, steps per second, the
     # steps and milliseconds to settle a static scene, the model's build (s)
     step_us: float | None = None

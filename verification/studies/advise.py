@@ -220,7 +220,7 @@ def advise(
     at the haptic rate (``frame.judgement``)."""
     haptic = check_question(scene, tol, rate, metric, haptic_rate, force_tol)
     dynamic = scene.time.mode == "dynamic"
-    ref_opts, truth = sharp_reference(scene, tol, metric)
+    ref_opts, truth = sharp_reference(scene, tol, metric, haptic)
     rows = _candidates(scene, metric, rate, use_cache, comm, f"advise {scene.name}", models, ref_opts, haptic)
     out, physics = _summary(scene, tol, rate, metric, ref_opts, truth)
     out["haptic"] = haptic
@@ -229,7 +229,11 @@ def advise(
     tried = []
     if choice is None:
         blocked_by_mesh = any(
-            r.status == "ok" and (r.error_budget or {}).get("mesh", 0.0) > tol - own_part(r) for r in rows
+            r.status == "ok"
+            and (r.error_budget or {}).get("mesh") is not None
+            and own_part(r) is not None
+            and r.error_budget["mesh"] > tol - own_part(r)
+            for r in rows
         )
         if blocked_by_mesh:
             proposal = propose_mesh(scene, rows, metric, tol, rate, use_cache, ref_opts, truth["bar"], haptic)
@@ -355,6 +359,9 @@ def _why_none(rows: list[Row], metric: str, tol: float, rate: float, proposal, t
                 if not first["predicted"]["holds"]
                 else f"would need {first['memory_bytes'] / 1e9:.0f} GB"
                 if not first["fits_memory"]
+                else "has no measured time to its first answer (its precomputation or settling): unknown, so "
+                "it was not run"
+                if first["predicted_build_s"] is None
                 else f"would take {first['predicted_build_s']:.0f} s to its first answer (its precomputation or "
                 f"settling), over {BUILD_LIMIT_S:.0f} s"
             )
@@ -370,7 +377,8 @@ def _why_pick(choice: Row, rows: list[Row], metric: str, tol: float, dynamic: bo
         )
     elif level:
         # on the scene's mesh the linear models' totals carry the mesh's part; their own part does not
-        own = [own_part(r) for r in rows if r.status == "ok" and r.model in LINEAR_MODELS and r.error_budget]
+        own = [own_part(r) for r in rows if r.status == "ok" and r.model in LINEAR_MODELS]
+        own = [x for x in own if x is not None]
         why = f"{choice.model} is the first candidate that qualifies there: {physics}" + (
             f"; the linear models' own part of the error (against P1 on the same mesh) is at least {min(own):.3g}"
             if own

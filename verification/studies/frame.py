@@ -9,6 +9,7 @@ import math
 import os
 from pathlib import Path
 
+from verification.metrics import error_interval
 from verification.runs.row import Row
 
 #: The share of a frame a candidate may use: the rest is margin for timing noise between this run and
@@ -84,32 +85,39 @@ def visual_budget(row: Row, rate: float, dynamic: bool, share: float = FRAME_SHA
         out.update(steps_per_frame=n, work_us=work, time_to_answer_s=None, holds=holds, why=why)
         return out
     n = int(budget_us // step_us)
-    settle = row.settle_steps or 1
+    settle = row.settle_steps  # None: the run did not say how many steps it settled in
+    answer_s = None if settle is None else settle * step_us * 1e-6
     if n < 1:
         out.update(
             steps_per_frame=0,
             work_us=step_us,
-            time_to_answer_s=settle * step_us * 1e-6,
+            time_to_answer_s=answer_s,
             holds=False,
             why=f"one step takes {step_us:.3g} us, over {share:.0%} of a {frame_us:.3g} us frame",
         )
         return out
+    settles = (
+        "its settling steps are unknown, so is its time to the answer"
+        if settle is None
+        else f"settles in {settle} steps, {answer_s:.3g} s ({math.ceil(settle / n)} frames)"
+    )
     out.update(
         steps_per_frame=n,
         work_us=n * step_us,
-        time_to_answer_s=settle * step_us * 1e-6,
+        time_to_answer_s=answer_s,
         holds=True,
-        why=f"{n} step{'s' if n > 1 else ''} of {step_us:.3g} us per frame; settles in {settle} steps, "
-        f"{settle * step_us * 1e-6:.3g} s ({math.ceil(settle / n)} frames)",
+        why=f"{n} step{'s' if n > 1 else ''} of {step_us:.3g} us per frame; {settles}",
     )
     return out
 
 
 def cost(row: Row, dynamic: bool) -> float:
     """What the advisor minimises: on a static scene the wall time to the answer, on a dynamic one the
-    work per frame (the share of the machine a candidate takes)."""
+    work per frame (the share of the machine a candidate takes). An unknown cost ranks after every known
+    one (infinite), never as free."""
     b = row.frame
-    return b["work_us"] if dynamic else b["time_to_answer_s"]
+    value = b["work_us"] if dynamic else b["time_to_answer_s"]
+    return math.inf if value is None else value
 
 
 def merge_same_answers(rows: list[Row], metric: str, dynamic: bool) -> list[Row]:
@@ -155,16 +163,6 @@ def reference_bar(r: Row, metric: str) -> float | None:
     return r.ref_err_estimate
 
 
-def error_interval(value: float | None, bar: float | None) -> tuple[float, float] | None:
-    """Where a true relative error lies given the one measured against the reference, ``value``, and the
-    reference's bar, ``bar`` (which bounds the reference's own relative error: reference.driver): by
-    the triangle inequality, within value -/+ bar (to first order in the bar: the two are relative to
-    norms that differ by at most the bar). None without either."""
-    if value is None or bar is None:
-        return None
-    return max(value - bar, 0.0), value + bar
-
-
 def row_interval(r: Row, metric: str) -> tuple[float, float] | None:
     """``error_interval`` of a row's ``metric`` with the reference's bar on it (``reference_bar``)."""
     return error_interval(getattr(r, metric), reference_bar(r, metric))
@@ -185,6 +183,14 @@ def with_bar(value: float | None, bar: float | None, fmt: str = ".3g") -> str:
     return format(value, fmt) + (f" ({span})" if span else "")
 
 
+def unknown_inputs(value: float | None, bar: float | None, metric: str) -> str:
+    """What a verdict on ``metric`` lacks, in words ("the reference's bar on reaction_rel_err is unknown"),
+    or "" when it has both numbers: a missing number is never read as zero."""
+    missing = [f"{metric} was not measured"] if value is None else []
+    missing += [f"the reference's bar on {metric} is unknown"] if bar is None else []
+    return " and ".join(missing)
+
+
 #: What a verdict on an error can be: within the tolerance whatever the reference's own error, over it
 #: whatever, or neither (the tolerance lies inside the interval the reference's bar leaves).
 QUALIFIES, FAILS, UNDECIDED = "qualifies", "fails", "undecided"
@@ -196,16 +202,18 @@ def _judged(r: Row, metric: str, tol: float) -> tuple[str, str]:
     The rule: its true error is within the measured one plus or minus the reference's bar
     (``error_interval``); it qualifies only when the whole interval is within ``tol`` (and its frame
     holds), fails when the interval is above it (or its frame does not hold), and is undecided when
-    ``tol`` lies inside: the truth is not sharp enough to say. With an unverified reference (no bar)
-    the measured error decides, and the line says the truth is unverified."""
+    ``tol`` lies inside: the truth is not sharp enough to say. A missing number decides nothing: with
+    no bar (an unverified reference) or no measured error, a candidate that does not fail on its frame
+    is undecided, and the line names what is missing."""
     if r.status == "diverged":
         ratio = f", {r.dt / r.dt_crit:.2f} x its critical step" if r.dt_crit else ""
         return FAILS, f"{label(r)}: unstable, diverged at step {r.step}{ratio}"
     if r.status != "ok":
         return FAILS, f"{label(r)}: {r.status} ({r.message or ''})"
     value, bar = getattr(r, metric), reference_bar(r, metric)
-    lo, hi = error_interval(value, bar) or ((value, value) if value is not None else (math.inf, math.inf))
-    shown = f"{metric} {with_bar(value, bar)}" + ("" if bar is not None else " (reference unverified)")
+    missing = unknown_inputs(value, bar, metric)
+    lo, hi = error_interval(value, bar) or (-math.inf, math.inf)
+    shown = f"{metric} {with_bar(value, bar)}"
     without = "".join(f"; ran without {term}" for term in r.unrepresented or [])
     bad = []
     if lo > tol:
@@ -216,6 +224,8 @@ def _judged(r: Row, metric: str, tol: float) -> tuple[str, str]:
         bad.append(r.frame["why"])
     if bad:
         return FAILS, f"{label(r)}: {'; '.join(bad)}{without}"
+    if missing:
+        return UNDECIDED, f"{label(r)}: {shown}: cannot decide, {missing}; {r.frame['why']}{without}"
     if hi > tol:
         return UNDECIDED, (
             f"{label(r)}: {shown}: the tolerance {tol:g} lies within the reference's bar {bar:.3g}, "
@@ -283,6 +293,6 @@ def predict(r: Row, levels: int, dynamic: bool, rate: float, share: float = FRAM
         explicit = r.integrator != "implicit-euler"
         row = row.replace(
             dt=r.dt / 2.0**levels if explicit else r.dt,
-            settle_steps=(r.settle_steps or 1) * (2**levels if explicit else 1),
+            settle_steps=None if r.settle_steps is None else r.settle_steps * (2**levels if explicit else 1),
         )
     return frame_budget(row, rate, dynamic, share)

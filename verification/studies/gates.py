@@ -149,7 +149,7 @@ def _measured(scene, g: dict, path: Path, use_cache: bool) -> Row:
     run cache."""
     if "result" in g:
         out = judge(scene, str(path.parent / g["result"]))
-        fields = {k: out[k] for k in (*METRICS, "ref_err_estimate", "at_reference_accuracy")}
+        fields = {k: out[k] for k in (*METRICS, "ref_err_estimate", "rel_l2_interval")}
         return Row(scene.name, g["model"], "result file", "ok", reference=out["reference"], **fields)
     return cached_compare(
         scene, g["model"], g.get("integrator", "symplectic-euler"), None, g.get("fraction"), use_cache=use_cache

@@ -21,7 +21,7 @@ from meshes.regions import locate
 from realtime.errors import InputError
 from realtime.geometry import signed_volumes
 from verification.engines.foreign import EngineResultError, read_result
-from verification.metrics import REFERENCE_ACCURACY_FACTOR, compute, rel_l2
+from verification.metrics import compute, error_interval, rel_l2
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_at
 from verification.runs.simulate import output_times
 from verification.scene import Scene
@@ -165,7 +165,7 @@ def judge(scene: Scene, path: str, scale: float = 1.0, outside: float = OUTSIDE,
         if tools:
             rr = ref.reaction[which]
             metrics["reaction_rel_err"] = float(np.linalg.norm(result.reaction - rr) / max(np.linalg.norm(rr), 1e-300))
-        metrics["at_reference_accuracy"] = bool(est is not None and metrics["rel_l2"] < REFERENCE_ACCURACY_FACTOR * est)
+        metrics["rel_l2_interval"] = error_interval(metrics["rel_l2"], est)
     budget = _mesh_part(scene, result, tets, which, ref_u) if tets is not None else None
     return {
         "scene": scene.name,

@@ -85,22 +85,25 @@ def propose_mesh(
         return out
     order = min(observed, P1_ORDER)
     dynamic = scene.time.mode == "dynamic"
-    plans = _plans(scene, rows, e1, order, tol - (bar or 0.0), rate, haptic)
+    if bar is None:
+        out.update(level=None, why="the reference's bar is unknown: no refined candidate's verdict could be decided")
+        return out
+    plans = _plans(scene, rows, e1, order, tol - bar, rate, haptic)
     if not plans:
         out.update(
             level=None,
             why=f"even {MAX_LEVEL} refinements (8^{MAX_LEVEL} times the tetrahedra) leave every model above "
             f"{metric} {tol:g}: the mesh's part would be {e1 / 2.0 ** (order * (MAX_LEVEL - 1)):.3g} at order "
             f"{order:.2f} and the models' own parts are at least "
-            f"{min((r.error_budget or {}).get('model') or 0.0 for r in rows if r.status == 'ok'):.3g}",
+            f"{_smallest_model_part(rows)}",
         )
         return out
     plans.sort(
         key=lambda p: (
-            not (p["predicted"]["holds"] and p["fits_memory"] and p["builds_in_time"]),
-            not (p["hopeful"] and p["fits_memory"] and p["builds_in_time"]),
+            not (p["predicted"]["holds"] and p["fits_memory"] and p["builds_in_time"] is True),
+            not (p["hopeful"] and p["fits_memory"] and p["builds_in_time"] is True),
             p["level"],
-            p["predicted"]["work_us"] if dynamic else p["predicted"]["time_to_answer_s"],
+            _known(p["predicted"]["work_us"] if dynamic else p["predicted"]["time_to_answer_s"]),
         )
     )
     out.update(level=plans[0]["level"], order=order, plans=plans)
@@ -120,6 +123,8 @@ def _plans(scene: Scene, rows: list[Row], e1: float, order: float, tol: float, r
         if r.status != "ok" or r.model in OWN_MESH:
             continue
         own = own_part(r)
+        if own is None:  # its own part unknown: no prediction of its total, so no level to plan for it
+            continue
         for level in range(1, MAX_LEVEL + 1):
             mesh_part = e1 / 2.0 ** (order * (level - 1))
             # the parts' errors are distances between solutions: the total is at most their sum and, when
@@ -138,10 +143,13 @@ def _plans(scene: Scene, rows: list[Row], e1: float, order: float, tol: float, r
                 predicted = predicted if not predicted["holds"] or at["holds"] else at
                 hopeful = hopeful and predict(r, level, dynamic, haptic["rate"], share=FRAME_SHARE * OPTIMISM)["holds"]
             need = memory_bytes(r.model, n * 8**level, surface * 4**level)
+            # None where the run did not measure it: unknown, never "builds in time"
             if r.integrator == "quasi-static":
-                build = (r.build_s or 0.0) * BUILD_GROWTH**level
-            else:  # a static scene's settling from rest; a dynamic run that holds the rate takes its own time
-                build = predicted.get("time_to_answer_s") or 0.0
+                build = None if r.build_s is None else r.build_s * BUILD_GROWTH**level
+            elif dynamic:  # a dynamic run starts at once and takes its own time, a frame at a time
+                build = 0.0
+            else:  # a static scene's settling from rest
+                build = predicted.get("time_to_answer_s")
             plans.append(
                 {
                     "row": r,
@@ -154,7 +162,7 @@ def _plans(scene: Scene, rows: list[Row], e1: float, order: float, tol: float, r
                     "memory_bytes": need,
                     "fits_memory": need <= memory,
                     "predicted_build_s": build,
-                    "builds_in_time": build <= BUILD_LIMIT_S,
+                    "builds_in_time": None if build is None else build <= BUILD_LIMIT_S,
                 }
             )
             if bound <= tol:
@@ -162,9 +170,27 @@ def _plans(scene: Scene, rows: list[Row], e1: float, order: float, tol: float, r
     return plans
 
 
-def own_part(r: Row) -> float:
+def _smallest_model_part(rows: list[Row]) -> str:
+    """The smallest known model part among the rows that ran, or "unknown" where none is known."""
+    known = [
+        r.error_budget["model"] for r in rows if r.status == "ok" and (r.error_budget or {}).get("model") is not None
+    ]
+    return f"{min(known):.3g}" if known else "unknown"
+
+
+def _known(value: float | None) -> float:
+    """A predicted cost for sorting: an unknown one after every known one."""
+    return math.inf if value is None else value
+
+
+def own_part(r: Row) -> float | None:
+    """A row's own part of its error: its model part and its time part, which a static scene or a
+    quasi-static model does not have (None there: no step to err by). None when the model part is
+    unknown (no P1 solution on the mesh): never read as zero."""
     b = r.error_budget or {}
-    return (b.get("model") or 0.0) + (b.get("time") or 0.0)
+    if b.get("model") is None:
+        return None
+    return b["model"] + (b.get("time") or 0.0)
 
 
 def run_plans(
@@ -177,7 +203,9 @@ def run_plans(
     if not proposal or proposal.get("level") is None:
         return None, []
     dynamic = scene.time.mode == "dynamic"
-    plans = [p for p in proposal["plans"] if p["hopeful"] and p["fits_memory"] and p["builds_in_time"]][:MAX_TRIALS]
+    # a plan whose time to its first answer is unknown is not run: nothing bounds its wait
+    plans = [p for p in proposal["plans"] if p["hopeful"] and p["fits_memory"] and p["builds_in_time"] is True]
+    plans = plans[:MAX_TRIALS]
     tried = []
     progress = Progress(len(plans), f"advise {scene.name} refined")
     for p in plans:

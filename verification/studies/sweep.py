@@ -228,7 +228,7 @@ def format_sweep(result: dict) -> str:
         reaction = "-" if r.reaction_rel_err is None else f"{r.reaction_rel_err:.3g}"
         flag = " pareto" if r.pareto else ""
         span = true_range(r.rel_l2, r.ref_err_estimate)
-        flag += f" ({span})" if span and r.at_reference_accuracy else ""
+        flag += f" ({span})" if span else ""
         flag += "".join(f" (without {term})" for term in r.unrepresented or [])
         flag += re_adapted(r)
         out.append(

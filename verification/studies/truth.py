@@ -41,38 +41,63 @@ def reference_cost(meta: dict) -> dict | None:
     return {"n_dofs": 8 * last["n_dofs"], "seconds": last["wall_s"] * (1.0 + 8.0**GROWTH), "exponent": GROWTH}
 
 
-def sharp_reference(scene: Scene, tol: float, metric: str) -> tuple[dict, dict]:
+def _bars(meta: dict, needs: list[tuple[str, str, float]]) -> list[tuple[str, float | None, float]]:
+    """Each bar the question needs, as (what it is on, its value or None, the tolerance it serves)."""
+    return [(name, meta.get(key), t) for name, key, t in needs]
+
+
+def _blocking(bars: list[tuple[str, float | None, float]]) -> list[tuple[str, float | None, float]]:
+    """The bars that leave the question undecidable: unknown, or over SHARP of their tolerance."""
+    return [b for b in bars if b[1] is None or b[1] > SHARP * b[2]]
+
+
+def sharp_reference(scene: Scene, tol: float, metric: str, haptic: dict | None = None) -> tuple[dict, dict]:
     """The reference the advice judges with (``reference_result`` options) and what it says of itself:
-    REFERENCE_DEFAULTS, refined by up to TIGHTEN_LEVELS while its bar on ``metric`` is over SHARP x
-    ``tol`` and the finer one is predicted within TIGHTEN_BUDGET_S (``reference_cost``). Returns
-    (options, {"bar", "refine", "sharp", "tightened", "next": the cost of one more refinement or None,
-    "why"})."""
+    REFERENCE_DEFAULTS, refined by up to TIGHTEN_LEVELS while a bar the question needs is over SHARP of
+    its tolerance and the finer one is predicted within TIGHTEN_BUDGET_S (``reference_cost``). The
+    question needs the bar on ``metric`` against ``tol`` and, with a haptic loop (``haptic``: {"rate",
+    "force_tol"}), the bar on the tool force against ``force_tol``: a force tolerance under an untightened
+    force bar could never be met. A bar the reference does not have is unknown, and refining does not
+    make one: the truth is then not sharp, and ``why`` names it.
+
+    Returns (options, {"bar": the bar on ``metric``, "force_bar": on the tool force (None without
+    ``haptic``), "refine", "sharp", "tightened", "next": the cost of one more refinement or None,
+    "blocking": the names of the bars that stay over, "why"})."""
     opts = dict(REFERENCE_DEFAULTS)
-    key = "ref_reaction_err_estimate" if metric == "reaction_rel_err" else "ref_err_estimate"
+    shape_key = "ref_reaction_err_estimate" if metric == "reaction_rel_err" else "ref_err_estimate"
+    needs = [(metric, shape_key, tol)]
+    if haptic:
+        needs.append(("the tool force", "ref_reaction_err_estimate", haptic["force_tol"]))
     ref = reference_result(scene, **opts)
-    bar, tightened, nxt = ref.meta.get(key), 0, None
-    while bar is not None and bar > SHARP * tol:
+    bars, tightened, nxt = _bars(ref.meta, needs), 0, None
+    while (over := _blocking(bars)) and all(b[1] is not None for b in over):
         nxt = reference_cost(ref.meta)
         if tightened >= TIGHTEN_LEVELS or nxt is None or nxt["seconds"] > TIGHTEN_BUDGET_S:
             break
         opts = {**opts, "refine": opts["refine"] + 1}
+        shown = ", ".join(f"its bar on {n} {b:.3g} is over {SHARP:g} x {t:g}" for n, b, t in over)
         log(
-            f"advise {scene.name}: the reference's bar {bar:.3g} is over {SHARP:g} x {tol:g}; solving it refined "
-            f"{refined_times(opts['refine'])} more ({nxt['n_dofs']} dofs, about {nxt['seconds']:.0f} s)"
+            f"advise {scene.name}: {shown}; solving it refined {refined_times(opts['refine'])} more "
+            f"({nxt['n_dofs']} dofs, about {nxt['seconds']:.0f} s)"
         )
         ref, tightened, nxt = reference_result(scene, **opts), tightened + 1, None
-        bar = ref.meta.get(key)
-    sharp = bar is not None and bar <= SHARP * tol
-    if bar is None:
-        why = "the reference has no error estimate: verdicts use the measured errors alone"
-    elif sharp:
-        why = f"the reference's bar {bar:.3g} is within {SHARP:g} of the tolerance {tol:g}" + (
-            f" (refined {refined_times(tightened)} more for it)" if tightened else ""
+        bars = _bars(ref.meta, needs)
+    over = _blocking(bars)
+    more = f" (refined {refined_times(tightened)} more for it)" if tightened else ""
+    if not over:
+        why = "; ".join(
+            f"the reference's bar on {n} {b:.3g} is within {SHARP:g} of its tolerance {t:g}" for n, b, t in bars
         )
+        why += more
     else:
-        why = f"the reference's bar {bar:.3g} is over {SHARP:g} of the tolerance {tol:g}" + (
-            f" even refined {refined_times(tightened)} more" if tightened else ""
-        )
+        parts = [
+            f"the reference's bar on {n} is unknown (it has no error estimate)"
+            if b is None
+            else f"the reference's bar on {n} {b:.3g} is over {SHARP:g} of its tolerance {t:g}"
+            + (f" even refined {refined_times(tightened)} more" if tightened else "")
+            for n, b, t in over
+        ]
+        why = "; ".join(parts)
         if nxt is not None:
             why += f"; a sharper one (P2 refined once more, {nxt['n_dofs']} dofs) is predicted to take {nxt['seconds']:.0f} s"
             why += (
@@ -81,4 +106,13 @@ def sharp_reference(scene: Scene, tol: float, metric: str) -> tuple[dict, dict]:
                 else f"; the advisor refines its truth {refined_times(TIGHTEN_LEVELS)} at most"
             )
         why += ": candidates whose interval contains the tolerance are undecided"
-    return opts, {"bar": bar, "refine": opts["refine"], "sharp": sharp, "tightened": tightened, "next": nxt, "why": why}
+    return opts, {
+        "bar": bars[0][1],
+        "force_bar": bars[1][1] if haptic else None,
+        "refine": opts["refine"],
+        "sharp": not over,
+        "tightened": tightened,
+        "next": nxt,
+        "blocking": [n for n, _, _ in over],
+        "why": why,
+    }

@@ -8,7 +8,7 @@ one), and returns a finding:
 
 - ``claim``: the claim in our words, ``source``: the document and slide;
 - ``figure``: what we measured, in one line; ``data`` and ``table``: the numbers behind it;
-- ``verdict``: confirmed, refuted or nuanced, computed from the numbers by the rule in ``rule``, and
+- ``verdict``: confirmed, refuted or nuanced (undecided where a number the rule needs is missing), computed from the numbers by the rule in ``rule``, and
   ``decides``: the number that decided it;
 - ``reference``: where the truth came from and its own error estimate;
 - ``plots``: PNG figures (base64) where a reader would rather look than read.

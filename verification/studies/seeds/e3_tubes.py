@@ -41,8 +41,11 @@ def tube_scenes(size: Size) -> list[Scene]:
 
 def decide(data: dict) -> str:
     """The rule on ``data``: the fibres' largest relative change of the reference's tip deflection,
-    measurable when over MEASURABLE times the reference's estimate, and stvk-tm's largest miss of it."""
-    measurable = data["largest_change"] > MEASURABLE * (data["ref_err_estimate"] or 0.0)
+    measurable when over MEASURABLE times the reference's estimate, and stvk-tm's largest miss of it.
+    Without the estimate nothing says whether the change is measurable: undecided, never a zero bar."""
+    if data["ref_err_estimate"] is None:
+        return "undecided"
+    measurable = data["largest_change"] > MEASURABLE * data["ref_err_estimate"]
     if not measurable:
         return "refuted"
     return "confirmed" if data["stvk_tm_largest_miss"] < 0.1 else "nuanced"
@@ -58,7 +61,7 @@ def tubes(size: Size) -> dict:
         "tensor-mass models reproduce the change.",
         f"confirmed when fibres {FIBRE_RATIO:g} times stiffer change the reference's tip deflection by "
         f"more than {MEASURABLE:g} times its error estimate and StVK tensor-mass gets each change within 10%; "
-        "refuted when the fibres change nothing",
+        "refuted when the fibres change nothing; undecided when the reference has no estimate",
     )
     rows, estimates = [], []
     for (label, _, _), scene in zip(TUBE_FIBRES, tube_scenes(size), strict=True):

@@ -20,8 +20,9 @@ def decide(data: dict) -> str:
     whether the rate never fell by more than 10% as the threshold grew (monotone)."""
     if data["rate_gain"] <= 1.0:
         return "refuted"
-    accurate = data["accurate_gain"] or 0.0
-    return "confirmed" if accurate >= 1.5 and data["monotone"] else "nuanced"
+    if data["accurate_gain"] is None:  # measured: no threshold keeps the non-linear answer
+        return "nuanced"
+    return "confirmed" if data["accurate_gain"] >= 1.5 and data["monotone"] else "nuanced"
 
 
 def hybrid_rates(size: Size) -> dict:
