@@ -158,3 +158,29 @@ def test_the_haptic_truth_tightens_the_forces_bar_and_names_it_when_it_blocks(mo
     bars = iter([(0.004, 0.18)])
     _, said = truth.sharp_reference(Scene, 0.05, "rel_l2")
     assert said["sharp"] and said["tightened"] == 0 and said["force_bar"] is None
+
+
+def test_two_steps_of_one_model_are_one_refined_run(monkeypatch):
+    """Two level-0 rows of mass-spring at 0.5 and 0.9 of the critical step both run at 0.9 on the refined
+    mesh (the fraction is clamped there): the advisor runs that once and tries another model next, so
+    MAX_TRIALS counts distinct runs (on cantilever-dynamic it had tried each run twice)."""
+    calls = []
+
+    def run(scene, model, integrator, dt, fraction, **opts):
+        calls.append((model, fraction))
+        return Row("a scene", model, integrator, "ok", rel_l2=0.5, ref_err_estimate=1e-3, dt=1e-5, step_us=1.0)
+
+    class Scene(_Scene):
+        def refined(self, level):
+            return self
+
+    monkeypatch.setattr(proposal, "compare_or_unsettled", run)
+    rows = [
+        Row("a scene", m, "symplectic-euler", "ok", dt=1e-5, fraction=f, step_us=1.0, settle_steps=10)
+        for m, f in (("mass-spring", 0.9), ("mass-spring", 1.0), ("linear-tm", 0.9))
+    ]
+    plan = {"hopeful": True, "fits_memory": True, "builds_in_time": True, "level": 1}
+    out = proposal.run_plans(
+        Scene(), {"level": 1, "plans": [{**plan, "row": r} for r in rows]}, "rel_l2", 0.05, 60.0, False
+    )
+    assert calls == [("mass-spring", 0.9), ("linear-tm", 0.9)] and len(out[1]) == 2

@@ -205,14 +205,22 @@ def run_plans(
     dynamic = scene.time.mode == "dynamic"
     # a plan whose time to its first answer is unknown is not run: nothing bounds its wait
     plans = [p for p in proposal["plans"] if p["hopeful"] and p["fits_memory"] and p["builds_in_time"] is True]
-    plans = plans[:MAX_TRIALS]
-    tried = []
-    progress = Progress(len(plans), f"advise {scene.name} refined")
+    # two level-0 steps of one model become one refined run (its fraction clamped): each is run once, and
+    # MAX_TRIALS counts distinct runs
+    runs, seen = [], set()
     for p in plans:
         r0 = p["row"]
-        level_scene = scene.refined(p["level"])
         fraction = None if r0.dt is None or r0.integrator == "implicit-euler" else min(r0.fraction or 0.9, 0.9)
         dt = r0.dt if dynamic and r0.integrator == "implicit-euler" else None  # its steps a frame, kept
+        if (key := (r0.model, r0.integrator, p["level"], fraction, dt)) not in seen:
+            seen.add(key)
+            runs.append((p, fraction, dt))
+    runs = runs[:MAX_TRIALS]
+    tried = []
+    progress = Progress(len(runs), f"advise {scene.name} refined")
+    for p, fraction, dt in runs:
+        r0 = p["row"]
+        level_scene = scene.refined(p["level"])
         row = compare_or_unsettled(
             level_scene, r0.model, r0.integrator, dt, fraction, ref_opts=ref_opts, use_cache=use_cache
         )
