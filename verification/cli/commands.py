@@ -465,6 +465,21 @@ def cmd_converge(args) -> int:
     return 0
 
 
+def cmd_effectivity(args) -> int:
+    import json
+
+    from verification.runs.results import atomic_write_text
+    from verification.studies.effectivity import effectivity_table, format_markdown
+
+    out = effectivity_table(args.cases, args.returned)
+    if args.markdown:
+        atomic_write_text(args.markdown, format_markdown(out))
+    if args.out:
+        atomic_write_text(args.out, json.dumps(out, indent=1, default=_default))
+    _emit(args, out, format_markdown)
+    return 0
+
+
 def cmd_stability(args) -> int:
     from verification.studies.stability import format_stability, stability
 

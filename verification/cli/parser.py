@@ -13,6 +13,7 @@ from verification.cli.commands import (
     cmd_check,
     cmd_compare,
     cmd_converge,
+    cmd_effectivity,
     cmd_engines,
     cmd_export,
     cmd_gate,
@@ -236,6 +237,20 @@ def _converge(sub) -> None:
     s.set_defaults(func=cmd_converge)
 
 
+def _effectivity(sub) -> None:
+    from verification.studies.effectivity import CASES
+
+    s = sub.add_parser(
+        "effectivity", help="the reference's bar against its true error on cases that span what users bring"
+    )
+    s.add_argument("--cases", nargs="+", choices=list(CASES), help="default: every case")
+    s.add_argument("--returned", type=int, default=1, choices=(0, 1), help="the refinement the reference returns")
+    s.add_argument("--markdown", help="write the table there (docs/effectivity.md)")
+    s.add_argument("--out", help="write the table's JSON there")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_effectivity)
+
+
 def _stability(sub) -> None:
     s = sub.add_parser(
         "stability", help="largest stable steps and the extremes (nu, E, rotation, compression, slivers)"
@@ -386,6 +401,7 @@ def build_parser() -> argparse.ArgumentParser:
         _seeds,
         _sweep,
         _converge,
+        _effectivity,
         _stability,
         _advise,
         _engines,

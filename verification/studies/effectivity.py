@@ -1,0 +1,236 @@
+"""How close the reference's bar is to the error it bounds: its effectivity, bar / true error, on cases
+that span what users bring (a smooth bend, a clamp's corner, a tool's rim, a near-incompressible block,
+a cut, large rotation, a material jump, a manufactured solution).
+
+Each case is a scene made coarse enough that a truth two levels finer than the returned solution is
+affordable (P2 at refinement 3 for the returned refinement 1; the manufactured solution's exact field
+instead; the suite's tests return refinement 0 against P2 at 2, a coarser and so harder test). The reference returns P2 at refinement 1, and each estimator of ``ESTIMATORS`` bounds its
+relative error over the scene's vertices (the norm of ``reference.driver``'s bar):
+
+- ``difference``: |u_0 - u_1| / |u_1|, P2 at refinements 0 and 1, the reference's bar today. It bounds
+  the error where refining at least halves it, and is 2^p - 1 times the error where P2 converges at
+  order p (7 at p = 3);
+- ``p3``: P3_SAFETY |u_1 - u_1^P3| / |u_1^P3|, the difference to P3 on the same mesh. It is the error
+  itself, within the P3 solution's own error: within (1 -/+ r) of it, r = e(P3) / e(P2) on that mesh,
+  so the safety factor keeps it above the error while r < 1 - 1 / P3_SAFETY.
+
+Effectivity under 1 means the bar promises less error than there is: the one thing a bar must never
+do. ``tissuebench effectivity`` writes the table (docs/effectivity.md) and its JSON with the machine,
+the commit and the date; every number in it comes from the run that wrote it.
+"""
+
+from __future__ import annotations
+
+import time
+import tomllib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from verification.progress import log
+
+#: The safety factor of the ``p3`` estimator: with it the bar stays above the error while P3's error on
+#: the returned mesh is under half of P2's there (measured below, docs/effectivity.md).
+P3_SAFETY = 2.0
+#: The refinement the reference returns (the truth is solved two levels finer).
+RETURNED = 1
+
+
+@dataclass(frozen=True)
+class Case:
+    """A built-in scene with ``edits`` ({"table.key": value}, or a whole table under its name), and what
+    its error is about."""
+
+    scene: str
+    what: str
+    edits: dict = field(default_factory=dict)
+    state: int | None = None  # a scene with events: the state solved (its index in events.states)
+
+
+#: The blocks on a structured grid of 2 cm cells (gmsh's box mesher keeps 337 vertices at any h over
+#: 1 cm there): P2 three refinements finer is then about 100 000 dofs.
+GRID = {"mesh.generator": "grid", "mesh.h": 0.02}
+
+#: The cases, by name.
+CASES = {
+    "smooth bending": Case("cantilever", "a beam bent by its weight, held at one end", {"mesh.h": 0.02}),
+    "clamp corner": Case("cantilever-pull", "a beam held at one end, its other end pulled down 1 cm", {"mesh.h": 0.02}),
+    "tool-pressed liver": Case(
+        "liver",
+        "a coarse liver held at its back, a 1.5 cm tool pressing its right lobe 5 mm",
+        {
+            "mesh.h": 0.05,
+            "load": [
+                {
+                    "kind": "displacement",
+                    "sphere": {"center": [0.07, 0.0, 0.03], "radius": 0.03},
+                    "value": [0.0, 0.0, -0.005],
+                }
+            ],
+        },
+    ),
+    "near-incompressible block": Case(
+        "block-press", "a block pressed by a tool, nu = 0.49", {**GRID, "material.poisson": 0.49}
+    ),
+    "twisted block": Case("block-twist", "a block's top turned by a tool", GRID),
+    "stiff inclusion": Case(
+        "stiff-inclusion", "a block with a stiffer core, pressed", {**GRID, "mesh.h": 0.04 / 3}
+    ),  # three cells a side: the core's sphere (8 mm) holds the middle cell's tetrahedra
+    "cut beam": Case("cantilever-cut", "the beam cut half through at mid-span, under its weight", {"mesh.h": 0.01}, 1),
+    "layered slab": Case("layered-slab", "three linear layers of different stiffness, pressed", {"mesh.h": 0.01}),
+    "manufactured": Case("manufactured", "the manufactured StVK solution on the unit cube, exact"),
+}
+
+
+def _estimates(u: dict, r: int) -> dict:
+    """Each estimator's relative bar on the solution returned at refinement ``r``, from the solutions
+    ``u`` at the scene's vertices: {(degree, refinement): (K, 3) m}; None for one whose solutions are not
+    there (``difference`` at refinement 0 has no coarser level)."""
+    n = np.linalg.norm
+    return {
+        "difference": float(n(u[(2, r - 1)] - u[(2, r)]) / n(u[(2, r)])) if (2, r - 1) in u else None,
+        "p3": P3_SAFETY * float(n(u[(2, r)] - u[(3, r)]) / n(u[(3, r)])),
+    }
+
+
+#: The estimators the table compares, in its column order.
+ESTIMATORS = ("difference", "p3")
+
+
+def case_scene(case: Case):
+    """The case's scene: the built-in one with the edits, or the stated state of a scene with events."""
+    from verification.events import states
+    from verification.scene_file import builtin_scenes, parse
+
+    path = builtin_scenes()[case.scene]
+    data = tomllib.loads(path.read_text())
+    for key, value in case.edits.items():
+        table, _, name = key.partition(".")
+        if name:
+            data[table][name] = value
+        else:
+            data[table] = value
+    scene = parse(path, data)
+    return states(scene)[case.state].scene if case.state is not None else scene
+
+
+def _scene_solutions(scene, returned: int) -> tuple[dict, dict]:
+    """P2 at refinements 0 .. ``returned`` + 2 (the truth) and P3 at ``returned``, each at the scene's
+    vertices, and their sizes."""
+    from reference.driver import _solve_level
+    from reference.fem import ElasticityProblem
+
+    x = scene.mesh.points
+    u, dofs, coarse = {}, {}, None
+    plan = [(2, k) for k in range(returned + 3)] + [(3, returned)]
+    for degree, level in plan:
+        t0 = time.perf_counter()
+        ep = ElasticityProblem(scene.mesh, scene.body_material(), scene.problem, degree=degree, refine=level)
+        nested = coarse if degree == 2 else None
+        _solve_level(ep, nested, [], {"steps": 1, "min_increment": 1e-4}, None)
+        coarse = ep if degree == 2 else coarse
+        u[(degree, level)], dofs[(degree, level)] = ep.evaluate(x), ep.n_dofs
+        log(f"effectivity: {scene.name} P{degree} refined {level}: {ep.n_dofs} dofs, {time.perf_counter() - t0:.1f} s")
+    return u, dofs
+
+
+def _manufactured_solutions(scene, returned: int) -> tuple[dict, dict, np.ndarray]:
+    """The manufactured problem on the unit cube of 2 x 2 x 2 cells (six tetrahedra each) and its
+    refinements: P2 at ``returned`` and the level below it, P3 at ``returned``, at the coarse grid's
+    vertices, and the exact field there."""
+    from reference.manufactured import manufactured_errors
+
+    n = 2
+    g = np.linspace(0.0, 1.0, n + 1)
+    x = np.array(np.meshgrid(g, g, g, indexing="ij")).reshape(3, -1).T
+    u, dofs = {}, {}
+    for degree, level in [(2, k) for k in range(max(returned - 1, 0), returned + 1)] + [(3, returned)]:
+        out = manufactured_errors(scene.material.law, degree, n, scene.material, refine=level, points=x)
+        u[(degree, level)], dofs[(degree, level)] = out["values"], out["dofs"]
+        log(f"effectivity: manufactured P{degree} refined {level}: {out['dofs']} dofs")
+    return u, dofs, out["exact"]
+
+
+def measure(name: str, returned: int = RETURNED) -> dict:
+    """One case's row: its size, the true relative error of the solution returned at refinement
+    ``returned`` (against the exact field, or P2 two refinements finer), and each estimator's bar and
+    effectivity (bar / true error; unknown where the estimator has no bar)."""
+    case = CASES[name]
+    scene = case_scene(case)
+    t0 = time.perf_counter()
+    if case.scene == "manufactured":
+        u, dofs, exact = _manufactured_solutions(scene, returned)
+        truth, kind = exact, "exact"
+    else:
+        u, dofs = _scene_solutions(scene, returned)
+        truth, kind = u[(2, returned + 2)], f"P2 refined {returned + 2} times"
+    err = float(np.linalg.norm(u[(2, returned)] - truth) / np.linalg.norm(truth))
+    bars = _estimates(u, returned)
+    return {
+        "case": name,
+        "what": case.what,
+        "scene": case.scene,
+        "vertices": len(truth),
+        "returned": returned,
+        "dofs": dofs[(2, returned)],
+        "p3_dofs": dofs[(3, returned)],
+        "truth": kind,
+        "truth_dofs": dofs.get((2, returned + 2)),
+        "true_error": err,
+        "bars": bars,
+        "effectivity": {k: (b / err if b is not None and err > 0 else None) for k, b in bars.items()},
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def effectivity_table(names=None, returned: int = RETURNED) -> dict:
+    """Every case's row (``measure``), in CASES' order, with the machine, commit and date they ran at."""
+    from verification.cache import git_commit, machine_id
+
+    names = list(CASES) if not names else list(names)
+    rows = []
+    for k, name in enumerate(names, 1):
+        log(f"effectivity: case {k} of {len(names)}: {name}")
+        rows.append(measure(name, returned))
+    meta = {
+        "machine": machine_id(),
+        "commit": git_commit(),
+        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "returned": f"P2 refined {returned} time(s)",
+        "p3_safety": P3_SAFETY,
+    }
+    return {"rows": rows, "meta": meta}
+
+
+def format_markdown(table: dict) -> str:
+    """The table as docs/effectivity.md shows it."""
+    m = table["meta"]
+    lines = [
+        "# The reference's bar against its true error",
+        "",
+        "Written by `tissuebench effectivity --markdown docs/effectivity.md` "
+        f"(commit {m['commit']}, {m['date']}, {m['machine']['cpu']}, {m['machine']['cores']} cores). "
+        f"The reference returns {m['returned']}; effectivity is bar / true error, and under 1 the bar "
+        "promises less error than there is. `difference` is |u_0 - u_1| / |u_1| (the bar today), "
+        f"`p3` is {m['p3_safety']:g} |u_1 - u_1^P3| / |u_1^P3| (verification/studies/effectivity.py says why).",
+        "",
+        "| case | vertices | dofs | true error | truth | "
+        + " | ".join(f"{e} bar (effectivity)" for e in ESTIMATORS)
+        + " |",
+        "|---|---|---|---|---|" + "---|" * len(ESTIMATORS),
+    ]
+    for r in table["rows"]:
+        cells = " | ".join(f"{_fmt(r['bars'][e], '.3g')} ({_fmt(r['effectivity'][e])})" for e in ESTIMATORS)
+        lines.append(
+            f"| {r['case']} | {r['vertices']} | {r['dofs']} | {r['true_error']:.3g} | {r['truth']} | {cells} |"
+        )
+    lines.append("")
+    for e in ESTIMATORS:
+        values = [r["effectivity"][e] for r in table["rows"] if r["effectivity"][e] is not None]
+        if values:
+            lines.append(f"- `{e}`: effectivity {min(values):.2f} to {max(values):.2f} over {len(values)} cases.")
+    return "\n".join(lines) + "\n"
+
+
+def _fmt(x: float | None, spec: str = ".2f") -> str:
+    return "unknown" if x is None else format(x, spec)
