@@ -47,3 +47,7 @@ def test_the_command_writes_its_table_with_where_it_ran(tmp_path, capsys):
     assert row["bars"]["difference"] is None and row["effectivity"]["difference"] is None
     assert "| manufactured |" in md.read_text() and "unknown" in md.read_text()
     assert "manufactured" in capsys.readouterr().out
+    # the row was kept as it was made: the table again reads it, and says so
+    assert main(["effectivity", "--cases", "manufactured", "--returned", "0", "--json"]) == 0
+    out = capsys.readouterr()
+    assert json.loads(out.out)["rows"] == data["rows"] and "kept from an earlier run" in out.err

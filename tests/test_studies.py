@@ -479,7 +479,7 @@ def test_cache_keys_change_with_every_input_they_cover(monkeypatch):
 
 def test_cache_keys_change_with_the_libraries_the_engines_venv_and_the_machine(monkeypatch):
     """What a cached result's content depends on beyond the code: the libraries' versions (numpy, numba,
-    dolfinx, PETSc ...) in the run, reference, stability and settling keys; the engines' venv's installed
+    dolfinx, PETSc ...) in the run, reference, largest-stable-step and settling keys; the engines' venv's installed
     versions in an adapter's run key (not a built-in model's); the machine in the settlings' key (a
     settling holds its wall time)."""
     from verification import cache
@@ -495,12 +495,16 @@ def test_cache_keys_change_with_the_libraries_the_engines_venv_and_the_machine(m
     settled = ("linear-tm", "symplectic-euler", None, 0.9, 1e-10, 2_000_000, None)
     before = (runs.run_key(**args), runs.run_key(**adapter), runner.reference_key(scene, 2, 0, True))
     before_settled = builtin.settled_path(inputs, *settled)
+    stable = ("linear-tm", "symplectic-euler", 2000, 7)
+    before_stable = runs.stable_key(scene, *stable)
+    assert runs.stable_key(scene, "stvk-tm", *stable[1:]) != before_stable
     other = {**cache.library_versions(), "numba": "0.0.1"}
     for module in (runs, runner, builtin):
         monkeypatch.setattr(module, "library_versions", lambda: other)
     assert runs.run_key(**args) != before[0] and runs.run_key(**adapter) != before[1]
     assert runner.reference_key(scene, 2, 0, True) != before[2]
     assert builtin.settled_path(inputs, *settled) != before_settled
+    assert runs.stable_key(scene, *stable) != before_stable
     monkeypatch.undo()
     monkeypatch.setattr(runs, "installed_versions", lambda python: {"newton": "0.0.1"})
     assert runs.run_key(**adapter) != before[1] and runs.run_key(**args) == before[0]

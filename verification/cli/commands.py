@@ -471,7 +471,7 @@ def cmd_effectivity(args) -> int:
     from verification.runs.results import atomic_write_text
     from verification.studies.effectivity import effectivity_table, format_markdown
 
-    out = effectivity_table(args.cases, args.returned)
+    out = effectivity_table(args.cases, args.returned, use_cache=not args.no_cache)
     if args.markdown:
         atomic_write_text(args.markdown, format_markdown(out))
     if args.out:

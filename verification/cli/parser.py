@@ -247,6 +247,7 @@ def _effectivity(sub) -> None:
     s.add_argument("--returned", type=int, default=1, choices=(0, 1), help="the refinement the reference returns")
     s.add_argument("--markdown", help="write the table there (docs/effectivity.md)")
     s.add_argument("--out", help="write the table's JSON there")
+    s.add_argument("--no-cache", action="store_true", help="measure every case again")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_effectivity)
 

@@ -130,6 +130,21 @@ def compare_or_unsettled(scene: Scene, model: str, integrator: str, dt, fraction
         return Row(scene.name, model, integrator, "not settled", dt=dt, fraction=fraction, message=str(exc))
 
 
+def stable_key(scene: Scene, model_name: str, integrator: str, steps: int, iterations: int) -> str:
+    """The cache key of a largest-stable-step bisection (``largest_stable_fraction``)."""
+    return digest(
+        {
+            "code": code_digest(RUN_CODE),
+            "libraries": library_versions(),  # where a run blows up depends on the arithmetic
+            "scene": scene.sha256(),
+            "model": model_name,
+            "integrator": integrator,
+            "steps": steps,
+            "iterations": iterations,
+        }
+    )
+
+
 def largest_stable_fraction(
     scene: Scene,
     model_name: str,
@@ -145,18 +160,11 @@ def largest_stable_fraction(
     from verification.engines.builtin import stable_fraction
     from verification.inputs import scene_inputs
 
-    key = digest(
-        {
-            "code": code_digest(RUN_CODE),
-            "libraries": library_versions(),  # where a run blows up depends on the arithmetic
-            "scene": scene.sha256(),
-            "model": model_name,
-            "integrator": integrator,
-            "steps": steps,
-            "iterations": iterations,
-        }
+    path = (
+        cache_dir()
+        / "runs"
+        / f"{scene.name}-stable-{stable_key(scene, model_name, integrator, steps, iterations)}.json"
     )
-    path = cache_dir() / "runs" / f"{scene.name}-stable-{key}.json"
     kept = read_cached(path, _read_json) if use_cache else None
     if kept is not None:
         return kept

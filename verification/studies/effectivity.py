@@ -185,12 +185,35 @@ def measure(name: str, returned: int = RETURNED) -> dict:
         "bars": bars,
         "effectivity": {k: (b / err if b is not None and err > 0 else None) for k, b in bars.items()},
         "wall_s": time.perf_counter() - t0,
+        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
 
 
-def effectivity_table(names=None, returned: int = RETURNED) -> dict:
-    """Every case's row (``measure``), in CASES' order, with the machine, commit and date they ran at."""
-    from verification.cache import git_commit, machine_id
+def row_path(name: str, returned: int):
+    """Where a case's row is kept: keyed by the case, the returned level, the reference's code and this
+    module's, and the libraries' versions, so that a killed table resumes from its finished cases."""
+    from verification.cache import REFERENCE_CODE, cache_dir, code_digest, digest, library_versions
+
+    case = CASES[name]
+    key = digest(
+        {
+            "case": [case.scene, case.edits, case.state],
+            "returned": returned,
+            "p3_safety": P3_SAFETY,
+            "code": code_digest((*REFERENCE_CODE, "verification/studies/effectivity.py", "verification/scene*.py")),
+            "libraries": library_versions(),
+        }
+    )
+    return cache_dir() / "effectivity" / f"{case.scene}-{key}.json"
+
+
+def effectivity_table(names=None, returned: int = RETURNED, use_cache: bool = True) -> dict:
+    """Every case's row (``measure``), in CASES' order, with the machine, commit and date they ran at.
+    Each row is kept as it is made (``row_path``): a table stopped half-way starts again from there."""
+    import json
+
+    from verification.cache import git_commit, machine_id, read_cached
+    from verification.runs.results import atomic_write_text
 
     names = list(CASES) if not names else list(names)
     rows = []
@@ -198,8 +221,13 @@ def effectivity_table(names=None, returned: int = RETURNED) -> dict:
     # nine cases' truths grew past 24 GB)
     with ProcessPoolExecutor(1, mp_context=get_context("spawn"), max_tasks_per_child=1) as pool:
         for k, name in enumerate(names, 1):
-            log(f"effectivity: case {k} of {len(names)}: {name}")
-            rows.append(pool.submit(measure, name, returned).result())
+            path = row_path(name, returned)
+            kept = read_cached(path, lambda p: json.loads(p.read_text())) if use_cache else None
+            log(f"effectivity: case {k} of {len(names)}: {name}" + (" (kept from an earlier run)" if kept else ""))
+            row = kept or pool.submit(measure, name, returned).result()
+            if use_cache and not kept:
+                atomic_write_text(path, json.dumps(row))
+            rows.append(row)
     meta = {
         "machine": machine_id(),
         "commit": git_commit(),
