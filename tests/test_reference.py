@@ -616,3 +616,36 @@ def test_a_heartbeat_speaks_through_a_call_that_holds_pythons_lock_and_stops_wit
     beats = re.findall(r"^reference: factorising \((\d+) s\)$", during, flags=re.M)
     assert len(beats) >= 2 and [int(b) for b in beats] == sorted(int(b) for b in beats), during
     assert after == ""
+
+
+def test_the_p3_estimate_returns_the_same_solution_and_bars_it_by_its_difference_to_p3(tmp_path):
+    """``estimate = "p3"``: the returned solution is the P2 one of refinement 1, as with the difference of
+    two refinements (to Newton's tolerance), and its bar is P3_SAFETY times its distance to P3 on the
+    same mesh, recomputed here from the two solves; on the swing beam (a tool pushes its end 1 cm) that
+    is under the difference's bar, which docs/effectivity.md measures 1.7 to 9.3 times the error."""
+    from reference.driver import P3_SAFETY
+
+    p = tmp_path / "swing.toml"
+    p.write_text(SWING)
+    scene = load_scene(p)
+    difference = reference_result(scene, use_cache=False)
+    p3 = reference_result(scene, estimate="p3", use_cache=False)
+    scale = np.linalg.norm(difference.displacement)
+    assert np.linalg.norm(p3.displacement - difference.displacement) < 1e-8 * scale
+    assert p3.meta["estimator"] == "p3" and p3.meta["returned_level"] == 1
+    assert [(s["degree"], s["level"]) for s in p3.meta["solves"]] == [(2, 1), (3, 1)]
+    u3 = reference_static(scene.mesh, scene.body_material(), scene.problem, degree=3, refine=1, estimate=False)[
+        "displacement"
+    ]
+    bar = P3_SAFETY * np.linalg.norm(p3.displacement[0] - u3) / np.linalg.norm(u3)
+    assert p3.meta["ref_err_estimate"] == pytest.approx(bar, rel=1e-6)
+    assert p3.meta["ref_err_estimate"] < difference.meta["ref_err_estimate"]
+
+
+def test_the_p3_estimate_of_a_dynamic_scene_is_one_line(tmp_path):
+    from verification.scene import SceneError
+
+    p = tmp_path / "swing.toml"
+    p.write_text(SWING + '[time]\nmode = "dynamic"\nend = 0.02\noutput_every = 0.01\n')
+    with pytest.raises(SceneError, match="p3 estimate checks a static P2 reference; this scene is dynamic"):
+        reference_result(load_scene(p), estimate="p3")

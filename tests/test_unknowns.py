@@ -184,3 +184,27 @@ def test_two_steps_of_one_model_are_one_refined_run(monkeypatch):
         Scene(), {"level": 1, "plans": [{**plan, "row": r} for r in rows]}, "rel_l2", 0.05, 60.0, False
     )
     assert calls == [("mass-spring", 0.9), ("linear-tm", 0.9)] and len(out[1]) == 2
+
+
+def test_the_truth_is_first_checked_against_p3_then_refined(monkeypatch):
+    """A static reference whose bar (0.03) is over 0.3 of 5%: P3 on its mesh is predicted at 10 x its
+    finest solve (1 + 3.1^2: 1 s there), within the budget, so the truth is first checked against P3;
+    sharp then (0.012), it is not refined, and the answer says how it was made sharp."""
+    solved = []
+
+    def reference_result(scene, **opts):
+        solved.append(dict(opts))
+        bar = 0.012 if opts.get("estimate") == "p3" else 0.03
+        meta = {"estimator": "p3" if opts.get("estimate") == "p3" else "difference", "degree": 2, "mode": "static"}
+        return _Ref(**meta, ref_err_estimate=bar)
+
+    monkeypatch.setattr(truth, "reference_result", reference_result)
+
+    class Scene:
+        name = "s"
+
+    opts, said = truth.sharp_reference(Scene, 0.05, "rel_l2")
+    assert [o.get("estimate") for o in solved] == [True, "p3"] and opts["refine"] == 0
+    assert said["sharp"] and said["tightened"] == 0 and said["estimate"] == "p3"
+    assert "checked against P3 on its mesh" in said["why"]
+    assert truth.p3_cost({"estimator": "p3", "degree": 2, "solves": [{"n_dofs": 1, "wall_s": 1.0}]}) is None

@@ -19,7 +19,7 @@ from meshes.io import atomic_savez
 
 from ..cache import REFERENCE_CODE, cache_dir, code_digest, digest, git_commit, library_versions, read_cached
 from ..progress import log
-from ..scene import Scene
+from ..scene import Scene, SceneError
 from .results import Result
 
 #: Bumped whenever the reference's numbers can change for the same inputs, so old cache entries die.
@@ -121,7 +121,7 @@ def _save_solved(path: Path, problems: list, meta: dict) -> None:
     atomic_savez(path, meta=np.array(json.dumps(meta)), **arrays)
 
 
-def _restore_solved(memo: tuple, path: Path, solved: Scene, material, degree: int, refine: int) -> None:
+def _restore_solved(memo: tuple, path: Path, solved: Scene, material, degree: int, refine: int, estimate) -> None:
     """Into _SOLVED, the solve kept at ``path`` (_save_solved) rebuilt; nothing if it cannot be."""
     from reference.driver import restore_static
 
@@ -133,7 +133,7 @@ def _restore_solved(memo: tuple, path: Path, solved: Scene, material, degree: in
     if kept is None:  # a damaged file: solve again
         return
     arrays, meta = kept
-    problems = restore_static(solved.mesh, material, solved.problem, degree, refine, arrays)
+    problems = restore_static(solved.mesh, material, solved.problem, degree, refine, arrays, estimate)
     if problems is not None:
         _SOLVED[memo] = problems, meta
         while len(_SOLVED) > SOLVED_KEPT:
@@ -144,7 +144,7 @@ def reference_result(
     scene: Scene,
     degree: int = 2,
     refine: int = 0,
-    estimate: bool = True,
+    estimate: bool | str = True,
     use_cache: bool = True,
     newton_steps: int = 1,
     min_increment: float = 1e-4,
@@ -162,6 +162,8 @@ def reference_result(
     solver chosen by size (``reference.solver.solver_options``)."""
     from mpi4py import MPI
 
+    if estimate == "p3" and scene.time.mode == "dynamic":
+        raise SceneError(f"{scene.path}: the p3 estimate checks a static P2 reference; this scene is dynamic")
     path = reference_path(scene, degree, refine, estimate, newton_steps, min_increment, own_mesh, petsc_options)
     cached = read_cached(path, Result.load) if use_cache else None
     if cached is not None and (changed := solver_changed(cached.meta, petsc_options)):
@@ -181,7 +183,8 @@ def reference_result(
     mesh = scene.mesh
     solved = scene if own_mesh or not scene.level else scene.base
     where = f" on the base mesh at the {mesh.n_vertices} vertices of level {scene.level}" if solved is not scene else ""
-    log(f"reference: {scene.name} P{degree} refine {refine}{' + estimate' if estimate else ''}{where} ...")
+    check = {True: " + estimate", "p3": " + its check by P3"}.get(estimate, "")
+    log(f"reference: {scene.name} P{degree} refine {refine}{check}{where} ...")
     t0 = time.perf_counter()
     if scene.time.mode == "dynamic":
         sol = _solve_dynamic(scene, solved, degree, refine, estimate, petsc_options)
@@ -255,7 +258,7 @@ def _solve_static(
         reference_path(solved, degree, refine, estimate, newton_steps, min_increment, False, petsc_options)
     )
     if use_cache and memo not in _SOLVED and serial and solved is not scene and fields.exists():
-        _restore_solved(memo, fields, solved, solved.body_material(), degree, refine)
+        _restore_solved(memo, fields, solved, solved.body_material(), degree, refine, estimate)
     if use_cache and memo in _SOLVED:  # use_cache=False asks for a solve (the benchmarks time it)
         log("reference: the same problem was solved before: evaluated at these vertices")
         return evaluate_static(*_SOLVED[memo], at)
