@@ -649,3 +649,15 @@ def test_the_p3_estimate_of_a_dynamic_scene_is_one_line(tmp_path):
     p.write_text(SWING + '[time]\nmode = "dynamic"\nend = 0.02\noutput_every = 0.01\n')
     with pytest.raises(SceneError, match="p3 estimate checks a static P2 reference; this scene is dynamic"):
         reference_result(load_scene(p), estimate="p3")
+
+
+def test_the_reference_command_takes_the_p3_estimate(tmp_path, capsys):
+    import json
+
+    from verification.cli import main
+
+    p = tmp_path / "swing.toml"
+    p.write_text(SWING)
+    assert main(["reference", str(p), "--estimate", "p3", "--json"]) == 0
+    meta = json.loads(capsys.readouterr().out)["meta"]
+    assert meta["estimator"] == "p3" and [s["degree"] for s in meta["solves"]] == [2, 3]

@@ -203,7 +203,7 @@ def cmd_reference(args) -> int:
         scene,
         degree=args.degree,
         refine=args.refine,
-        estimate=not args.no_estimate,
+        estimate=False if args.no_estimate else ("p3" if args.estimate == "p3" else True),
         use_cache=not args.no_cache,
         newton_steps=args.load_steps,
         petsc_options=args.petsc_option,

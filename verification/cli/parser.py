@@ -133,6 +133,13 @@ def _reference(sub) -> None:
     s.add_argument("--out", help="write the result file (.npz)")
     s.add_argument("--vtk", help=VTK_HELP)
     s.add_argument("--no-estimate", action="store_true", help="skip the refined solve behind ref_err_estimate")
+    s.add_argument(
+        "--estimate",
+        choices=("difference", "p3"),
+        default="difference",
+        help="the bar: the difference of two refinements, or twice the distance to P3 on the returned mesh "
+        "(static P2; docs/effectivity.md)",
+    )
     s.add_argument("--petsc-option", type=_petsc_option, action=_Merge, metavar="KEY=VALUE", help=PETSC_HELP)
     s.add_argument("--no-cache", action="store_true")
     s.add_argument("--json", action="store_true")
