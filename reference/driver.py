@@ -40,13 +40,12 @@ from .progress import Heartbeat, line
 
 #: The ``p3`` estimate's safety factor (module docstring).
 P3_SAFETY = 2.0
-#: What ``estimate`` may be: False (none), True (P2 at R and R + 1) or "p3" (P2 and P3 at R + 1).
-ESTIMATES = (False, True, "p3")
 
 
 def levels_of(degree: int, refine: int, estimate) -> list[tuple[int, int]]:
-    """The (degree, refinement) of each solve of a static reference, the returned one first for "p3" and
-    last otherwise (``ESTIMATES``)."""
+    """The (degree, refinement) of each solve of a static reference: ``estimate`` False, the one returned;
+    True, refinements R and R + 1 (the finer returned, last); "p3", P2 and P3 at R + 1 (the P2 returned,
+    first)."""
     if estimate == "p3":
         if degree != 2:
             raise ValueError(f"estimate p3 checks a P2 reference against P3; degree is {degree}")
