@@ -109,8 +109,8 @@ def solve_static(
                 raise
             # the level behind the estimate failed where the solution it checks converged: that solution
             # is kept, said to be unverified, and the reason is kept with it
-            unchecked = f"the check (P{deg} at refine {level}) found no equilibrium ({exc})"
-            line(f"reference: {unchecked}; returning the first solve, whose error is not estimated", comm.rank)
+            unchecked = f"the check at refine {level} found no equilibrium (P{deg}: {exc})"
+            line(f"reference: {unchecked}; returning refine {coarse.refine}, whose error is not estimated", comm.rank)
             break
         coarse = ep
         problems.append(ep)

@@ -67,6 +67,35 @@ def _blocking(bars: list[tuple[str, float | None, float]]) -> list[tuple[str, fl
     return [b for b in bars if b[1] is None or b[1] > SHARP * b[2]]
 
 
+def _why(bars: list, over: list, tightened: int, p3: bool, nxt: dict | None) -> str:
+    """What the truth says of itself: each bar within its share of the tolerance and how it was made so,
+    or each that blocks (unknown, or over) and what a sharper truth would take."""
+    more = f" (refined {refined_times(tightened)} more for it)" if tightened else ""
+    more += " (checked against P3 on its mesh)" if p3 else ""
+    if not over:
+        shown = (f"the reference's bar on {n} {b:.3g} is within {SHARP:g} of its tolerance {t:g}" for n, b, t in bars)
+        return "; ".join(shown) + more
+    parts = [
+        f"the reference's bar on {n} is unknown (it has no error estimate)"
+        if b is None
+        else f"the reference's bar on {n} {b:.3g} is over {SHARP:g} of its tolerance {t:g}"
+        + (f" even refined {refined_times(tightened)} more" if tightened else "")
+        + (" and checked against P3" if p3 else "")
+        for n, b, t in over
+    ]
+    why = "; ".join(parts)
+    if nxt is not None:
+        why += (
+            f"; a sharper one (P2 refined once more, {nxt['n_dofs']} dofs) is predicted to take {nxt['seconds']:.0f} s"
+        )
+        why += (
+            f", over the advisor's {TIGHTEN_BUDGET_S:.0f} s"
+            if nxt["seconds"] > TIGHTEN_BUDGET_S
+            else f"; the advisor refines its truth {refined_times(TIGHTEN_LEVELS)} at most"
+        )
+    return why + ": candidates whose interval contains the tolerance are undecided"
+
+
 def sharp_reference(scene: Scene, tol: float, metric: str, haptic: dict | None = None) -> tuple[dict, dict]:
     """The reference the advice judges with (``reference_result`` options) and what it says of itself:
     REFERENCE_DEFAULTS, made sharper while a bar the question needs is over SHARP of its tolerance: first
@@ -113,31 +142,7 @@ def sharp_reference(scene: Scene, tol: float, metric: str, haptic: dict | None =
         ref, tightened, nxt = reference_result(scene, **opts), tightened + 1, None
         bars = _bars(ref.meta, needs)
     over = _blocking(bars)
-    more = f" (refined {refined_times(tightened)} more for it)" if tightened else ""
-    more += " (checked against P3 on its mesh)" if opts.get("estimate") == "p3" else ""
-    if not over:
-        why = "; ".join(
-            f"the reference's bar on {n} {b:.3g} is within {SHARP:g} of its tolerance {t:g}" for n, b, t in bars
-        )
-        why += more
-    else:
-        parts = [
-            f"the reference's bar on {n} is unknown (it has no error estimate)"
-            if b is None
-            else f"the reference's bar on {n} {b:.3g} is over {SHARP:g} of its tolerance {t:g}"
-            + (f" even refined {refined_times(tightened)} more" if tightened else "")
-            + (" and checked against P3" if opts.get("estimate") == "p3" else "")
-            for n, b, t in over
-        ]
-        why = "; ".join(parts)
-        if nxt is not None:
-            why += f"; a sharper one (P2 refined once more, {nxt['n_dofs']} dofs) is predicted to take {nxt['seconds']:.0f} s"
-            why += (
-                f", over the advisor's {TIGHTEN_BUDGET_S:.0f} s"
-                if nxt["seconds"] > TIGHTEN_BUDGET_S
-                else f"; the advisor refines its truth {refined_times(TIGHTEN_LEVELS)} at most"
-            )
-        why += ": candidates whose interval contains the tolerance are undecided"
+    why = _why(bars, over, tightened, opts.get("estimate") == "p3", nxt)
     return opts, {
         "bar": bars[0][1],
         "force_bar": bars[1][1] if haptic else None,
