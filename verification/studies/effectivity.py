@@ -4,13 +4,15 @@ a cut, large rotation, a material jump, a manufactured solution).
 
 Each case is a scene made coarse enough that a truth two levels finer than the returned solution is
 affordable (P2 at refinement 3 for the returned refinement 1; the manufactured solution's exact field
-instead; the suite's tests return refinement 0 against P2 at 2, a coarser and so harder test). The reference returns P2 at refinement 1, and each estimator of ``ESTIMATORS`` bounds its
-relative error over the scene's vertices (the norm of ``reference.driver``'s bar):
+instead; the suite's tests return refinement 0 against P2 at 2, a coarser and so harder test). The
+reference returns P2 at refinement 1, and each estimator of ``ESTIMATORS`` bounds its relative error over
+the scene's vertices (the norm of ``reference.driver``'s bar):
 
-- ``difference``: |u_0 - u_1| / |u_1|, P2 at refinements 0 and 1, the reference's bar today. It bounds
+- ``difference``: |u_0 - u_1| / |u_1|, P2 at refinements 0 and 1, the reference's default bar. It bounds
   the error where refining at least halves it, and is 2^p - 1 times the error where P2 converges at
   order p (7 at p = 3);
-- ``p3``: P3_SAFETY |u_1 - u_1^P3| / |u_1^P3|, the difference to P3 on the same mesh. It is the error
+- ``p3``: P3_SAFETY |u_1 - u_1^P3| / |u_1^P3|, the difference to P3 on the same mesh (the reference's
+  ``estimate = "p3"``, which the advisor asks for first where a bar blocks). It is the error
   itself, within the P3 solution's own error: within (1 -/+ r) of it, r = e(P3) / e(P2) on that mesh,
   so the safety factor keeps it above the error while r < 1 - 1 / P3_SAFETY.
 
