@@ -22,7 +22,7 @@ def test_the_p3_bar_is_over_the_error_and_within_three_times_it(case):
     assert 1.0 <= row["effectivity"]["p3"] <= 3.0, row
 
 
-def test_every_case_is_a_scene_that_reads(tmp_path):
+def test_every_case_is_a_scene_that_reads():
     """Each case's edits make a scene (a misspelt key or a region the coarse mesh misses fails here,
     not half an hour into the table)."""
     from verification.studies.effectivity import case_scene

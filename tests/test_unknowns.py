@@ -69,9 +69,13 @@ def test_own_part_is_unknown_without_the_model_part():
 
 
 class _Scene:
-    """What proposal._plans and run_plans read of a scene: its name, time mode and mesh's sizes."""
+    """What proposal._plans, run_plans, propose_mesh and sharp_reference read of a scene: its name, time
+    mode, mesh's sizes and refined scenes (itself: the stubs answer the same at every level)."""
 
     name = "a scene"
+
+    def refined(self, level):
+        return self
 
     class time:
         mode = "static"
@@ -102,16 +106,12 @@ def test_a_mesh_proposal_without_the_references_bar_proposes_nothing_and_says_wh
         def __init__(self, scale):
             self.displacement = scale * np.ones((1, 3, 3))
 
-    class Scene(_Scene):
-        def refined(self, level):
-            return self
-
     # the truth, and P1 on the mesh refined once 10% from it: the mesh's part falls at order 2
     truth_, fine = Solved(1.0), Solved(0.9)
     monkeypatch.setattr(proposal, "reference_result", lambda scene, **opts: fine if opts.get("own_mesh") else truth_)
-    monkeypatch.setattr(Scene.mesh, "n_vertices", 3)
+    monkeypatch.setattr(_Scene.mesh, "n_vertices", 3)
     rows = [_row(error_budget={"mesh": 0.4, "model": 0.01, "time": None})]
-    out = proposal.propose_mesh(Scene(), rows, "rel_l2", 0.05, 60.0, False, None, None)
+    out = proposal.propose_mesh(_Scene(), rows, "rel_l2", 0.05, 60.0, False, None, None)
     assert out["level"] is None and "the reference's bar is unknown" in out["why"]
 
 
@@ -126,10 +126,7 @@ def test_the_sharp_truth_names_an_unknown_bar_and_does_not_refine_for_it(monkeyp
     solved = []
     monkeypatch.setattr(truth, "reference_result", lambda scene, **opts: solved.append(opts) or _Ref())
 
-    class Scene:
-        name = "s"
-
-    _, said = truth.sharp_reference(Scene, 0.05, "rel_l2")
+    _, said = truth.sharp_reference(_Scene, 0.05, "rel_l2")
     assert len(solved) == 1 and not said["sharp"] and said["bar"] is None
     assert "the reference's bar on rel_l2 is unknown" in said["why"]
 
@@ -148,15 +145,12 @@ def test_the_haptic_truth_tightens_the_forces_bar_and_names_it_when_it_blocks(mo
 
     monkeypatch.setattr(truth, "reference_result", reference_result)
 
-    class Scene:
-        name = "s"
-
-    _, said = truth.sharp_reference(Scene, 0.05, "rel_l2", {"rate": 1000.0, "force_tol": 0.1})
+    _, said = truth.sharp_reference(_Scene, 0.05, "rel_l2", {"rate": 1000.0, "force_tol": 0.1})
     assert solved == [0, 1] and said["tightened"] == 1 and said["blocking"] == ["the tool force"]
     assert said["force_bar"] == 0.06 and "the reference's bar on the tool force 0.06 is over 0.3" in said["why"]
     # without the haptic question the shape's bar alone is asked for: sharp at once
     bars = iter([(0.004, 0.18)])
-    _, said = truth.sharp_reference(Scene, 0.05, "rel_l2")
+    _, said = truth.sharp_reference(_Scene, 0.05, "rel_l2")
     assert said["sharp"] and said["tightened"] == 0 and said["force_bar"] is None
 
 
@@ -170,10 +164,6 @@ def test_two_steps_of_one_model_are_one_refined_run(monkeypatch):
         calls.append((model, fraction))
         return Row("a scene", model, integrator, "ok", rel_l2=0.5, ref_err_estimate=1e-3, dt=1e-5, step_us=1.0)
 
-    class Scene(_Scene):
-        def refined(self, level):
-            return self
-
     monkeypatch.setattr(proposal, "compare_or_unsettled", run)
     rows = [
         Row("a scene", m, "symplectic-euler", "ok", dt=1e-5, fraction=f, step_us=1.0, settle_steps=10)
@@ -181,7 +171,7 @@ def test_two_steps_of_one_model_are_one_refined_run(monkeypatch):
     ]
     plan = {"hopeful": True, "fits_memory": True, "builds_in_time": True, "level": 1}
     out = proposal.run_plans(
-        Scene(), {"level": 1, "plans": [{**plan, "row": r} for r in rows]}, "rel_l2", 0.05, 60.0, False
+        _Scene(), {"level": 1, "plans": [{**plan, "row": r} for r in rows]}, "rel_l2", 0.05, 60.0, False
     )
     assert calls == [("mass-spring", 0.9), ("linear-tm", 0.9)] and len(out[1]) == 2
 
@@ -200,10 +190,7 @@ def test_the_truth_is_first_checked_against_p3_then_refined(monkeypatch):
 
     monkeypatch.setattr(truth, "reference_result", reference_result)
 
-    class Scene:
-        name = "s"
-
-    opts, said = truth.sharp_reference(Scene, 0.05, "rel_l2")
+    opts, said = truth.sharp_reference(_Scene, 0.05, "rel_l2")
     assert [o.get("estimate") for o in solved] == [True, "p3"] and opts["refine"] == 0
     assert said["sharp"] and said["tightened"] == 0 and said["estimate"] == "p3"
     assert "checked against P3 on its mesh" in said["why"]

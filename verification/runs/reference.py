@@ -43,8 +43,7 @@ def solver_changed(meta: dict, petsc_options: dict | None) -> str:
         n = s.get("n_dofs")
         if n is None:
             continue
-        linear = s.get("solver") == "linear" or bool(s.get("linear"))
-        now = solver_family(solver_options(n, petsc_options, linear=linear))
+        now = solver_family(solver_options(n, petsc_options, linear=bool(s.get("linear"))))
         if s.get("chosen") != now:
             then = s.get("chosen") or "unrecorded"
             return f"its {n}-dof solve was {then}; this machine now chooses {now} for it"

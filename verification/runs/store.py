@@ -160,11 +160,8 @@ def largest_stable_fraction(
     from verification.engines.builtin import stable_fraction
     from verification.inputs import scene_inputs
 
-    path = (
-        cache_dir()
-        / "runs"
-        / f"{scene.name}-stable-{stable_key(scene, model_name, integrator, steps, iterations)}.json"
-    )
+    key = stable_key(scene, model_name, integrator, steps, iterations)
+    path = cache_dir() / "runs" / f"{scene.name}-stable-{key}.json"
     kept = read_cached(path, _read_json) if use_cache else None
     if kept is not None:
         return kept

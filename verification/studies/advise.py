@@ -230,9 +230,9 @@ def advise(
     if choice is None:
         blocked_by_mesh = any(
             r.status == "ok"
-            and (r.error_budget or {}).get("mesh") is not None
-            and own_part(r) is not None
-            and r.error_budget["mesh"] > tol - own_part(r)
+            and (mesh := (r.error_budget or {}).get("mesh")) is not None
+            and (own := own_part(r)) is not None
+            and mesh > tol - own
             for r in rows
         )
         if blocked_by_mesh:

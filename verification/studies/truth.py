@@ -101,15 +101,16 @@ def sharp_reference(scene: Scene, tol: float, metric: str, haptic: dict | None =
     REFERENCE_DEFAULTS, made sharper while a bar the question needs is over SHARP of its tolerance: first
     its bar checked against P3 on the same mesh (``estimate = "p3"``, static scenes) where that is
     predicted within TIGHTEN_BUDGET_S (``p3_cost``), then refined by up to TIGHTEN_LEVELS while the finer
-    one is predicted within it (``reference_cost``). The
-    question needs the bar on ``metric`` against ``tol`` and, with a haptic loop (``haptic``: {"rate",
-    "force_tol"}), the bar on the tool force against ``force_tol``: a force tolerance under an untightened
-    force bar could never be met. A bar the reference does not have is unknown, and refining does not
-    make one: the truth is then not sharp, and ``why`` names it.
+    one is predicted within it (``reference_cost``). The question needs the bar on ``metric`` against
+    ``tol`` and, with a haptic loop (``haptic``: {"rate", "force_tol"}), the bar on the tool force against
+    ``force_tol``: a force tolerance under an untightened force bar could never be met. A bar the
+    reference does not have is unknown, and refining does not make one: the truth is then not sharp, and
+    ``why`` names it.
 
     Returns (options, {"bar": the bar on ``metric``, "force_bar": on the tool force (None without
-    ``haptic``), "refine", "sharp", "tightened", "next": the cost of one more refinement or None,
-    "blocking": the names of the bars that stay over, "why"})."""
+    ``haptic``), "refine", "sharp", "tightened", "estimate": "p3" where it was checked against P3,
+    "next": the cost of one more refinement or None, "blocking": the names of the bars that stay over,
+    "why"})."""
     opts = dict(REFERENCE_DEFAULTS)
     shape_key = "ref_reaction_err_estimate" if metric == "reaction_rel_err" else "ref_err_estimate"
     needs = [(metric, shape_key, tol)]
