@@ -35,38 +35,25 @@ from meshes import TetMesh
 from realtime.material import Material, Materials
 
 from .errors import ReferenceSolveError
+from .levels import P3_SAFETY, relative, solve_level
 from .problem import Problem
 from .progress import Heartbeat, line
-
-#: The ``p3`` estimate's safety factor (module docstring).
-P3_SAFETY = 2.0
 
 
 def levels_of(degree: int, refine: int, estimate) -> list[tuple[int, int]]:
     """The (degree, refinement) of each solve of a static reference: ``estimate`` False, the one returned;
     True, refinements R and R + 1 (the finer returned, last); "p3", P2 and P3 at R + 1 (the P2 returned,
     first)."""
-    if estimate == "p3":
+    if estimate in ("p3", "adaptive"):
         if degree != 2:
-            raise ValueError(f"estimate p3 checks a P2 reference against P3; degree is {degree}")
-        return [(2, refine + 1), (3, refine + 1)]
+            raise ValueError(f"estimate {estimate} checks a P2 reference against P3; degree is {degree}")
+        # adaptive: the returned level's, on its adapted mesh (which ``solved_fields`` keeps)
+        return [(2, refine + 1), (3, refine + 1)] if estimate == "p3" else [(2, refine), (3, refine)]
     return [(degree, refine), (degree, refine + 1)] if estimate else [(degree, refine)]
 
 
 def _materials_of(material: Material | Materials) -> tuple:
     return material.materials if isinstance(material, Materials) else (material,)
-
-
-def _solve_level(ep, coarse, infos: list, newton: dict, petsc_options) -> dict:
-    """One level's static solve: the linear law's one solve, or Newton (from ``coarse``'s solution at
-    full load where there is one); a check level gives up sooner than the level it checks, after 10
-    times that level's time."""
-    if ep.linear:
-        return ep.solve(petsc_options=petsc_options)
-    if coarse is not None:
-        ep.start_from(coarse)
-    limit = {} if not infos else {"time_limit": max(120.0, 10.0 * infos[-1]["wall_s"])}
-    return ep.solve(**newton, start_at_full_load=coarse is not None, petsc_options=petsc_options, **limit)
 
 
 def solve_static(
@@ -82,8 +69,12 @@ def solve_static(
     min_increment: float = 1e-4,
     nested: bool = True,
     petsc_options: dict | None = None,
+    adapt: dict | None = None,
 ) -> dict:
     """Solve, evaluate at ``points`` (K, 3) m (default the scene mesh's vertices), describe the run.
+
+    ``estimate = "adaptive"``: ``reference.adaptive.solve_adaptive`` from ``refine``, with ``adapt``'s
+    target, budget_s and max_levels; its levels' meshes are then in the dict's ``levels`` (rank 0).
 
     ``nested``: the refined solve behind the estimate starts from the coarse solution at full load
     (nested iteration) instead of from rest with its own load path; it is the same discrete problem, so
@@ -93,17 +84,65 @@ def solve_static(
     """
     import dolfinx
 
+    newton = {"steps": newton_steps, "min_increment": min_increment}
+    levels, adaptive = None, None
+    if estimate == "adaptive":
+        from .adaptive import solve_adaptive
+
+        run = solve_adaptive(
+            mesh,
+            material,
+            problem,
+            refine,
+            comm=comm,
+            newton_steps=newton_steps,
+            min_increment=min_increment,
+            points=points,
+            petsc_options=petsc_options,
+            **(adapt or {}),
+        )
+        problems, infos, levels, adaptive = run["problems"], run["solves"], run["levels"], run["adaptive"]
+        unchecked = None if len(problems) > 1 else adaptive["stop"]
+    else:
+        problems, infos, unchecked = _solve_levels(
+            mesh, material, problem, degree, refine, estimate, comm, newton, nested, petsc_options
+        )
+    meta = {
+        "solver": "reference",
+        "law": problems[0].law,
+        "degree": degree,
+        "refine": refine,
+        "estimator": {"p3": "p3", "adaptive": "adaptive"}.get(estimate, "difference" if estimate else None),
+        "mpi_ranks": comm.size,
+        "solves": infos,
+        "petsc_options": infos[-1].get("petsc_options"),  # the finest solve's: the choice goes by size
+        "petsc_options_per_solve": [i.get("petsc_options") for i in infos],
+        "versions": {"dolfinx": dolfinx.__version__, "python": platform.python_version()},
+    }
+    meta["min_det_F"] = infos[-1].get("min_det_F")
+    if adaptive is not None:
+        meta["adaptive"] = adaptive
+    if unchecked:
+        meta["unchecked"] = unchecked
+    answer = evaluate_static(problems, meta, mesh.points if points is None else points)
+    return {**answer, "problems": problems, "levels": levels}
+
+
+def _solve_levels(mesh, material, problem, degree, refine, estimate, comm, newton, nested, petsc_options) -> tuple:
+    """The uniform levels of ``solve_static`` (``levels_of``): the solved problems, each solve's record,
+    and why the solution is unverified (the check level found no equilibrium) or None."""
     from .fem import ElasticityProblem
 
     problems, infos = [], []
     coarse = unchecked = None
     for deg, level in levels_of(degree, refine, estimate):
         t0 = time.perf_counter()
-        ep = ElasticityProblem(mesh, material, problem, degree=deg, refine=level, comm=comm)
+        same = coarse is not None and coarse.refine == level  # P3 beside P2: its mesh, from its solution
+        domain = coarse.domain if same else None
+        ep = ElasticityProblem(mesh, material, problem, degree=deg, refine=level, comm=comm, domain=domain)
         try:
-            newton = {"steps": newton_steps, "min_increment": min_increment}
-            start = coarse if nested and coarse is not None and coarse.degree == deg else None
-            info = _solve_level(ep, start, infos, newton, petsc_options)
+            start = coarse if nested and coarse is not None and (coarse.degree == deg or same) else None
+            info = solve_level(ep, start, infos, newton, petsc_options)
         except ReferenceSolveError as exc:
             if coarse is None:  # nothing converged: nothing is known
                 raise
@@ -123,23 +162,7 @@ def solve_static(
             **ep.timings,
         )
         infos.append(info)
-    meta = {
-        "solver": "reference",
-        "law": problems[0].law,
-        "degree": degree,
-        "refine": refine,
-        "estimator": "p3" if estimate == "p3" else ("difference" if estimate else None),
-        "mpi_ranks": comm.size,
-        "solves": infos,
-        "petsc_options": infos[-1].get("petsc_options"),  # the finest solve's: the choice goes by size
-        "petsc_options_per_solve": [i.get("petsc_options") for i in infos],
-        "versions": {"dolfinx": dolfinx.__version__, "python": platform.python_version()},
-    }
-    meta["min_det_F"] = infos[-1].get("min_det_F")
-    if unchecked:
-        meta["unchecked"] = unchecked
-    answer = evaluate_static(problems, meta, mesh.points if points is None else points)
-    return {**answer, "problems": problems}
+    return problems, infos, unchecked
 
 
 def solved_fields(problems: list) -> dict[str, np.ndarray]:
@@ -149,6 +172,8 @@ def solved_fields(problems: list) -> dict[str, np.ndarray]:
     for k, ep in enumerate(problems):
         out[f"u{k}"] = ep.u.x.array.copy()
         out[f"x{k}"] = ep.V.tabulate_dof_coordinates().copy()
+    if getattr(problems[0], "adapted", None) is not None:  # an adapted mesh: no refine count rebuilds it
+        out["mesh_x"], out["mesh_cells"] = problems[0].adapted
     return out
 
 
@@ -167,10 +192,14 @@ def restore_static(
     partition): the caller then solves."""
     from .fem import ElasticityProblem
 
-    problems = []
+    problems, domain = [], None
+    if "mesh_x" in fields:
+        from .adaptive import distributed
+
+        domain = distributed(fields["mesh_x"], fields["mesh_cells"], MPI.COMM_SELF)
     solved = levels_of(degree, refine, estimate)[: sum(1 for key in fields if key.startswith("u"))]
     for k, (deg, level) in enumerate(solved):
-        ep = ElasticityProblem(mesh, material, problem, degree=deg, refine=level, comm=MPI.COMM_SELF)
+        ep = ElasticityProblem(mesh, material, problem, degree=deg, refine=level, comm=MPI.COMM_SELF, domain=domain)
         x = ep.V.tabulate_dof_coordinates()
         if x.shape != fields[f"x{k}"].shape or not np.array_equal(x, fields[f"x{k}"]):
             return None
@@ -191,24 +220,30 @@ def evaluate_static(problems: list, meta: dict, points: np.ndarray) -> dict:
     reactions = [ep.reaction() for ep in problems]
     meta = copy.deepcopy(meta)
     refine = meta["refine"]
-    p3 = meta.get("estimator") == "p3"
+    adapted = meta.get("adaptive")
+    p3 = meta.get("estimator") in ("p3", "adaptive")
     kept = 0 if p3 else -1  # the returned solve: p3's P2 is the first, the difference's finer level the last
+    on = (
+        f"refine {refine + 1}"
+        if adapted is None
+        else f"the mesh adapted {adapted['returned']} times from refine {refine}"
+    )
     if len(problems) > 1:
         factor = P3_SAFETY if p3 else 1.0
         # |u_R - u_R+1| / |u_R+1| (difference), |u_R+1 - u_R+1^P3| / |u_R+1^P3| (p3): the second solve's norm
-        bars = [_relative(a[0], a[1]) for a in (values, reactions)]
+        bars = [relative(a[0], a[1]) for a in (values, reactions)]
         # None where the checking solution is zero (no load, or no tool: 0 / 0), never a zero bar
         meta["ref_err_estimate"], meta["ref_reaction_err_estimate"] = (None if b is None else factor * b for b in bars)
-        meta["returned_level"] = refine + 1
+        meta["returned_level"] = refine + 1 if adapted is None else refine
         meta["estimate"] = (
-            f"{P3_SAFETY:g} |u_R+1 - u_R+1^P3| / |u_R+1^P3| at the scene vertices (R = {refine}): the returned P2 "
+            f"{P3_SAFETY:g} |u2 - u3| / |u3| at the scene vertices, P2 and P3 on {on}: the returned P2 "
             "solution's error within P3's own on the same mesh, doubled"
             if p3
             else f"|u_R - u_R+1| / |u_R+1| at the scene vertices (R = {refine}); the returned solution is u_R+1, "
             "and the estimate bounds its relative error when refining at least halves the error"
         )
     else:
-        meta["returned_level"] = refine + 1 if p3 else refine
+        meta["returned_level"] = refine + 1 if p3 and adapted is None else refine
         meta["estimate"] = "none: reference unverified" + (f"; {meta['unchecked']}" if meta.get("unchecked") else "")
     return {"displacement": values[kept], "reaction": reactions[kept], "meta": meta}
 
@@ -219,7 +254,7 @@ def _dynamic_bars(u: tuple, r: tuple, refine: int) -> dict:
     space = float(np.linalg.norm(u[0] - u[1]) / max(np.linalg.norm(u[1]), 1e-300))
     tim = float(np.linalg.norm(u[0] - u[2]) / max(np.linalg.norm(u[2]), 1e-300))
     # the tools' force by the same rule (what a haptic verdict is judged against); none without a tool
-    f_space, f_time = _relative(r[0], r[1]), _relative(r[0], r[2])
+    f_space, f_time = relative(r[0], r[1]), relative(r[0], r[2])
     return dict(
         ref_err_estimate=space + 2.0 * tim,
         ref_err_space=space,
@@ -232,13 +267,6 @@ def _dynamic_bars(u: tuple, r: tuple, refine: int) -> dict:
         "the returned trajectory is u_R+1 at dt, and the estimate bounds its error when halving h or dt at "
         "least halves each part",
     )
-
-
-def _relative(coarse: np.ndarray, fine: np.ndarray) -> float | None:
-    """|coarse - fine| / |fine| over every entry (the tools' forces at every output time); None where the
-    finer one is zero (a scene without a tool has no force to estimate: 0 / 0)."""
-    den = float(np.linalg.norm(fine))
-    return float(np.linalg.norm(coarse - fine)) / den if den > 0 else None
 
 
 def solve_dynamic(

@@ -85,6 +85,9 @@ class ProblemForms:
         degree: Lagrange degree, 1 or 2.
         refine: uniform refinements of the mesh before discretising.
         comm: MPI communicator.
+        domain: a dolfinx mesh of the body to discretise instead of ``mesh`` refined ``refine`` times (an
+            adapted mesh, ``reference.adaptive``): a refinement of ``mesh``, whose regions and materials
+            it takes.
     """
 
     def __init__(
@@ -95,11 +98,12 @@ class ProblemForms:
         degree: int = 1,
         refine: int = 0,
         comm=MPI.COMM_WORLD,
+        domain=None,
     ):
         self.mesh, self.material, self.problem = mesh, material, problem
         self.degree, self.refine, self.comm = degree, refine, comm
         t0 = time.perf_counter()
-        self.domain = dolfinx_mesh(mesh, comm, refine)
+        self.domain = dolfinx_mesh(mesh, comm, refine) if domain is None else domain
         self._size = float(np.ptp(mesh.points, axis=0).max())  # m, the body's largest extent
         self.V = fem.VectorFunctionSpace(self.domain, ("Lagrange", degree))
         self.u = fem.Function(self.V, name="displacement")
@@ -298,7 +302,12 @@ class ProblemForms:
         """Set u to another problem's solution evaluated at this one's nodes (nested iteration: the
         refined problem starts where the coarse one ended). Collective: in parallel every rank's nodes
         (owned and ghosts) are gathered, evaluated on the coarse problem's distributed mesh by all
-        ranks, and each rank takes its own back."""
+        ranks, and each rank takes its own back. On the same mesh (P3 from P2) the solution is interpolated:
+        exact, since the coarser degree's space lies in the finer's."""
+        if coarse.domain is self.domain:
+            self.u.interpolate(coarse.u)
+            self.u.x.scatter_forward()
+            return
         nodes = self.V.tabulate_dof_coordinates()
         if self.comm.size == 1:
             self.u.x.array[:] = coarse.evaluate(nodes).ravel()

@@ -177,6 +177,20 @@ def cmd_check(args) -> int:
     return 0
 
 
+def _write_levels(target: str, name: str, res) -> None:
+    """An adaptive reference's meshes, one step of a ParaView series a level, each with its P2 displacement
+    at the vertices and its cells' indicator (--vtk)."""
+    from verification.cache import cache_dir
+    from verification.report.vtk import write_levels
+    from verification.runs.reference import levels_path, read_levels
+
+    path = levels_path(cache_dir() / "reference" / f"{res.meta['scene']}-{res.meta['cache_key']}.npz")
+    if not path.exists():
+        raise SceneError(f"--vtk: the adaptive reference's levels are not kept (solved with --no-cache?): {path}")
+    written = write_levels(target, name, read_levels(path))
+    print(f"wrote {written} (one step a level: the displacement and the indicator eta^2)", file=sys.stderr)
+
+
 def _states(scene) -> list[dict]:
     """A scene with events: each state's time, events and mesh (a cut adds vertices and boundary faces)."""
     if not scene.events:
@@ -199,14 +213,21 @@ def cmd_reference(args) -> int:
     from verification.runs.reference import reference_result
 
     scene = _scene(args)
+    estimate = False if args.no_estimate else {"p3": "p3", "adaptive": "adaptive"}.get(args.estimate, True)
+    adapt = None
+    if estimate == "adaptive":
+        adapt = {"target": args.target, "budget_s": args.budget, "max_levels": args.levels}
+    elif args.target is not None or args.budget is not None:
+        raise SceneError("--target and --budget steer --estimate adaptive; add it, or leave them out")
     res = reference_result(
         scene,
         degree=args.degree,
         refine=args.refine,
-        estimate=False if args.no_estimate else ("p3" if args.estimate == "p3" else True),
+        estimate=estimate,
         use_cache=not args.no_cache,
         newton_steps=args.load_steps,
         petsc_options=args.petsc_option,
+        adapt=adapt,
     )
     from mpi4py import MPI
 
@@ -214,6 +235,8 @@ def cmd_reference(args) -> int:
         res.save(args.out)
     if args.vtk and MPI.COMM_WORLD.rank == 0:
         _write_vtk(args.vtk, f"{scene.name}-reference", res)
+        if estimate == "adaptive":
+            _write_levels(args.vtk, f"{scene.name}-reference-levels", res)
     summary = {
         "scene": scene.name,
         "out": args.out,

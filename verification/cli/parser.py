@@ -135,10 +135,25 @@ def _reference(sub) -> None:
     s.add_argument("--no-estimate", action="store_true", help="skip the refined solve behind ref_err_estimate")
     s.add_argument(
         "--estimate",
-        choices=("difference", "p3"),
+        choices=("difference", "p3", "adaptive"),
         default="difference",
-        help="the bar: the difference of two refinements, or twice the distance to P3 on the returned mesh "
-        "(static P2; docs/effectivity.md)",
+        help="the bar: the difference of two refinements, twice the distance to P3 on the returned mesh "
+        "(static P2; docs/effectivity.md), or that P3 bar on a mesh refined where the error lives",
+    )
+    s.add_argument(
+        "--target",
+        type=_positive,
+        metavar="BAR",
+        help="--estimate adaptive: refine until the bar is at most BAR (default: until --budget or --levels)",
+    )
+    s.add_argument(
+        "--budget",
+        type=_positive,
+        metavar="S",
+        help="--estimate adaptive: stop before a level predicted to end past S seconds (default: none)",
+    )
+    s.add_argument(
+        "--levels", type=_count, default=6, metavar="N", help="--estimate adaptive: at most N refinements (default 6)"
     )
     s.add_argument("--petsc-option", type=_petsc_option, action=_Merge, metavar="KEY=VALUE", help=PETSC_HELP)
     s.add_argument("--no-cache", action="store_true")

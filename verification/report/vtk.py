@@ -59,12 +59,49 @@ def write_series(
             raise ValueError(
                 f"field {key}: shape {values.shape} does not match {len(times)} times x {len(points)} points"
             )
-    entries = []
-    for k, t in enumerate(times):
-        vtu = pvd.parent / f"{pvd.stem}_{k:06d}.vtu"
-        grid = meshio.Mesh(
+    grids = [
+        meshio.Mesh(
             points, [("tetra", tets)], point_data={key: np.ascontiguousarray(v[k]) for key, v in fields.items()}
         )
+        for k in range(len(times))
+    ]
+    return _write_collection(pvd, times, grids)
+
+
+def write_levels(target: str | os.PathLike, name: str, levels: list[dict]) -> Path:
+    """An adaptive reference's levels (``verification.runs.reference.read_levels``) as a series whose step k
+    is level k: its mesh, the P2 displacement (m) at its vertices and, as cell data, the indicator eta^2
+    (J) that chose the next level's cells (zero where that level's P3 check found no equilibrium).
+    Returns the .pvd path."""
+    import meshio
+
+    pvd = series_path(target, name)
+    try:
+        pvd.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SceneError(f"--vtk {target}: cannot create the directory ({exc.strerror})") from None
+    grids = []
+    for level in levels:
+        eta2 = level["eta2"] if level["eta2"] is not None else np.zeros(len(level["cells"]))
+        grids.append(
+            meshio.Mesh(
+                level["x"],
+                [("tetra", level["cells"])],
+                point_data={"displacement": np.ascontiguousarray(level["u"])},
+                cell_data={"eta2": [np.ascontiguousarray(eta2)]},
+            )
+        )
+    return _write_collection(pvd, np.arange(len(levels), dtype=float), grids)
+
+
+def _write_collection(pvd: Path, times: np.ndarray, grids: list) -> Path:
+    """Each grid (a meshio.Mesh) as ``pvd``'s step at its time, each file through a temporary name, the
+    collection last."""
+    import meshio
+
+    entries = []
+    for k, (t, grid) in enumerate(zip(times, grids, strict=True)):
+        vtu = pvd.parent / f"{pvd.stem}_{k:06d}.vtu"
         atomic_write(vtu, lambda tmp, grid=grid: meshio.write(tmp, grid, file_format="vtu"))
         entries.append(f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(vtu.name)}/>')
     text = "\n".join(

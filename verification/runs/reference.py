@@ -58,6 +58,7 @@ def reference_key(
     newton=(1, 1e-4),
     own_mesh: bool = False,
     petsc_options: dict | None = None,
+    adapt: dict | None = None,
 ) -> str:
     from reference.solver import DIRECT_MEMORY_SHARE, DIRECT_OPTIONS, GAMG_OPTIONS
 
@@ -68,6 +69,7 @@ def reference_key(
             "degree": degree,
             "refine": refine,
             "estimate": estimate,
+            **({"adapt": adapt} if adapt else {}),  # the adaptive estimate's target, budget and levels
             "newton": list(newton),
             "solver": {
                 "direct": DIRECT_OPTIONS,
@@ -98,6 +100,36 @@ def _fields_path(reference: Path) -> Path:
     return reference.with_name(reference.stem + "-fields.npz")
 
 
+def levels_path(reference: Path) -> Path:
+    """Beside an adaptive reference, its levels: each adapted mesh (vertices m, tetrahedra), its
+    indicator eta^2 (J per cell) and its P2 displacement at the vertices (m), for ``reference --vtk``."""
+    return reference.with_name(reference.stem + "-levels.npz")
+
+
+def _save_levels(path: Path, levels: list[dict]) -> None:
+    arrays = {}
+    for k, level in enumerate(levels):
+        arrays.update({f"x{k}": level["x"], f"cells{k}": level["cells"], f"u{k}": level["u"]})
+        if level["eta2"] is not None:
+            arrays[f"eta2_{k}"] = level["eta2"]
+    atomic_savez(path, **arrays)
+
+
+def read_levels(path: Path) -> list[dict]:
+    """``_save_levels``'s levels, in order (eta2 None where that level's P3 check found no equilibrium)."""
+    with np.load(path) as data:
+        n = sum(1 for key in data.files if key.startswith("cells"))
+        return [
+            {
+                "x": data[f"x{k}"],
+                "cells": data[f"cells{k}"],
+                "u": data[f"u{k}"],
+                "eta2": data[f"eta2_{k}"] if f"eta2_{k}" in data.files else None,
+            }
+            for k in range(n)
+        ]
+
+
 def reference_path(
     scene: Scene,
     degree: int = 2,
@@ -107,9 +139,11 @@ def reference_path(
     min_increment: float = 1e-4,
     own_mesh: bool = False,
     petsc_options: dict | None = None,
+    adapt: dict | None = None,
 ) -> Path:
     """Where ``reference_result`` with these arguments keeps its answer."""
-    key = reference_key(scene, degree, refine, estimate, (newton_steps, min_increment), own_mesh, petsc_options)
+    newton = (newton_steps, min_increment)
+    key = reference_key(scene, degree, refine, estimate, newton, own_mesh, petsc_options, adapt)
     return cache_dir() / "reference" / f"{scene.name}-{key}.npz"
 
 
@@ -149,6 +183,7 @@ def reference_result(
     min_increment: float = 1e-4,
     own_mesh: bool = False,
     petsc_options: dict | None = None,
+    adapt: dict | None = None,
 ) -> Result:
     """The scene's reference, from the cache or solved now (and then cached). ``newton_steps`` and
     ``min_increment`` set the non-linear static solve's first load increment (1 / newton_steps) and the
@@ -158,12 +193,14 @@ def reference_result(
     evaluated at the refined vertices: the truth does not depend on the mesh a model runs on, and the
     base's solve (with its estimate) costs 8^level times less. ``own_mesh`` solves on the scene's own
     mesh instead (the error budget's P1 solution on the model's mesh). ``petsc_options`` go over the
-    solver chosen by size (``reference.solver.solver_options``)."""
+    solver chosen by size (``reference.solver.solver_options``). ``estimate = "adaptive"``: the mesh adapted
+    where the error lives (``reference.adaptive``) with ``adapt``'s target, budget_s and max_levels; its
+    levels' meshes and indicator are kept beside the result (``levels_path``)."""
     from mpi4py import MPI
 
-    if estimate == "p3" and scene.time.mode == "dynamic":
-        raise SceneError(f"{scene.path}: the p3 estimate checks a static P2 reference; this scene is dynamic")
-    path = reference_path(scene, degree, refine, estimate, newton_steps, min_increment, own_mesh, petsc_options)
+    if estimate in ("p3", "adaptive") and scene.time.mode == "dynamic":
+        raise SceneError(f"{scene.path}: the {estimate} estimate checks a static P2 reference; this scene is dynamic")
+    path = reference_path(scene, degree, refine, estimate, newton_steps, min_increment, own_mesh, petsc_options, adapt)
     cached = read_cached(path, Result.load) if use_cache else None
     if cached is not None and (changed := solver_changed(cached.meta, petsc_options)):
         log(f"reference: {path.name}: {changed}: solving it again")
@@ -174,7 +211,7 @@ def reference_result(
         from .staged import staged_reference
 
         opts = dict(degree=degree, refine=refine, estimate=estimate, use_cache=use_cache, newton_steps=newton_steps)
-        opts.update(min_increment=min_increment, own_mesh=own_mesh, petsc_options=petsc_options)
+        opts.update(min_increment=min_increment, own_mesh=own_mesh, petsc_options=petsc_options, adapt=adapt)
         res = staged_reference(scene, lambda state, points: reference_at(state, points, **opts))
         if use_cache and MPI.COMM_WORLD.rank == 0:
             res.save(path)
@@ -182,14 +219,14 @@ def reference_result(
     mesh = scene.mesh
     solved = scene if own_mesh or not scene.level else scene.base
     where = f" on the base mesh at the {mesh.n_vertices} vertices of level {scene.level}" if solved is not scene else ""
-    check = {True: " + estimate", "p3": " + its check by P3"}.get(estimate, "")
+    check = {True: " + estimate", "p3": " + its check by P3", "adaptive": " adapted, checked by P3"}.get(estimate, "")
     log(f"reference: {scene.name} P{degree} refine {refine}{check}{where} ...")
     t0 = time.perf_counter()
     if scene.time.mode == "dynamic":
         sol = _solve_dynamic(scene, solved, degree, refine, estimate, petsc_options)
         times, disp, reac = sol["times"], sol["displacement"], sol["reaction"]
     else:
-        newton = (newton_steps, min_increment)
+        newton = (newton_steps, min_increment, adapt)
         sol = _solve_static(scene, solved, degree, refine, estimate, newton, petsc_options, use_cache)
         times, disp, reac = np.zeros(1), sol["displacement"][None], sol["reaction"][None]
     meta = sol["meta"]
@@ -207,6 +244,8 @@ def reference_result(
     res = Result(mesh.points, mesh.tets, times, disp, reac, meta)
     if use_cache and MPI.COMM_WORLD.rank == 0:
         res.save(path)
+        if sol.get("levels"):
+            _save_levels(levels_path(path), sol["levels"])
     log(f"reference: done in {meta['wall_s']:.1f} s")
     return res
 
@@ -234,9 +273,10 @@ def _solve_dynamic(
     )
 
 
-def _memo(solved: Scene, degree, refine, estimate, newton_steps, min_increment, petsc_options) -> tuple:
+def _memo(solved: Scene, degree, refine, estimate, newton_steps, min_increment, petsc_options, adapt=None) -> tuple:
     """The key of a static solve kept in this process (``_SOLVED``)."""
-    return (solved.sha256(), degree, refine, estimate, newton_steps, min_increment, json.dumps(petsc_options or {}))
+    options = json.dumps([petsc_options or {}, adapt or {}], sort_keys=True)
+    return (solved.sha256(), degree, refine, estimate, newton_steps, min_increment, options)
 
 
 def _solve_static(
@@ -244,17 +284,18 @@ def _solve_static(
 ):
     """The static reference of ``solved`` (the scene, or its base) at ``points`` (default ``scene``'s
     vertices): the same problem solved before in this process (``_SOLVED``) or kept beside its cached
-    result evaluated there, else solved (and kept)."""
+    result evaluated there, else solved (and kept). ``newton``: (the first load increment's inverse,
+    the smallest increment, the adaptive estimate's options or None)."""
     at = scene.mesh.points if points is None else points
     from mpi4py import MPI
 
     from reference.driver import evaluate_static, solve_static
 
-    newton_steps, min_increment = newton
-    memo = _memo(solved, degree, refine, estimate, newton_steps, min_increment, petsc_options)
+    newton_steps, min_increment, adapt = newton
+    memo = _memo(solved, degree, refine, estimate, newton_steps, min_increment, petsc_options, adapt)
     serial = MPI.COMM_WORLD.size == 1
     fields = _fields_path(
-        reference_path(solved, degree, refine, estimate, newton_steps, min_increment, False, petsc_options)
+        reference_path(solved, degree, refine, estimate, newton_steps, min_increment, False, petsc_options, adapt)
     )
     if use_cache and memo not in _SOLVED and serial and solved is not scene and fields.exists():
         _restore_solved(memo, fields, solved, solved.body_material(), degree, refine, estimate)
@@ -272,6 +313,7 @@ def _solve_static(
         min_increment=min_increment,
         points=at,
         petsc_options=petsc_options,
+        adapt=adapt,
     )
     problems = sol.pop("problems")
     if use_cache:
@@ -311,13 +353,13 @@ def reference_at(scene: Scene, points: np.ndarray, **options) -> Result:
         return res
     degree, refine, estimate = options["degree"], options["refine"], options["estimate"]
     newton = (options.get("newton_steps", 1), options.get("min_increment", 1e-4))
-    petsc = options.get("petsc_options")
-    memo = _memo(scene, degree, refine, estimate, *newton, petsc)
-    fields = _fields_path(reference_path(scene, degree, refine, estimate, *newton, False, petsc))
+    petsc, adapt = options.get("petsc_options"), options.get("adapt")
+    memo = _memo(scene, degree, refine, estimate, *newton, petsc, adapt)
+    fields = _fields_path(reference_path(scene, degree, refine, estimate, *newton, False, petsc, adapt))
     if memo not in _SOLVED and fields.exists():
-        _restore_solved(memo, fields, scene, scene.body_material(), degree, refine)
+        _restore_solved(memo, fields, scene, scene.body_material(), degree, refine, estimate)
     if memo not in _SOLVED:  # nothing kept to evaluate: solve again there
-        sol = _solve_static(scene, scene, degree, refine, estimate, newton, petsc, False, points)
+        sol = _solve_static(scene, scene, degree, refine, estimate, (*newton, adapt), petsc, False, points)
     else:
         sol = evaluate_static(*_SOLVED[memo], points)
     return Result(

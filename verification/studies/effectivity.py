@@ -16,6 +16,12 @@ the scene's vertices (the norm of ``reference.driver``'s bar):
   itself, within the P3 solution's own error: within (1 -/+ r) of it, r = e(P3) / e(P2) on that mesh,
   so the safety factor keeps it above the error while r < 1 - 1 / P3_SAFETY.
 
+The adaptive reference (``reference.adaptive``: P2 refined where its P3 check says the error lives, the
+same P3 bar at every level) is measured beside them on its own solution: from refinement 0, adapted
+``returned`` + 1 times, so that no cell of its mesh is finer than the uniform truth's minus one level. Its row
+says its dofs, its true error against the same truth and its bar's effectivity; the manufactured case has
+no scene to adapt (its body force lives in ``reference.manufactured``), so its adaptive row is unknown.
+
 Effectivity under 1 means the bar promises less error than there is: the one thing a bar must never
 do. ``tissuebench effectivity`` writes the table (docs/effectivity.md) and its JSON with the machine,
 the commit and the date; every number in it comes from the run that wrote it.
@@ -32,7 +38,7 @@ from multiprocessing import get_context
 
 import numpy as np
 
-from reference.driver import P3_SAFETY  # the reference's own estimate, measured here
+from reference.levels import P3_SAFETY  # the reference's own estimate, measured here
 from verification.progress import log
 
 #: The refinement the reference returns (the truth is solved two levels finer).
@@ -120,8 +126,8 @@ def case_scene(case: Case):
 def _scene_solutions(scene, returned: int) -> tuple[dict, dict]:
     """P2 at refinements 0 .. ``returned`` + 2 (the truth) and P3 at ``returned``, each at the scene's
     vertices, and their sizes."""
-    from reference.driver import _solve_level
     from reference.fem import ElasticityProblem
+    from reference.levels import solve_level
 
     x = scene.mesh.points
     u, dofs, coarse = {}, {}, None
@@ -130,13 +136,36 @@ def _scene_solutions(scene, returned: int) -> tuple[dict, dict]:
         t0 = time.perf_counter()
         ep = ElasticityProblem(scene.mesh, scene.body_material(), scene.problem, degree=degree, refine=level)
         nested = coarse if degree == 2 else None
-        _solve_level(ep, nested, [], {"steps": 1, "min_increment": 1e-4}, None)
+        solve_level(ep, nested, [], {"steps": 1, "min_increment": 1e-4}, None)
         coarse = ep if degree == 2 else coarse
         u[(degree, level)], dofs[(degree, level)] = ep.evaluate(x), ep.n_dofs
         log(f"effectivity: {scene.name} P{degree} refined {level}: {ep.n_dofs} dofs, {time.perf_counter() - t0:.1f} s")
         del ep
         gc.collect()  # a solved level's factor (GB at the truth's level) goes before the next is made
     return u, dofs
+
+
+def _adaptive(scene, returned: int, truth: np.ndarray) -> dict:
+    """The adaptive reference from refinement 0, adapted ``returned`` + 1 times (module docstring), judged
+    against ``truth`` (K, 3) m at the scene's vertices: its P2 dofs, true error, bar and effectivity."""
+    from reference.adaptive import solve_adaptive
+
+    t0 = time.perf_counter()
+    run = solve_adaptive(scene.mesh, scene.body_material(), scene.problem, max_levels=returned + 1)
+    p2 = run["problems"][0]
+    x = scene.mesh.points
+    err = float(np.linalg.norm(p2.evaluate(x) - truth) / np.linalg.norm(truth))
+    records = run["adaptive"]["levels"]
+    bar = records[-1]["bar"] if len(run["problems"]) > 1 else None
+    log(f"effectivity: {scene.name} adaptive: {p2.n_dofs} dofs, {time.perf_counter() - t0:.1f} s")
+    return {
+        "dofs": p2.n_dofs,
+        "levels": len(records),
+        "true_error": err,
+        "bar": bar,
+        "effectivity": bar / err if bar is not None and err > 0 else None,
+        "stop": run["adaptive"]["stop"],
+    }
 
 
 def _manufactured_solutions(scene, returned: int) -> tuple[dict, dict, np.ndarray]:
@@ -163,12 +192,14 @@ def measure(name: str, returned: int = RETURNED) -> dict:
     case = CASES[name]
     scene = case_scene(case)
     t0 = time.perf_counter()
+    adaptive = None
     if case.scene == "manufactured":
         u, dofs, exact = _manufactured_solutions(scene, returned)
         truth, kind = exact, "exact"
     else:
         u, dofs = _scene_solutions(scene, returned)
         truth, kind = u[(2, returned + 2)], f"P2 refined {returned + 2} times"
+        adaptive = _adaptive(scene, returned, truth)
     err = float(np.linalg.norm(u[(2, returned)] - truth) / np.linalg.norm(truth))
     bars = _estimates(u, returned)
     return {
@@ -184,6 +215,7 @@ def measure(name: str, returned: int = RETURNED) -> dict:
         "true_error": err,
         "bars": bars,
         "effectivity": {k: (b / err if b is not None and err > 0 else None) for k, b in bars.items()},
+        "adaptive": adaptive,
         "wall_s": time.perf_counter() - t0,
         "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
@@ -252,19 +284,27 @@ def format_markdown(table: dict) -> str:
         "",
         "| case | vertices | dofs | true error | truth | "
         + " | ".join(f"{e} bar (effectivity)" for e in ESTIMATORS)
-        + " |",
-        "|---|---|---|---|---|" + "---|" * len(ESTIMATORS),
+        + " | adaptive dofs | adaptive true error | adaptive bar (effectivity) |",
+        "|---|---|---|---|---|" + "---|" * (len(ESTIMATORS) + 3),
     ]
     for r in table["rows"]:
         cells = " | ".join(f"{_fmt(r['bars'][e], '.3g')} ({_fmt(r['effectivity'][e])})" for e in ESTIMATORS)
+        a = r.get("adaptive") or {}
+        adaptive = (
+            f"{a.get('dofs', 'unknown')} | {_fmt(a.get('true_error'), '.3g')} | "
+            f"{_fmt(a.get('bar'), '.3g')} ({_fmt(a.get('effectivity'))})"
+        )
         lines.append(
-            f"| {r['case']} | {r['vertices']} | {r['dofs']} | {r['true_error']:.3g} | {r['truth']} | {cells} |"
+            f"| {r['case']} | {r['vertices']} | {r['dofs']} | {r['true_error']:.3g} | {r['truth']} | {cells} | {adaptive} |"
         )
     lines.append("")
     for e in ESTIMATORS:
         values = [r["effectivity"][e] for r in table["rows"] if r["effectivity"][e] is not None]
         if values:
             lines.append(f"- `{e}`: effectivity {min(values):.2f} to {max(values):.2f} over {len(values)} cases.")
+    values = [a["effectivity"] for r in table["rows"] if (a := r.get("adaptive")) and a["effectivity"] is not None]
+    if values:
+        lines.append(f"- `adaptive`: effectivity {min(values):.2f} to {max(values):.2f} over {len(values)} cases.")
     return "\n".join(lines) + "\n"
 
 
