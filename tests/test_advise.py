@@ -342,11 +342,12 @@ def test_the_cost_of_a_sharper_reference_is_predicted_from_the_levels_solved():
 
 
 @pytest.mark.parametrize("budget", [1e9, 0.0])
-def test_a_coarse_truth_is_tightened_within_the_budget_or_the_advice_says_it_cannot_decide(monkeypatch, budget):
-    """A truth whose bar (2.5%) is over SHARP of the tolerance (5%) is solved refined once more when that
-    is predicted within TIGHTEN_BUDGET_S, and the advice judges with it; past the budget the advice keeps
-    it and says what a sharper one would take. The references are stand-ins (what is tested is the
-    rule, not the solver): each refinement divides the bar by 8."""
+def test_a_coarse_dynamic_truth_is_refined_within_the_budget_or_the_advice_says_it_cannot_decide(monkeypatch, budget):
+    """A dynamic truth (no P3 check, so nothing to adapt by) whose bar (2.5%) is over SHARP of the
+    tolerance (5%) is solved refined once more when that is predicted within TIGHTEN_BUDGET_S, and the
+    advice judges with it; past the budget the advice keeps it and says what a sharper one would take.
+    The references are stand-ins (what is tested is the rule, not the solver): each refinement divides
+    the bar by 8."""
     from types import SimpleNamespace
 
     from verification.studies import truth
@@ -360,13 +361,31 @@ def test_a_coarse_truth_is_tightened_within_the_budget_or_the_advice_says_it_can
 
     monkeypatch.setattr(truth, "reference_result", fake)
     monkeypatch.setattr(truth, "TIGHTEN_BUDGET_S", budget)
-    opts, said = truth.sharp_reference(load_scene("block-press"), 0.05, "rel_l2")
+    opts, said = truth.sharp_reference(load_scene("cantilever-dynamic"), 0.05, "rel_l2")
     if budget:
         assert opts["refine"] == 1 and asked == [0, 1] and said["sharp"]
         assert said["bar"] == pytest.approx(0.025 / 8) and "refined once more" in said["why"]
     else:
         assert opts["refine"] == 0 and asked == [0] and not said["sharp"]
         assert "predicted to take" in said["why"] and "undecided" in said["why"]
+
+
+def test_the_truth_is_asked_for_what_the_undecided_candidates_cheaper_than_a_sure_pick_need():
+    """With a bar of 0.02 at 5%: a candidate measured 0.06 is undecided (0.04 to 0.08) and needs a bar
+    under its distance 0.01 to the tolerance, asked with MARGIN; a dearer undecided one (0.045) matters
+    only while no cheaper candidate surely qualifies; none undecided asks for nothing."""
+    from verification.studies.advise import needed_bar
+    from verification.studies.truth import MARGIN
+
+    def row(err, step_us):
+        r = _row(err=err, step_us=step_us, settle=10).replace(ref_err_estimate=0.02)
+        return r.replace(frame=frame_budget(r, 60.0, False))
+
+    rows = [row(0.06, 10.0), row(0.045, 50.0)]
+    assert needed_bar(rows, "rel_l2", 0.05, False) == pytest.approx(MARGIN * 0.005)
+    assert needed_bar([row(0.01, 20.0), *rows], "rel_l2", 0.05, False) == pytest.approx(MARGIN * 0.01)
+    assert needed_bar([row(0.01, 1.0), *rows], "rel_l2", 0.05, False) is None
+    assert needed_bar([row(0.2, 1.0)], "rel_l2", 0.05, False) is None
 
 
 # ---------------------------------------------------------------------------------------------

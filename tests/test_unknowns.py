@@ -131,27 +131,61 @@ def test_the_sharp_truth_names_an_unknown_bar_and_does_not_refine_for_it(monkeyp
     assert "the reference's bar on rel_l2 is unknown" in said["why"]
 
 
-def test_the_haptic_truth_tightens_the_forces_bar_and_names_it_when_it_blocks(monkeypatch):
-    """With a haptic loop the force's bar is tightened as the shape's is: the shape's 0.004 is sharp for
-    5% but the force's 0.18 is not for 10%, so the reference is refined once; refined, the force's bar
-    0.06 still blocks, and the answer names the force's bar at the value it reached."""
-    bars = iter([(0.004, 0.18), (0.002, 0.06)])
+def _adapted_ref(shape, force, returned=2, stop="the bar is within"):
+    levels = [{"level": k, "n_dofs": 1000 * 2**k} for k in range(returned + 1)]
+    meta = {"estimator": "adaptive", "adaptive": {"levels": levels, "returned": returned, "stop": stop}}
+    return _Ref(**meta, ref_err_estimate=shape, ref_reaction_err_estimate=force)
+
+
+def test_the_haptic_truth_adapts_for_the_forces_bar_and_names_it_when_it_blocks(monkeypatch):
+    """With a haptic loop the force's bar is asked for as the shape's is: the shape's 0.004 is sharp for
+    5% but the force's 0.18 is not for 10%, so the static truth is adapted where its error lives, asked
+    for the force's 0.03 (SHARP of 10%) too; adapted, the force's bar 0.06 still blocks, and the answer
+    names the force's bar at the value it reached."""
     solved = []
 
     def reference_result(scene, **opts):
-        shape, force = next(bars)
-        solved.append(opts["refine"])
-        return _Ref(ref_err_estimate=shape, ref_reaction_err_estimate=force)
+        solved.append(opts)
+        if opts.get("estimate") == "adaptive":
+            return _adapted_ref(0.002, 0.06)
+        return _Ref(ref_err_estimate=0.004, ref_reaction_err_estimate=0.18)
 
     monkeypatch.setattr(truth, "reference_result", reference_result)
 
     _, said = truth.sharp_reference(_Scene, 0.05, "rel_l2", {"rate": 1000.0, "force_tol": 0.1})
-    assert solved == [0, 1] and said["tightened"] == 1 and said["blocking"] == ["the tool force"]
+    assert [o.get("estimate") for o in solved] == [True, "adaptive"] and said["estimate"] == "adaptive"
+    assert solved[1]["adapt"]["force_target"] == pytest.approx(0.03) and said["blocking"] == ["the tool force"]
     assert said["force_bar"] == 0.06 and "the reference's bar on the tool force 0.06 is over 0.3" in said["why"]
-    # without the haptic question the shape's bar alone is asked for: sharp at once
-    bars = iter([(0.004, 0.18)])
+    # without the haptic question the shape's bar alone is asked for: sharp at once, nothing adapted
+    solved.clear()
     _, said = truth.sharp_reference(_Scene, 0.05, "rel_l2")
-    assert said["sharp"] and said["tightened"] == 0 and said["force_bar"] is None
+    assert said["sharp"] and len(solved) == 1 and said["force_bar"] is None
+
+
+def test_an_adapted_truth_is_asked_for_the_bar_the_candidates_need_and_kept_only_if_sharper(monkeypatch):
+    """A static truth whose bar (0.03) is over what the undecided candidates need (0.01) is adapted with
+    that target and judged with when its bar is sharper (0.008: sharp); one that stopped with a worse bar
+    (its next level inverted elements: 0.057) is not taken, and the answer says why it stopped."""
+    solved = []
+    adapted = [_adapted_ref(0.008, None)]
+
+    def reference_result(scene, **opts):
+        solved.append(opts)
+        return adapted[0] if opts.get("estimate") == "adaptive" else _Ref(ref_err_estimate=0.03)
+
+    monkeypatch.setattr(truth, "reference_result", reference_result)
+    opts, said = truth.sharp_reference(_Scene, 0.05, "rel_l2", target=0.01)
+    assert solved[1]["adapt"]["target"] == 0.01 and opts["estimate"] == "adaptive"
+    assert said["sharp"] and said["bar"] == 0.008 and "adapted twice where its error lives" in said["why"]
+    assert "the 0.01 the undecided candidates need" in said["why"]
+    adapted[0] = _adapted_ref(0.057, None, returned=0, stop="level 1: P3 found no equilibrium")
+    opts, said = truth.sharp_reference(_Scene, 0.05, "rel_l2", target=0.01)
+    assert opts.get("estimate") is True and said["bar"] == 0.03 and not said["sharp"]
+    assert "its bar was 0.057: level 1: P3 found no equilibrium" in said["why"]
+    # asked not to tighten, the defaults' reference is described as it is
+    solved.clear()
+    _, said = truth.sharp_reference(_Scene, 0.05, "rel_l2", tighten=False)
+    assert len(solved) == 1 and not said["sharp"] and said["bar"] == 0.03
 
 
 def test_two_steps_of_one_model_are_one_refined_run(monkeypatch):
@@ -174,24 +208,3 @@ def test_two_steps_of_one_model_are_one_refined_run(monkeypatch):
         _Scene(), {"level": 1, "plans": [{**plan, "row": r} for r in rows]}, "rel_l2", 0.05, 60.0, False
     )
     assert calls == [("mass-spring", 0.9), ("linear-tm", 0.9)] and len(out[1]) == 2
-
-
-def test_the_truth_is_first_checked_against_p3_then_refined(monkeypatch):
-    """A static reference whose bar (0.03) is over 0.3 of 5%: P3 on its mesh is predicted at 10 x its
-    finest solve (1 + 3.1^2: 1 s there), within the budget, so the truth is first checked against P3;
-    sharp then (0.012), it is not refined, and the answer says how it was made sharp."""
-    solved = []
-
-    def reference_result(scene, **opts):
-        solved.append(dict(opts))
-        bar = 0.012 if opts.get("estimate") == "p3" else 0.03
-        meta = {"estimator": "p3" if opts.get("estimate") == "p3" else "difference", "degree": 2, "mode": "static"}
-        return _Ref(**meta, ref_err_estimate=bar)
-
-    monkeypatch.setattr(truth, "reference_result", reference_result)
-
-    opts, said = truth.sharp_reference(_Scene, 0.05, "rel_l2")
-    assert [o.get("estimate") for o in solved] == [True, "p3"] and opts["refine"] == 0
-    assert said["sharp"] and said["tightened"] == 0 and said["estimate"] == "p3"
-    assert "checked against P3 on its mesh" in said["why"]
-    assert truth.p3_cost({"estimator": "p3", "degree": 2, "solves": [{"n_dofs": 1, "wall_s": 1.0}]}) is None

@@ -21,10 +21,12 @@ rate says is needed.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from verification.engines import engine_for, offered
-from verification.progress import Progress
+from verification.progress import Progress, log
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
 from verification.runs.simulate import step_time_ahead
@@ -54,7 +56,7 @@ from verification.studies.proposal import (
     run_plans,
 )
 from verification.studies.sweep import sweep
-from verification.studies.truth import sharp_reference
+from verification.studies.truth import MARGIN, SHARP, sharp_reference
 
 LINEAR_MODELS = ("linear-tm", "precomputed", "condensed")
 #: Time-stepping models tried with implicit Euler on static scenes (it settles in tens of steps) and on
@@ -220,8 +222,16 @@ def advise(
     at the haptic rate (``frame.judgement``)."""
     haptic = check_question(scene, tol, rate, metric, haptic_rate, force_tol)
     dynamic = scene.time.mode == "dynamic"
-    ref_opts, truth = sharp_reference(scene, tol, metric, haptic)
+    # the truth is made sharper only where a candidate it leaves undecided asks for it, and as far as it asks
+    ref_opts, truth = sharp_reference(scene, tol, metric, haptic, tighten=False)
     rows = _candidates(scene, metric, rate, use_cache, comm, f"advise {scene.name}", models, ref_opts, haptic)
+    need = needed_bar(rows, metric, tol, dynamic)
+    if need is not None and not (truth["sharp"] and truth["bar"] <= need):
+        log(f"advise {scene.name}: {_undecided_count(rows, metric, tol)} undecided; the truth's bar asked: {need:.3g}")
+        sharper_opts, truth = sharp_reference(scene, tol, metric, haptic, target=need)
+        if sharper_opts != ref_opts:  # judged again against the sharper truth (its runs are cached by it)
+            ref_opts = sharper_opts
+            rows = _candidates(scene, metric, rate, use_cache, comm, f"advise {scene.name}", models, ref_opts, haptic)
     out, physics = _summary(scene, tol, rate, metric, ref_opts, truth)
     out["haptic"] = haptic
     choice = _pick(rows, metric, tol, dynamic)
@@ -253,6 +263,25 @@ def advise(
     out.update(_answer(scene, choice, rows, ranked, rejected, metric, tol, physics, proposal))
     out["command"] = _command(scene, choice, choice.level, haptic["rate"] if haptic else rate)
     return out
+
+
+def needed_bar(rows: list[Row], metric: str, tol: float, dynamic: bool) -> float | None:
+    """The bar on ``metric`` the truth must reach to decide the candidates that matter: those undecided
+    (``frame.judgement``) and cheaper than the cheapest that surely qualifies. Each needs a bar under its
+    distance to the tolerance; asked for MARGIN of the smallest (its error moves with a sharper truth), at
+    most SHARP ``tol``. None when no candidate that matters is undecided: the truth is then sharp enough."""
+    states = [(r, judgement(r, metric, tol)[0]) for r in rows]
+    cheapest = min((cost(r, dynamic) for r, state in states if state == QUALIFIES), default=math.inf)
+    undecided = [r for r, state in states if state == UNDECIDED and cost(r, dynamic) < cheapest]
+    if not undecided:
+        return None
+    gaps = [abs(v - tol) for r in undecided if (v := getattr(r, metric)) is not None]
+    return min([SHARP * tol] + [MARGIN * g for g in gaps])
+
+
+def _undecided_count(rows: list[Row], metric: str, tol: float) -> str:
+    n = sum(1 for r in rows if judgement(r, metric, tol)[0] == UNDECIDED)
+    return f"{n} candidate{'s' if n != 1 else ''}"
 
 
 def check_question(scene: Scene, tol: float, rate: float, metric: str, haptic_rate, force_tol) -> dict | None:

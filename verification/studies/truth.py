@@ -23,8 +23,14 @@ TIGHTEN_LEVELS = 1
 TIGHTEN_BUDGET_S = 120.0
 #: How a reference's solve time grows with its dofs (``reference_cost``).
 GROWTH = 2.0
-#: P3's dofs over P2's on one mesh (3.01 on the unit cube's, 3.08 on the cantilever's refined once).
-P3_DOFS = 3.1
+#: A static truth is made sharp where its error lives (``reference.adaptive``): the longest it may take,
+#: s, and the most levels. The adapted levels on the cantilever each added 1.4 to 2.6 times the cells and
+#: cut the bar 1.5 to 3 times (0.018 to 0.00064 in 60 s, 112 000 P2 dofs, 2 cores).
+ADAPT_BUDGET_S = 180.0
+ADAPT_LEVELS = 8
+#: The share of a straddling candidate's distance to the tolerance that the truth's bar is asked to
+#: reach (``needed_bar``): its error is measured again against the sharper truth and moves with it.
+MARGIN = 0.8
 
 
 def reference_cost(meta: dict) -> dict | None:
@@ -46,42 +52,35 @@ def reference_cost(meta: dict) -> dict | None:
     return {"n_dofs": 8 * last["n_dofs"], "seconds": last["wall_s"] * (1.0 + 8.0**GROWTH), "exponent": GROWTH}
 
 
-def p3_cost(meta: dict) -> dict | None:
-    """What the same reference with the ``p3`` estimate would cost (``reference.driver``): the returned P2
-    level solved again and P3 on its mesh (P3_DOFS times its dofs, its time growing as dofs^GROWTH).
-    None for a dynamic reference (the estimate is static), one that has it already, or no costs."""
-    solves = [x for x in meta.get("solves") or [] if x.get("n_dofs") and x.get("wall_s")]
-    if not solves or meta.get("mode") == "dynamic" or meta.get("estimator") != "difference" or meta.get("degree") != 2:
-        return None
-    last = solves[-1]
-    return {"n_dofs": round(P3_DOFS * last["n_dofs"]), "seconds": last["wall_s"] * (1.0 + P3_DOFS**GROWTH)}
+def _bars(meta: dict, needs: list[tuple]) -> list[tuple[str, float | None, float, float]]:
+    """Each bar the question needs, as (what it is on, its value or None, the tolerance it serves, the
+    value it is asked to reach)."""
+    return [(name, meta.get(key), t, want) for name, key, t, want in needs]
 
 
-def _bars(meta: dict, needs: list[tuple[str, str, float]]) -> list[tuple[str, float | None, float]]:
-    """Each bar the question needs, as (what it is on, its value or None, the tolerance it serves)."""
-    return [(name, meta.get(key), t) for name, key, t in needs]
+def _blocking(bars: list[tuple]) -> list[tuple]:
+    """The bars that leave the question undecidable: unknown, or over what they are asked to reach."""
+    return [b for b in bars if b[1] is None or b[1] > b[3]]
 
 
-def _blocking(bars: list[tuple[str, float | None, float]]) -> list[tuple[str, float | None, float]]:
-    """The bars that leave the question undecidable: unknown, or over SHARP of their tolerance."""
-    return [b for b in bars if b[1] is None or b[1] > SHARP * b[2]]
+def _asked(b: float, t: float, want: float) -> str:
+    """ "within SHARP of its tolerance t" or "the w the candidates need"."""
+    if want >= SHARP * t:
+        return f"{SHARP:g} of its tolerance {t:g}"
+    return f"the {want:.3g} the undecided candidates need (tolerance {t:g})"
 
 
-def _why(bars: list, over: list, tightened: int, p3: bool, nxt: dict | None) -> str:
-    """What the truth says of itself: each bar within its share of the tolerance and how it was made so,
-    or each that blocks (unknown, or over) and what a sharper truth would take."""
-    more = f" (refined {refined_times(tightened)} more for it)" if tightened else ""
-    more += " (checked against P3 on its mesh)" if p3 else ""
+def _why(bars: list, over: list, how: str, nxt: dict | None) -> str:
+    """What the truth says of itself: each bar within what the question asks and how it was made so
+    (``how``), or each that blocks (unknown, or over) and what a sharper truth would take."""
     if not over:
-        shown = (f"the reference's bar on {n} {b:.3g} is within {SHARP:g} of its tolerance {t:g}" for n, b, t in bars)
-        return "; ".join(shown) + more
+        shown = (f"the reference's bar on {n} {b:.3g} is within {_asked(b, t, w)}" for n, b, t, w in bars)
+        return "; ".join(shown) + how
     parts = [
         f"the reference's bar on {n} is unknown (it has no error estimate)"
         if b is None
-        else f"the reference's bar on {n} {b:.3g} is over {SHARP:g} of its tolerance {t:g}"
-        + (f" even refined {refined_times(tightened)} more" if tightened else "")
-        + (" and checked against P3" if p3 else "")
-        for n, b, t in over
+        else f"the reference's bar on {n} {b:.3g} is over {_asked(b, t, w)}" + how
+        for n, b, t, w in over
     ]
     why = "; ".join(parts)
     if nxt is not None:
@@ -96,45 +95,72 @@ def _why(bars: list, over: list, tightened: int, p3: bool, nxt: dict | None) -> 
     return why + ": candidates whose interval contains the tolerance are undecided"
 
 
-def sharp_reference(scene: Scene, tol: float, metric: str, haptic: dict | None = None) -> tuple[dict, dict]:
+def _adapted(scene: Scene, opts: dict, ref, needs: list) -> tuple[dict, object, str]:
+    """A static P2 truth adapted where its error lives until each needed bar is within what it is asked
+    (``reference.adaptive``, within ADAPT_BUDGET_S): its options, the reference and how it was made, where
+    its bars are known and the one on the metric is under the reference's ``ref`` had; else ``opts``,
+    ``ref`` and why the adapted one was not taken."""
+    adapt = {"target": needs[0][3], "budget_s": ADAPT_BUDGET_S, "max_levels": ADAPT_LEVELS}
+    if len(needs) > 1:
+        adapt["force_target"] = needs[1][3]
+    log(
+        f"advise {scene.name}: adapting the reference where its error lives until its bar is at most "
+        f"{adapt['target']:.3g} (at most {ADAPT_BUDGET_S:.0f} s)"
+    )
+    sharper_opts = {**opts, "estimate": "adaptive", "adapt": adapt}
+    sharper = reference_result(scene, **sharper_opts)
+    info = sharper.meta.get("adaptive") or {}
+    levels = info.get("levels") or [{}]
+    bars, old = _bars(sharper.meta, needs), _bars(ref.meta, needs)
+    if all(b[1] is not None for b in bars) and bars[0][1] <= old[0][1]:
+        how = (
+            f" (adapted {refined_times(info.get('returned', 0))} where its error lives: "
+            f"{levels[-1].get('n_dofs')} P2 dofs, checked by P3 on the same mesh)"
+        )
+        return sharper_opts, sharper, how
+    bar = bars[0][1]
+    shown = "unknown" if bar is None else f"{bar:.3g}"
+    return opts, ref, f" (adapted where its error lives, its bar was {shown}: {info.get('stop')})"
+
+
+def sharp_reference(
+    scene: Scene,
+    tol: float,
+    metric: str,
+    haptic: dict | None = None,
+    target: float | None = None,
+    tighten: bool = True,
+) -> tuple[dict, dict]:
     """The reference the advice judges with (``reference_result`` options) and what it says of itself:
-    REFERENCE_DEFAULTS, made sharper while a bar the question needs is over SHARP of its tolerance: first
-    its bar checked against P3 on the same mesh (``estimate = "p3"``, static scenes) where that is
-    predicted within TIGHTEN_BUDGET_S (``p3_cost``), then refined by up to TIGHTEN_LEVELS while the finer
-    one is predicted within it (``reference_cost``). The question needs the bar on ``metric`` against
-    ``tol`` and, with a haptic loop (``haptic``: {"rate", "force_tol"}), the bar on the tool force against
-    ``force_tol``: a force tolerance under an untightened force bar could never be met. A bar the
-    reference does not have is unknown, and refining does not make one: the truth is then not sharp, and
-    ``why`` names it.
+    REFERENCE_DEFAULTS, made sharper while a bar the question needs is over what it is asked to reach:
+    the bar on ``metric`` ``target`` (default SHARP ``tol``; the advisor asks for what its undecided
+    candidates need, ``needed_bar``) and, with a haptic loop (``haptic``: {"rate", "force_tol"}), the bar
+    on the tool force SHARP ``force_tol``: a force tolerance under an untightened force bar could never
+    be met. A static P2 truth is adapted where its error lives (``_adapted``); a dynamic one is refined
+    by up to TIGHTEN_LEVELS while the finer one is predicted within TIGHTEN_BUDGET_S (``reference_cost``).
+    A bar the reference does not have is unknown, and refining does not make one: the truth is then not
+    sharp, and ``why`` names it. ``tighten`` False: REFERENCE_DEFAULTS as it is, and what it says of itself.
 
     Returns (options, {"bar": the bar on ``metric``, "force_bar": on the tool force (None without
-    ``haptic``), "refine", "sharp", "tightened", "estimate": "p3" where it was checked against P3,
-    "next": the cost of one more refinement or None, "blocking": the names of the bars that stay over,
-    "why"})."""
+    ``haptic``), "refine", "sharp", "tightened": uniform refinements added, "estimate": "adaptive" where
+    it was adapted, "next": the cost of one more refinement or None, "blocking": the names of the bars
+    that stay over, "why"})."""
     opts = dict(REFERENCE_DEFAULTS)
     shape_key = "ref_reaction_err_estimate" if metric == "reaction_rel_err" else "ref_err_estimate"
-    needs = [(metric, shape_key, tol)]
+    needs = [(metric, shape_key, tol, SHARP * tol if target is None else min(target, SHARP * tol))]
     if haptic:
-        needs.append(("the tool force", "ref_reaction_err_estimate", haptic["force_tol"]))
+        needs.append(("the tool force", "ref_reaction_err_estimate", haptic["force_tol"], SHARP * haptic["force_tol"]))
     ref = reference_result(scene, **opts)
-    bars, tightened, nxt = _bars(ref.meta, needs), 0, None
-    while (over := _blocking(bars)) and all(b[1] is not None for b in over):
-        shown = ", ".join(f"its bar on {n} {b:.3g} is over {SHARP:g} x {t:g}" for n, b, t in over)
-        sharper = p3_cost(ref.meta)
-        if sharper is not None and sharper["seconds"] <= TIGHTEN_BUDGET_S:
-            # first the bar made sharp on the same mesh (1.1 to 2.2 times the error, where the difference
-            # of two refinements is 1.7 to 9.3: docs/effectivity.md), before eight times the elements
-            opts = {**opts, "estimate": "p3"}
-            log(
-                f"advise {scene.name}: {shown}; checking it against P3 on its mesh ({sharper['n_dofs']} dofs, "
-                f"about {sharper['seconds']:.0f} s)"
-            )
-            ref = reference_result(scene, **opts)
-            bars = _bars(ref.meta, needs)
-            continue
+    bars, tightened, nxt, how = _bars(ref.meta, needs), 0, None, ""
+    static = scene.time.mode != "dynamic" and opts["degree"] == 2
+    if tighten and static and (over := _blocking(bars)) and all(b[1] is not None for b in over):
+        opts, ref, how = _adapted(scene, opts, ref, needs)
+        bars = _bars(ref.meta, needs)
+    while tighten and not static and (over := _blocking(bars)) and all(b[1] is not None for b in over):
         nxt = reference_cost(ref.meta)
         if tightened >= TIGHTEN_LEVELS or nxt is None or nxt["seconds"] > TIGHTEN_BUDGET_S:
             break
+        shown = ", ".join(f"its bar on {n} {b:.3g} is over {w:.3g}" for n, b, _, w in over)
         opts = {**opts, "refine": opts["refine"] + 1}
         log(
             f"advise {scene.name}: {shown}; solving it refined {refined_times(opts['refine'])} more "
@@ -142,8 +168,8 @@ def sharp_reference(scene: Scene, tol: float, metric: str, haptic: dict | None =
         )
         ref, tightened, nxt = reference_result(scene, **opts), tightened + 1, None
         bars = _bars(ref.meta, needs)
+        how = f" (refined {refined_times(tightened)} more for it)"
     over = _blocking(bars)
-    why = _why(bars, over, tightened, opts.get("estimate") == "p3", nxt)
     return opts, {
         "bar": bars[0][1],
         "force_bar": bars[1][1] if haptic else None,
@@ -152,6 +178,6 @@ def sharp_reference(scene: Scene, tol: float, metric: str, haptic: dict | None =
         "tightened": tightened,
         "estimate": opts.get("estimate"),
         "next": nxt,
-        "blocking": [n for n, _, _ in over],
-        "why": why,
+        "blocking": [b[0] for b in over],
+        "why": _why(bars, over, how, nxt),
     }
