@@ -523,3 +523,21 @@ def test_a_static_scene_whose_own_answer_is_beyond_the_blow_up_guard_is_refused_
 
     row = compare(load_scene(path), "linear-tm")
     assert row.status == "diverged" and row.unbounded and "static answer reaches" in row.message
+
+
+def test_a_tool_that_holds_one_vertex_is_warned_of_as_a_point_no_truth_converges_on(tmp_path, capsys):
+    """SOFA's liver pressed by a 5 mm tool: on its 17 mm edges the sphere holds one vertex, a point, where
+    the reference's bar grows as it is refined (0.45 then 0.62); check warns, naming the load and what
+    to change. Its 15 mm tool holds three vertices and the face between them: no warning."""
+    data = builtin("sofa-liver")
+    data["mesh"]["file"] = str(SCENES_DIR / data["mesh"]["file"])
+    data["load"][0]["sphere"]["radius"] = 0.005
+    code, out, _ = run(["check", str(write_scene(tmp_path / "poke.toml", data))], capsys)
+    warnings = [line.strip() for line in out.splitlines() if line.strip().startswith("warning:")]
+    assert code == 0 and "holds 1 vertex" in out and len(warnings) == 1
+    assert warnings[0].startswith("warning: load[0]: sphere") and "no face between them" in warnings[0]
+    assert "make the region hold at least one face" in warnings[0]
+    from verification.scene import point_held
+    from verification.scene_file import load_scene
+
+    assert point_held(load_scene("sofa-liver")) == []

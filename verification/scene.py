@@ -179,6 +179,7 @@ def implausible(scene: Scene) -> list[str]:
             else " (lengths in metres)"
         )
         out.append(f"mesh: the body is {extent:.3g} m across, outside the {low:g} to {high:g} m of an organ{fix}")
+    out += point_held(scene)
     tables = [m for _, m in scene.zones] if scene.zones else [scene.material]
     for i, m in enumerate(tables):
         where = f"material[{i}]" if scene.zones else "material"
@@ -189,6 +190,35 @@ def implausible(scene: Scene) -> list[str]:
             v, (low, high) = getattr(m, key), TISSUE_RANGES[key]
             if not low <= v <= high:
                 out.append(f"{where}.{key} = {v:g} {unit}: soft tissue spans {low:g} to {high:g} ({hint})")
+    return out
+
+
+def point_held(scene: Scene) -> list[str]:
+    """One line per constraint or tool that holds vertices but no triangle (no face of a tetrahedron with
+    its three vertices held): a displacement prescribed at points or along edges. A set of dimension
+    below two has no capacity in 3D elasticity (no finite-energy field takes a prescribed value there),
+    so every refinement of the mesh lets the body move more freely around it: the truth has no limit,
+    its bar grows as it is refined (SOFA's liver pressed 4 mm at one vertex: 0.45, then 0.62 adapted
+    once), and no model can be judged against it."""
+    from itertools import combinations
+
+    from reference.problem import Displacement
+
+    mesh = scene.mesh
+    faces = mesh.tets[:, list(combinations(range(4), 3))].reshape(-1, 3)
+    held = [(f"fixed[{i}]", fx.region) for i, fx in enumerate(scene.problem.fixed)]
+    held += [(f"load[{i}]", ld.region) for i, ld in enumerate(scene.problem.loads) if isinstance(ld, Displacement)]
+    out = []
+    for table, region in held:
+        chosen = np.zeros(mesh.n_vertices, dtype=bool)
+        chosen[region.vertices(mesh)] = True
+        if chosen.any() and not chosen[faces].all(axis=1).any():
+            n = int(chosen.sum())
+            out.append(
+                f"{table}: {region.describe()} holds {n} vertex{'es' if n > 1 else ''} and no face between them: "
+                "a displacement held at points or along edges has no limit under refinement (in 3D a point "
+                "has no stiffness), so no truth converges on it; make the region hold at least one face"
+            )
     return out
 
 

@@ -164,7 +164,10 @@ def cmd_check(args) -> int:
             f"nu = {z['poisson']:.4g}, rho = {z['density_kg_m3']:.4g} kg/m^3"
             for z in o["materials"]
         ]
-        lines += [f"  {r['table']}: {r['region']} holds {r['vertices']} vertices" for r in o["regions"]]
+        lines += [
+            f"  {r['table']}: {r['region']} holds {r['vertices']} vert{'ex' if r['vertices'] == 1 else 'ices'}"
+            for r in o["regions"]
+        ]
         lines.append(f"  element estimate of the explicit critical step: {o['dt_crit_element_s']:.3g} s")
         lines += [
             f"  state t = {st['time']:g} s: {st['label']}: {st['n_vertices']} vertices, {st['n_tets']} tetrahedra, "
