@@ -124,6 +124,14 @@ def fallback_options(opts: dict, n_dofs: int, user: dict | None, comm=None) -> t
     return {**GAMG_STRONGER, "ksp_rtol": opts.get("ksp_rtol", GAMG_STRONGER["ksp_rtol"]), **(user or {})}, stronger
 
 
+def peak_memory_bytes(comm) -> int:
+    """The most memory the ranks of ``comm`` have held at once, summed over them, bytes (each process's
+    peak resident set, ``getrusage``'s ru_maxrss, KiB on Linux): what a solve asked of the machine."""
+    import resource
+
+    return int(comm.allreduce(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, op=MPI.SUM))
+
+
 def solver_family(opts: dict) -> str:
     """Which kind of solve PETSc options ask for: "direct" (a factorisation) or "iterative" (a Krylov
     method). A reference records the kind its size chose before any fallback (``chosen``), and a cached

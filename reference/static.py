@@ -20,6 +20,7 @@ from .solver import (
     chosen_options,
     fallback_options,
     grow_ksp_workspace,
+    peak_memory_bytes,
 )
 
 
@@ -64,7 +65,9 @@ class StaticSolves:
         self.timings["solve_s"] = time.perf_counter() - t0
         # recorded, not enforced: linear elasticity has no notion of inversion, but a user should see
         # when its answer means elements turned inside out
-        return {"solver": "linear", **record, "petsc_options": opts, "iterations": 1, "min_det_F": self.min_det_F()}
+        memory = peak_memory_bytes(self.comm)
+        out = {"solver": "linear", **record, "petsc_options": opts, "iterations": 1, "peak_memory_bytes": memory}
+        return {**out, "linear_iterations": problem.solver.getIterationNumber(), "min_det_F": self.min_det_F()}
 
     def solve_newton(
         self,
@@ -143,6 +146,7 @@ class StaticSolves:
             "factorisations": solver.factorisations,  # failed load steps' included
             "undone_steps": solver.undone,
             "linear_iterations": solver.linear_iterations,
+            "peak_memory_bytes": peak_memory_bytes(self.comm),
             "rtol": rtol,
             "min_det_F": history[-1]["min_det_F"],
         }

@@ -215,3 +215,16 @@ def test_the_structured_cube_is_the_peers_benchmark_mesh():
     faces = np.sort(mesh.tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
     _, counts = np.unique(faces, axis=0, return_counts=True)
     assert counts.max() == 2 and np.sum(counts == 1) == 6 * 11 * 11 * 2  # the boundary: two triangles a square
+
+
+def test_the_solvers_bench_solves_the_livers_first_newton_system_and_names_debians_solvers():
+    """One case and one preconditioner through ``bench --solvers``'s rows: GAMG converges (PETSc's reason
+    positive) in some iterations on P2, the row says the dofs and memory, and the table names the
+    preconditioners Debian's PETSc was built with. Its seconds are the benchmark's, never asserted."""
+    from verification.bench.solvers import format_table, run
+
+    out = run(preconditioners=["gamg"], cases=["liver P2 refined 0, nu 0.4"])
+    (row,) = out["rows"]
+    assert row["case"] == "liver P2 refined 0, nu 0.4" and row["n_dofs"] > 10_000
+    assert row["reason"] > 0 and 0 < row["iterations"] < 500 and row["peak_memory_bytes"] > 0
+    assert "hypre" in format_table(out) and "mumps" in format_table(out)

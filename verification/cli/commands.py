@@ -559,7 +559,15 @@ def cmd_gate(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    if args.reference:
+    if args.solvers:
+        from mpi4py import MPI
+
+        from verification.bench.solvers import format_table, run
+
+        out = run(cases=args.cases)
+        if MPI.COMM_WORLD.rank:
+            return 0
+    elif args.reference:
         from mpi4py import MPI
 
         from verification.bench.reference import format_table, run

@@ -338,7 +338,14 @@ def _bench(sub) -> None:
         action="store_true",
         help="time the dolfinx reference instead (seconds, Newton iterations, factorisations per case)",
     )
-    s.add_argument("--cases", nargs="+", help="with --reference: only the cases whose label contains one of these")
+    s.add_argument(
+        "--solvers",
+        action="store_true",
+        help="the reference's linear solvers side by side (GAMG, ML, BoomerAMG, MUMPS: iterations, seconds, memory)",
+    )
+    s.add_argument(
+        "--cases", nargs="+", help="with --reference or --solvers: only the cases whose label contains one of these"
+    )
     s.add_argument(
         "--newton",
         choices=("modified", "classic"),
