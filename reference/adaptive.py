@@ -32,7 +32,7 @@ import numpy as np
 from mpi4py import MPI
 
 from .errors import ReferenceSolveError
-from .progress import line
+from .progress import line, within
 
 #: Dorfler's bulk parameter: the marked cells hold at least this share of the summed indicator.
 DOERFLER = 0.5
@@ -184,6 +184,17 @@ def _within(bar: float, force: float | None, target: float | None, force_target:
     return force_target is None or (force is not None and force <= force_target)
 
 
+def _where(k: int, records: list, target: float | None) -> str:
+    """What a level's progress lines start with: the level, the bar so far and the bar asked."""
+    said = [f"bar so far {_shown(records[-1]['bar'])}"] if records else []
+    said += [f"asked {target:.3g}"] if target is not None else []
+    return f"reference: adaptive level {k}" + (f" ({', '.join(said)})" if said else "")
+
+
+def _shown(bar: float | None) -> str:
+    return "unknown (no load)" if bar is None else f"{bar:.3g}"
+
+
 def _sizes(record: dict) -> str:
     return f"{record['n_cells']} cells, P2 {record['n_dofs']} dofs, checked by P3 {record['n_dofs_p3']} dofs"
 
@@ -238,7 +249,8 @@ def solve_adaptive(
     for k in range(max_levels + 1):
         t0 = time.perf_counter()
         try:
-            p2, p3, failed = _level_problems(mesh, material, problem, x, cells, previous, infos, opts)
+            with within(_where(k, records, target)):
+                p2, p3, failed = _level_problems(mesh, material, problem, x, cells, previous, infos, opts)
         except ReferenceSolveError as exc:
             if kept is None:
                 raise
@@ -256,10 +268,9 @@ def solve_adaptive(
         record["wall_s"] = time.perf_counter() - t0
         records.append(record)
         kept, previous, bar, force = (p2, p3, k), p2, record["bar"], record["force_bar"]
-        shown_bar = "unknown (no load)" if bar is None else f"{bar:.3g}"
         wanted = "" if target is None else f" (asked {target:.3g})"
         line(
-            f"reference: adaptive level {k}: {_sizes(record)}: bar {shown_bar}{wanted} ({record['wall_s']:.0f} s)",
+            f"reference: adaptive level {k}: {_sizes(record)}: bar {_shown(bar)}{wanted} ({record['wall_s']:.0f} s)",
             comm.rank,
         )
         if bar is None or _within(bar, force, target, force_target):

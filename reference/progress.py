@@ -17,12 +17,38 @@ import time
 EVERY = 3.0
 #: When this process last wrote a line (time.perf_counter()).
 _LAST = [time.perf_counter()]
+#: What the lines of a loop or a heartbeat are part of (``within``): the adaptive reference's level and
+#: bar so far, said in every such line so that a user who waits sees where it stands.
+_WITHIN: list[str] = []
+
+
+class within:
+    """A context manager: while it is open, ``line``'s, ``Progress``'s and ``Heartbeat``'s lines start with ``what``
+    ("reference: adaptive level 2 (bar 0.0061, asked 0.005)") in place of "reference:"."""
+
+    def __init__(self, what: str):
+        self.what = what
+
+    def __enter__(self):
+        _WITHIN.append(self.what)
+        return self
+
+    def __exit__(self, *exc):
+        _WITHIN.pop()
+        return False
+
+
+def _placed(what: str) -> str:
+    """``what`` with the innermost ``within`` in place of its "reference:"."""
+    if _WITHIN and what.startswith("reference: "):
+        return f"{_WITHIN[-1]}: {what.removeprefix('reference: ')}"
+    return what
 
 
 def line(msg: str, rank: int = 0) -> None:
-    """``msg`` and its newline on stderr in one write, from rank 0 only."""
+    """``msg`` and its newline on stderr in one write, from rank 0 only (within a ``within``, said as part of it)."""
     if rank == 0:
-        sys.stderr.write(msg + "\n")
+        sys.stderr.write(_placed(msg) + "\n")
         sys.stderr.flush()
         _LAST[0] = time.perf_counter()
 
@@ -74,7 +100,7 @@ class Heartbeat:
             import subprocess
 
             self._watcher = subprocess.Popen(
-                [sys.executable, "-c", _WATCHER, self.what, repr(self.every)], stdin=subprocess.PIPE
+                [sys.executable, "-c", _WATCHER, _placed(self.what), repr(self.every)], stdin=subprocess.PIPE
             )
         return self
 

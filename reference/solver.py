@@ -407,7 +407,8 @@ class Newton:
         first = previous = previous_held = before = best = None
         fresh_step = False  # whether the last step was taken with the tangent at its own u
         start = self.factorisations
-        progress = Progress("reference: Newton iteration", None, self.comm.rank)
+        n_dofs = self.A.getSize()[0]
+        progress = Progress(f"reference: Newton ({n_dofs} dofs) iteration", None, self.comm.rank)
         for it in range(4 * max_it + 1):
             free, held = self._assemble_raw()
             progress.tick(it, f": free residual {free:.3g} N, {self.factorisations - start} factorisations")

@@ -118,13 +118,10 @@ class StaticSolves:
             # (StVK has one under strong compression): it counts as a failure
             jmin = self.min_det_F() if ok else float("nan")
             if ok and jmin > 0.0:
-                history.append(
-                    {"load": target, "iterations": int(its), "factorisations": res["factorisations"], "min_det_F": jmin}
-                )
-                self._log(
-                    f"reference: load {target:.4g}: {int(its)} Newton iterations, {res['factorisations']} "
-                    f"factorisations ({elapsed:.1f} s)"
-                )
+                step = {"load": target, "iterations": int(its), "factorisations": res["factorisations"]}
+                history.append({**step, "min_det_F": jmin})
+                said = f"{int(its)} Newton iterations, {step['factorisations']} factorisations ({elapsed:.1f} s)"
+                self._log(f"{self._said()} load {target:.4g}: {said}")
                 done = target
                 inc = min(2.0 * inc, 1.0)
                 continue
@@ -151,6 +148,10 @@ class StaticSolves:
             "min_det_F": history[-1]["min_det_F"],
         }
 
+    def _said(self) -> str:
+        """How a load step's line starts: "reference: P2, 58605 dofs,"."""
+        return f"reference: P{self.degree}, {self.n_dofs} dofs,"
+
     def _no_equilibrium(self, done: float, why: str, steps: int) -> ReferenceSolveError:
         """The error of a Newton solve that gave up at load fraction ``done`` (``why``)."""
         return ReferenceSolveError(
@@ -173,7 +174,7 @@ class StaticSolves:
             step = {"load": 1.0, "iterations": res["iterations"], "factorisations": res["factorisations"]}
             history.append({**step, "min_det_F": jmin, "nested": True})
             self._log(
-                f"reference: full load from the coarser solution: {res['iterations']} Newton iterations, "
+                f"{self._said()} full load from the coarser solution: {res['iterations']} Newton iterations, "
                 f"{res['factorisations']} factorisations"
             )
             return 1.0
