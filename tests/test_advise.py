@@ -388,6 +388,22 @@ def test_the_truth_is_asked_for_what_the_undecided_candidates_cheaper_than_a_sur
     assert needed_bar([row(0.2, 1.0)], "rel_l2", 0.05, False) is None
 
 
+@pytest.mark.slow
+def test_candidates_the_default_truth_leaves_undecided_are_decided_by_a_truth_adapted_for_them(capsys):
+    """The cantilever at 29%: its models sit 0.284 to 0.286 from the default truth, whose bar leaves
+    them undecided; the truth is asked for 0.8 of their smallest distance to the tolerance, adapted where
+    its error lives until it is there, and the candidates judged again against it: a pick whose whole
+    interval is within the tolerance."""
+    args = ["advise", "cantilever", "--tol", "0.29", "--rate", "60", "--models", "linear-tm", "stvk-tm"]
+    assert main([*args, "--json"]) == 0
+    captured = capsys.readouterr()
+    out = json.loads(captured.out)
+    truth = out["reference"]
+    assert "undecided; the truth's bar asked" in captured.err
+    assert truth["estimate"] == "adaptive" and truth["sharp"] and "where its error lives" in truth["why"]
+    assert out["model"] is not None and max(out["interval"]) <= 0.29 and not out["undecided"]
+
+
 # ---------------------------------------------------------------------------------------------
 # haptic verdicts: the shape at the visual rate, the tool force at the haptic one
 
