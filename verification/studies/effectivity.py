@@ -280,7 +280,10 @@ def format_markdown(table: dict) -> str:
         f"(commit {m['commit']}, {m['date']}, {m['machine']['cpu']}, {m['machine']['cores']} cores). "
         f"The reference returns {m['returned']}; effectivity is bar / true error, and under 1 the bar "
         "promises less error than there is. `difference` is |u_0 - u_1| / |u_1| (the bar today), "
-        f"`p3` is {m['p3_safety']:g} |u_1 - u_1^P3| / |u_1^P3| (verification/studies/effectivity.py says why).",
+        f"`p3` is {m['p3_safety']:g} |u_1 - u_1^P3| / |u_1^P3| (verification/studies/effectivity.py says why). "
+        "`adaptive` is the reference refined where its error lives (`reference --estimate adaptive`, from "
+        "refinement 0, one level more than the returned refinement), judged on its own solution: its P2 dofs, "
+        "its true error against the same truth and its P3 bar.",
         "",
         "| case | vertices | dofs | true error | truth | "
         + " | ".join(f"{e} bar (effectivity)" for e in ESTIMATORS)
