@@ -158,7 +158,7 @@ def _level_problems(mesh, material, problem, x, cells, previous, infos, opts) ->
         info = solve_level(p3, p2, infos, newton, petsc_options)
         infos.append({**info, "level": k, "degree": 3, "n_dofs": p3.n_dofs, "wall_s": time.perf_counter() - t0})
     except ReferenceSolveError as exc:
-        return p2, None, f"P3 found no equilibrium on the level's mesh ({exc})"
+        return p2, None, f"its P3 check: {_first_clause(exc)}"
     return p2, p3, None
 
 
@@ -182,6 +182,13 @@ def _within(bar: float, force: float | None, target: float | None, force_target:
     if target is None or bar > target:
         return False
     return force_target is None or (force is not None and force <= force_target)
+
+
+def _first_clause(exc: Exception) -> str:
+    """A solve's failure in a clause ("Newton found no equilibrium without inverted elements beyond load
+    fraction 0.594"): the stop reason a level's line and the advice quote (the whole message, with what to
+    change, is for a user who solves the scene itself)."""
+    return str(exc).removeprefix("reference: ").split(" (")[0]
 
 
 def _where(k: int, records: list, target: float | None) -> str:
@@ -254,7 +261,7 @@ def solve_adaptive(
         except ReferenceSolveError as exc:
             if kept is None:
                 raise
-            stop = f"level {k}'s P2 solve found no equilibrium ({exc})"
+            stop = f"level {k}'s P2 solve: {_first_clause(exc)}"
             break
         shown = comm.bcast(x, root=0)
         level = {"x": x, "cells": cells, "eta2": None, "u": p2.evaluate(shown)}

@@ -178,10 +178,10 @@ def test_an_adapted_truth_is_asked_for_the_bar_the_candidates_need_and_kept_only
     assert solved[1]["adapt"]["target"] == 0.01 and opts["estimate"] == "adaptive"
     assert said["sharp"] and said["bar"] == 0.008 and "adapted twice where its error lives" in said["why"]
     assert "the 0.01 the undecided candidates need" in said["why"]
-    adapted[0] = _adapted_ref(0.057, None, returned=0, stop="level 1: P3 found no equilibrium")
+    adapted[0] = _adapted_ref(0.057, None, returned=0, stop="level 1: its P3 check: Newton found no equilibrium")
     opts, said = truth.sharp_reference(_Scene, 0.05, "rel_l2", target=0.01)
     assert opts.get("estimate") is True and said["bar"] == 0.03 and not said["sharp"]
-    assert "its bar was 0.057: level 1: P3 found no equilibrium" in said["why"]
+    assert "its bar was 0.057: level 1: its P3 check: Newton found no equilibrium" in said["why"]
     # asked not to tighten, the defaults' reference is described as it is
     solved.clear()
     _, said = truth.sharp_reference(_Scene, 0.05, "rel_l2", tighten=False)
