@@ -1,6 +1,6 @@
-"""A truth sharp enough for the question (docs/architecture.md section 9): the advisor's reference,
-refined until its bar leaves room for a verdict at the tolerance asked, within a budget, or said to be
-too coarse, with what a sharper one would take."""
+"""A truth sharp enough for the question (docs/architecture.md section 9): the advisor's reference, made
+as sharp as its undecided candidates need (adapted where its error lives on a static scene, refined once
+more on a dynamic one) within a budget, or said to be too coarse, with how far it came and why."""
 
 from __future__ import annotations
 
@@ -63,8 +63,9 @@ def _blocking(bars: list[tuple]) -> list[tuple]:
     return [b for b in bars if b[1] is None or b[1] > b[3]]
 
 
-def _asked(b: float, t: float, want: float) -> str:
-    """ "within SHARP of its tolerance t" or "the w the candidates need"."""
+def _asked(t: float, want: float) -> str:
+    """What a bar serving tolerance ``t`` was asked to reach, ``want``: "SHARP of its tolerance t", or "the
+    w the undecided candidates need" where they asked for less."""
     if want >= SHARP * t:
         return f"{SHARP:g} of its tolerance {t:g}"
     return f"the {want:.3g} the undecided candidates need (tolerance {t:g})"
@@ -74,12 +75,12 @@ def _why(bars: list, over: list, how: str, nxt: dict | None) -> str:
     """What the truth says of itself: each bar within what the question asks and how it was made so
     (``how``), or each that blocks (unknown, or over) and what a sharper truth would take."""
     if not over:
-        shown = (f"the reference's bar on {n} {b:.3g} is within {_asked(b, t, w)}" for n, b, t, w in bars)
+        shown = (f"the reference's bar on {n} {b:.3g} is within {_asked(t, w)}" for n, b, t, w in bars)
         return "; ".join(shown) + how
     parts = [
         f"the reference's bar on {n} is unknown (it has no error estimate)"
         if b is None
-        else f"the reference's bar on {n} {b:.3g} is over {_asked(b, t, w)}" + how
+        else f"the reference's bar on {n} {b:.3g} is over {_asked(t, w)}" + how
         for n, b, t, w in over
     ]
     why = "; ".join(parts)
