@@ -43,11 +43,11 @@ from .progress import Heartbeat, line
 def levels_of(degree: int, refine: int, estimate) -> list[tuple[int, int]]:
     """The (degree, refinement) of each solve of a static reference: ``estimate`` False, the one returned;
     True, refinements R and R + 1 (the finer returned, last); "p3", P2 and P3 at R + 1 (the P2 returned,
-    first)."""
+    first); "adaptive", the returned level's P2 and P3, on its adapted mesh (``restore_static`` rebuilds
+    them from the mesh ``solved_fields`` keeps; the refine count only names where adapting started)."""
     if estimate in ("p3", "adaptive"):
         if degree != 2:
             raise ValueError(f"estimate {estimate} checks a P2 reference against P3; degree is {degree}")
-        # adaptive: the returned level's, on its adapted mesh (which ``solved_fields`` keeps)
         return [(2, refine + 1), (3, refine + 1)] if estimate == "p3" else [(2, refine), (3, refine)]
     return [(degree, refine), (degree, refine + 1)] if estimate else [(degree, refine)]
 
