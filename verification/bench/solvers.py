@@ -5,7 +5,7 @@ is refined and nu goes to 0.49.
 The system is the first Newton step's on the liver (``liver``, StVK, its 0.5 N pull): the tangent at
 rest, the load as right-hand side, the constraints lifted. Each preconditioner solves it with GMRES to
 a relative residual of 1e-8 (MUMPS's factorisation: once, direct), and the row says its dofs, Krylov
-iterations, set-up and solve seconds, and the process's peak memory after it. A preconditioner whose
+iterations, set-up and solve seconds, and the process's peak memory so far (a running maximum). A preconditioner whose
 iterations do not grow with the dofs is what a reference past a direct factor's memory needs; one that
 fails (a diverged or stalled Krylov solve) says so, with PETSc's reason.
 
