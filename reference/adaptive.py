@@ -15,7 +15,7 @@ approximated. While the bar is over ``target``, the fewest cells holding DOERFLE
 are marked (Dorfler, SIAM J. Numer. Anal. 33, 1996), their edges refined (dolfinx's Plaza refinement,
 which closes the marked set into a conforming mesh), and the next level solved from the last P2
 solution. It stops when the bar is within ``target``, when the next level is predicted to overrun
-``budget_s`` (its time the last level's scaled by its dofs to the power GROWTH), or after
+``budget_s`` (its time the last level's scaled by its cells to the power GROWTH), or after
 ``max_levels``. The answer is the last P2 solution whose P3 check converged, with that check's bar.
 
 The adapted meshes are made on rank 0 alone and then distributed, as ``reference.forms.dolfinx_mesh``
@@ -241,9 +241,11 @@ def solve_adaptive(
     is within ``target`` (and the tools' force's, the same P3 bar on the reaction, within ``force_target``
     where one is given), its next level would overrun ``budget_s`` seconds, or ``max_levels`` levels.
 
-    Returns ``solve_static``'s dict (displacement (K, 3) m, reaction (3,) N, meta, problems: the returned
-    level's P2 and its P3 check) and ``levels``: on rank 0 each level's vertices (N, 3) m, tetrahedra
-    (M, 4), indicator eta^2 (M,) J (None where P3 found no equilibrium) and P2 displacement (N, 3) m."""
+    Returns a dict for ``reference.driver.solve_static``: problems (the returned level's P2 and its P3
+    check, or the P2 alone where level 0's check found no equilibrium), solves (each solve's record),
+    adaptive (the options, each level's record, why it stopped and the level returned) and levels: on
+    rank 0 each level's vertices (N, 3) m, tetrahedra (M, 4), indicator eta^2 (M,) J (None where P3 found
+    no equilibrium) and P2 displacement (N, 3) m."""
     from .forms import dolfinx_mesh
 
     at = mesh.points if points is None else np.ascontiguousarray(points, dtype=float)

@@ -54,6 +54,7 @@ def _system(degree: int, refine: int, poisson: float):
     import ufl
     from dolfinx import fem
     from dolfinx.fem import petsc
+    from petsc4py import PETSc
 
     from reference.fem import ElasticityProblem
     from verification.scene_file import load_scene
@@ -66,7 +67,7 @@ def _system(degree: int, refine: int, poisson: float):
     A.assemble()
     b = petsc.assemble_vector(fem.form(ep.residual))
     petsc.apply_lifting(b, [a], bcs=[ep.bcs])
-    b.ghostUpdate(addv=1, mode=1)  # ADD, REVERSE
+    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
     petsc.set_bc(b, ep.bcs)
     return ep, A, b
 

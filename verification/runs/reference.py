@@ -226,8 +226,8 @@ def reference_result(
         sol = _solve_dynamic(scene, solved, degree, refine, estimate, petsc_options)
         times, disp, reac = sol["times"], sol["displacement"], sol["reaction"]
     else:
-        newton = (newton_steps, min_increment, adapt)
-        sol = _solve_static(scene, solved, degree, refine, estimate, newton, petsc_options, use_cache)
+        newton = (newton_steps, min_increment)
+        sol = _solve_static(scene, solved, degree, refine, estimate, newton, petsc_options, use_cache, adapt=adapt)
         times, disp, reac = np.zeros(1), sol["displacement"][None], sol["reaction"][None]
     meta = sol["meta"]
     meta.update(
@@ -280,18 +280,27 @@ def _memo(solved: Scene, degree, refine, estimate, newton_steps, min_increment, 
 
 
 def _solve_static(
-    scene: Scene, solved: Scene, degree, refine, estimate, newton: tuple, petsc_options, use_cache, points=None
+    scene: Scene,
+    solved: Scene,
+    degree,
+    refine,
+    estimate,
+    newton: tuple,
+    petsc_options,
+    use_cache,
+    points=None,
+    adapt: dict | None = None,
 ):
     """The static reference of ``solved`` (the scene, or its base) at ``points`` (default ``scene``'s
     vertices): the same problem solved before in this process (``_SOLVED``) or kept beside its cached
     result evaluated there, else solved (and kept). ``newton``: (the first load increment's inverse,
-    the smallest increment, the adaptive estimate's options or None)."""
+    the smallest increment); ``adapt``: the adaptive estimate's options."""
     at = scene.mesh.points if points is None else points
     from mpi4py import MPI
 
     from reference.driver import evaluate_static, solve_static
 
-    newton_steps, min_increment, adapt = newton
+    newton_steps, min_increment = newton
     memo = _memo(solved, degree, refine, estimate, newton_steps, min_increment, petsc_options, adapt)
     serial = MPI.COMM_WORLD.size == 1
     fields = _fields_path(
@@ -359,7 +368,7 @@ def reference_at(scene: Scene, points: np.ndarray, **options) -> Result:
     if memo not in _SOLVED and fields.exists():
         _restore_solved(memo, fields, scene, scene.body_material(), degree, refine, estimate)
     if memo not in _SOLVED:  # nothing kept to evaluate: solve again there
-        sol = _solve_static(scene, scene, degree, refine, estimate, (*newton, adapt), petsc, False, points)
+        sol = _solve_static(scene, scene, degree, refine, estimate, newton, petsc, False, points, adapt)
     else:
         sol = evaluate_static(*_SOLVED[memo], points)
     return Result(
