@@ -17,7 +17,7 @@ from . import target as _target  # noqa: F401
 _os.environ.setdefault("GOMP_SPINCOUNT", "1000000")
 
 from . import jitcache as _jitcache
-from .errors import InputError, LoadingError
+from .errors import InputError, LoadingError, ModelRestriction
 from .integrators import (
     INTEGRATORS,
     CentralDifference,
@@ -44,6 +44,7 @@ __all__ = [
     "DivergenceError",
     "ImplicitEuler",
     "InputError",
+    "ModelRestriction",
     "Loading",
     "LoadingError",
     "Material",

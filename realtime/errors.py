@@ -14,6 +14,12 @@ class InputError(ValueError):
     """Input that cannot be used; ``str()`` is the one-line message."""
 
 
+class ModelRestriction(InputError):
+    """A scene this model cannot represent, whose input is otherwise fine (precomputed's responses exist
+    for surface vertices only): one command still stops on it, a study of many models records it as that
+    model's answer and goes on with the others."""
+
+
 class LoadingError(InputError):
     """A Loading or a model option with a wrong shape, dtype, index range or value."""
 

@@ -29,7 +29,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .errors import InputError
+from .errors import InputError, ModelRestriction
 from .geometry import boundary_faces
 from .model import Model, State
 
@@ -101,7 +101,7 @@ class Precomputed:
         missing = np.setdiff1d(tool_dofs, self.surface_dofs)
         if len(missing):
             v = int(missing[0] // 3)
-            raise InputError(
+            raise ModelRestriction(
                 f"precomputed: tool vertex {v} {model.points[v].tolist()} is not on the surface; "
                 "elementary responses exist for surface vertices only"
             )

@@ -20,6 +20,8 @@ from verification.scene import SceneError
 from verification.scene_file import load_scene, parse
 from verification.studies.frame import FRAME_SHARE, frame_budget, merge_same_answers
 
+from .test_input_errors import builtin, write_scene
+
 
 def _row(model="linear-tm", dt=1e-5, step_us=10.0, settle=1000, err=0.1, integrator="symplectic-euler"):
     return Row("a scene", model, integrator, "ok", dt=dt, step_us=step_us, settle_steps=settle, rel_l2=err)
@@ -298,6 +300,33 @@ def test_a_candidate_that_does_not_settle_is_a_failed_candidate_not_the_end_of_t
     assert hybrid and all(
         not c["qualifies"] and "not settled" in c["why"] and "2000000 steps" in c["why"] for c in hybrid
     )
+    assert out["model"] == "linear-tm"
+
+
+def test_a_model_that_cannot_represent_the_scene_is_a_candidate_not_applicable_not_the_end_of_the_advice(
+    tmp_path, capsys
+):
+    """A newcomer's 5 mm tool reached a vertex inside their liver, and the advice ended with
+    precomputed's restriction (its responses exist for surface vertices only) although every other model
+    could run. Here the block's pressed plate reaches its second layer of vertices, inside the block:
+    ``compare`` of precomputed alone still stops with the one line, and the advice lists precomputed as
+    not applicable and answers from the others."""
+    data = builtin("block-press")
+    data["load"][0]["box"] = [[-1.0, -1.0, 0.0299], [1.0, 1.0, 1.0]]
+    path = write_scene(tmp_path / "deep-press.toml", data)
+    assert main(["check", str(path)]) == 0
+    said = [line for line in capsys.readouterr().out.splitlines() if line.strip().startswith("load[0]")]
+    p = load_scene(str(path)).mesh.points
+    inside = np.all((p > 1e-9) & (p < 0.04 - 1e-9), axis=1) & (p[:, 2] > 0.0299)  # held, off the cube's faces
+    assert said and f"{int(inside.sum())} inside the body (precomputed" in said[0]
+    assert main(["compare", str(path), "--model", "precomputed"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("tissuebench: precomputed: tool vertex") and "not on the surface" in err[-1]
+    args = ["advise", str(path), "--tol", "0.2", "--rate", "10", "--json", "--models", "linear-tm", "precomputed"]
+    assert main(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    pre = [c for c in out["candidates"] if c["model"] == "precomputed"]
+    assert pre and all(not c["qualifies"] and "not applicable" in c["why"] for c in pre)
     assert out["model"] == "linear-tm"
 
 

@@ -110,6 +110,8 @@ def _zones(scene) -> list:
 def cmd_check(args) -> int:
     """Read a scene as every command does (mesh, regions, loading, a model) and describe it, solving
     nothing: the check to run before a long study."""
+    import numpy as np
+
     import realtime
     from verification.inputs import build_loading
 
@@ -123,11 +125,15 @@ def cmd_check(args) -> int:
         regions.append(
             {"table": f"fixed[{i}]", "region": fx.region.describe(), "vertices": len(fx.region.vertices(mesh))}
         )
+    surface = np.zeros(mesh.n_vertices, dtype=bool)
+    surface[mesh.surface_vertices] = True
     for i, ld in enumerate(scene.problem.loads):
         if hasattr(ld, "region"):
+            held = ld.region.vertices(mesh)
             regions.append(
-                {"table": f"load[{i}]", "region": ld.region.describe(), "vertices": len(ld.region.vertices(mesh))}
-            )
+                {"table": f"load[{i}]", "region": ld.region.describe(), "vertices": len(held),
+                 "inside": int((~surface[held]).sum())}
+            )  # fmt: skip
     m = scene.material
     out = {
         "scene": scene.name,
@@ -166,6 +172,12 @@ def cmd_check(args) -> int:
         ]
         lines += [
             f"  {r['table']}: {r['region']} holds {r['vertices']} vert{'ex' if r['vertices'] == 1 else 'ices'}"
+            + (
+                f", {r['inside']} inside the body (precomputed, whose responses exist for surface vertices only, "
+                "will not run this scene)"
+                if r.get("inside")
+                else ""
+            )
             for r in o["regions"]
         ]
         lines.append(f"  element estimate of the explicit critical step: {o['dt_crit_element_s']:.3g} s")

@@ -10,6 +10,8 @@ Which fields hold a value depends on ``status``:
 - "diverged": the ``step`` it blew up at, the ``message``, and whether the scene's own answer is what is
   unbounded (``unbounded``);
 - "not settled": the ``message`` (a static run that did not reach equilibrium in its steps);
+- "not applicable": the ``message`` (a model that cannot represent the scene, ``ModelRestriction``:
+  precomputed's responses exist for surface vertices only);
 - "over budget": a run the advisor did not make, its steps timed ahead (``step_us``, ``dt``) and too
   slow for the frame rate asked (``frame``, ``message``): its error was not needed for the verdict.
 
@@ -25,7 +27,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 #: The statuses a row can have.
-STATUSES = ("ok", "diverged", "not settled", "over budget")
+STATUSES = ("ok", "diverged", "not settled", "not applicable", "over budget")
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 
+from realtime.registry import QUASI_STATIC
 from verification.cache import (
     RUN_CODE,
     cache_dir,
@@ -120,14 +121,18 @@ def cached_compare(
 def compare_or_unsettled(scene: Scene, model: str, integrator: str, dt, fraction, **options) -> Row:
     """``cached_compare``, where a run that does not settle is a row of status "not settled" with the
     reason (a candidate that failed, not an error that ends a study: hybrid-tm left a newcomer's liver
-    advice with no answer). Not cached: whether a run settles depends on its ``max_steps``, which the
-    run's key leaves out."""
-    from realtime import NotConvergedError
+    advice with no answer), and a model that cannot represent the scene (``ModelRestriction``: a tool
+    vertex inside the body for precomputed) one of status "not applicable". Not cached: whether a run
+    settles depends on its ``max_steps``, which the run's key leaves out."""
+    from realtime import ModelRestriction, NotConvergedError
 
     try:
         return cached_compare(scene, model, integrator, dt, fraction, **options)
     except NotConvergedError as exc:
         return Row(scene.name, model, integrator, "not settled", dt=dt, fraction=fraction, message=str(exc))
+    except ModelRestriction as exc:
+        stepper = "quasi-static" if model in QUASI_STATIC else integrator  # as compare labels its rows
+        return Row(scene.name, model, stepper, "not applicable", dt=dt, fraction=fraction, message=str(exc))
 
 
 def stable_key(scene: Scene, model_name: str, integrator: str, steps: int, iterations: int) -> str:
