@@ -433,6 +433,32 @@ def test_candidates_the_default_truth_leaves_undecided_are_decided_by_a_truth_ad
     assert out["model"] is not None and max(out["interval"]) <= 0.29 and not out["undecided"]
 
 
+def test_a_truth_held_at_a_point_is_not_made_sharper_and_the_advice_says_why(tmp_path, monkeypatch):
+    """A user's 5 mm tool on SOFA's liver held one vertex: the advisor adapted its truth for 80 s, its bar
+    grew (0.45, then 0.62) as a point load's does, and it answered "cannot decide" without the reason.
+    A scene pressed at a point has no converging truth (``scene.point_held``): the truth is not refined
+    for it, and its line names the load. The block pressed at one corner vertex, asked a bar no default
+    truth has."""
+    from verification.runs import reference as runs_reference
+    from verification.studies.truth import sharp_reference
+
+    data = builtin("block-press")
+    data["load"][0] = {**data["load"][0], "sphere": {"center": [0.04, 0.04, 0.04], "radius": 0.001}}
+    del data["load"][0]["box"]
+    scene = load_scene(str(write_scene(tmp_path / "corner.toml", data)))
+    solved = []
+    real = runs_reference.reference_result
+
+    def counted(sc, **opts):
+        solved.append(opts)
+        return real(sc, **opts)
+
+    monkeypatch.setattr("verification.studies.truth.reference_result", counted)
+    opts, truth = sharp_reference(scene, 0.05, "rel_l2", target=1e-9)
+    assert opts == runs_reference.REFERENCE_DEFAULTS and solved == [runs_reference.REFERENCE_DEFAULTS]
+    assert not truth["sharp"] and "not made sharper: load[0]" in truth["why"] and "holds 1 vertex" in truth["why"]
+
+
 # ---------------------------------------------------------------------------------------------
 # haptic verdicts: the shape at the visual rate, the tool force at the haptic one
 

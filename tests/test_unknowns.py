@@ -83,6 +83,11 @@ class _Scene:
     class mesh:
         n_vertices = 100
         surface_vertices = range(60)
+        tets = np.zeros((0, 4), dtype=np.int64)
+
+    class problem:  # held and pressed nowhere: no load at points (scene.point_held)
+        fixed = ()
+        loads = ()
 
 
 def test_a_precomputation_with_no_build_time_is_unknown_never_in_time():

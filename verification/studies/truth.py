@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from verification.progress import log
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
-from verification.scene import Scene
+from verification.scene import Scene, point_held
 from verification.studies.proposal import refined_times
 
 #: A truth sharp enough for the question: the reference's bar at most this share of the tolerance. A
@@ -139,6 +139,8 @@ def sharp_reference(
     on the tool force SHARP ``force_tol``: a force tolerance under an untightened force bar could never
     be met. A static P2 truth is adapted where its error lives (``_adapted``); a dynamic one is refined
     by up to TIGHTEN_LEVELS while the finer one is predicted within TIGHTEN_BUDGET_S (``reference_cost``).
+    A scene held or pressed at points or along edges (``scene.point_held``) is never made sharper: its
+    truth has no limit, and the advice says so instead of spending its budget on it.
     A bar the reference does not have is unknown, and refining does not make one: the truth is then not
     sharp, and ``why`` names it. ``tighten`` False: REFERENCE_DEFAULTS as it is, and what it says of itself.
 
@@ -154,6 +156,9 @@ def sharp_reference(
     ref = reference_result(scene, **opts)
     bars, tightened, nxt, how = _bars(ref.meta, needs), 0, None, ""
     static = scene.time.mode != "dynamic" and opts["degree"] == 2
+    held_at_points = point_held(scene)
+    if held_at_points:  # no truth converges there: refining only spends the budget to show it
+        tighten, how = False, f" (not made sharper: {held_at_points[0]})"
     if tighten and static and (over := _blocking(bars)) and all(b[1] is not None for b in over):
         opts, ref, how = _adapted(scene, opts, ref, needs)
         bars = _bars(ref.meta, needs)
