@@ -86,109 +86,13 @@ def _write_vtk(target: str, name: str, res) -> None:
     write_series(target, name, res.points, res.tets, res.times, {"displacement": res.displacement})
 
 
-def _zones(scene) -> list:
-    """Each [[material]] table: its region, law constants and how many tetrahedra it holds."""
-    import numpy as np
-
-    if not scene.zones:
-        return []
-    counts = np.bincount(scene.body_material().index, minlength=len(scene.zones))
-    return [
-        {
-            "table": f"material[{k}]",
-            "region": region.describe(),
-            "tets": int(counts[k]),
-            "young_pa": m.young,
-            "poisson": m.poisson,
-            "density_kg_m3": m.density,
-            "wave_speed_m_s": m.wave_speed,
-        }
-        for k, (region, m) in enumerate(scene.zones)
-    ]
-
-
 def cmd_check(args) -> int:
     """Read a scene as every command does (mesh, regions, loading, a model) and describe it, solving
     nothing: the check to run before a long study."""
-    import numpy as np
-
-    import realtime
-    from verification.inputs import build_loading
+    from verification.cli.describe import check_text, describe
 
     scene = _scene(args, warn=False, solves=False)  # check prints them with the rest
-    mesh = scene.mesh
-    loading = build_loading(mesh, scene.densities(), scene.problem)
-    lo, hi = mesh.bounding_box()
-    model = realtime.build_model("linear-tm", mesh.points, mesh.tets, scene.body_material(), loading)
-    regions = []
-    for i, fx in enumerate(scene.problem.fixed):
-        regions.append(
-            {"table": f"fixed[{i}]", "region": fx.region.describe(), "vertices": len(fx.region.vertices(mesh))}
-        )
-    surface = np.zeros(mesh.n_vertices, dtype=bool)
-    surface[mesh.surface_vertices] = True
-    for i, ld in enumerate(scene.problem.loads):
-        if hasattr(ld, "region"):
-            held = ld.region.vertices(mesh)
-            regions.append(
-                {"table": f"load[{i}]", "region": ld.region.describe(), "vertices": len(held),
-                 "inside": int((~surface[held]).sum())}
-            )  # fmt: skip
-    m = scene.material
-    out = {
-        "scene": scene.name,
-        "path": str(scene.path),
-        "mode": scene.time.mode,
-        "law": m.law,
-        "mesh": {**mesh.quality(), "sha256": mesh.sha256(), "parts": mesh.parts()[0], "notes": list(mesh.notes)},
-        "regions": regions,
-        "material": {"lambda_pa": m.lam, "mu_pa": m.mu, "wave_speed_m_s": m.wave_speed},
-        "materials": _zones(scene),
-        "dt_crit_element_s": realtime.element_critical_dt(model),
-        "extent_m": {"min": lo.tolist(), "max": hi.tolist(), "size": (hi - lo).tolist()},
-        "warnings": implausible(scene),
-        "states": _states(scene),
-    }
-
-    def text(o):
-        q = o["mesh"]
-        lines = [
-            f"{o['scene']} ({o['mode']}, {o['law']}): {q['n_vertices']} vertices, {q['n_tets']} tetrahedra, "
-            f"{q['parts']} part(s), dihedral angles {q['min_dihedral_deg']:.1f} to {q['max_dihedral_deg']:.1f} "
-            f"degrees, aspect ratio up to {q['max_aspect_ratio']:.2f}"
-        ]
-        e = o["extent_m"]
-        lines.append(
-            "  extent: {:.4g} x {:.4g} x {:.4g} m, from ({:.4g}, {:.4g}, {:.4g}) to ({:.4g}, {:.4g}, {:.4g}) m".format(
-                *e["size"], *e["min"], *e["max"]
-            )
-        )
-        lines += [f"  warning: {w}" for w in o["warnings"]]
-        lines += [f"  mesh repaired: {n}" for n in q["notes"]]
-        lines += [
-            f"  {z['table']}: {z['region']} holds {z['tets']} tetrahedra: E = {z['young_pa']:.4g} Pa, "
-            f"nu = {z['poisson']:.4g}, rho = {z['density_kg_m3']:.4g} kg/m^3"
-            for z in o["materials"]
-        ]
-        lines += [
-            f"  {r['table']}: {r['region']} holds {r['vertices']} vert{'ex' if r['vertices'] == 1 else 'ices'}"
-            + (
-                f", {r['inside']} inside the body (precomputed, whose responses exist for surface vertices only, "
-                "will not run this scene)"
-                if r.get("inside")
-                else ""
-            )
-            for r in o["regions"]
-        ]
-        lines.append(f"  element estimate of the explicit critical step: {o['dt_crit_element_s']:.3g} s")
-        lines += [
-            f"  state t = {st['time']:g} s: {st['label']}: {st['n_vertices']} vertices, {st['n_tets']} tetrahedra, "
-            f"{st['boundary_faces']} boundary faces"
-            for st in o["states"]
-        ]
-        return "\n".join(lines)
-
-    _emit(args, out, text)
+    _emit(args, describe(scene), check_text)
     return 0
 
 
@@ -204,24 +108,6 @@ def _write_levels(target: str, name: str, res) -> None:
         raise SceneError(f"--vtk: the adaptive reference's levels are not kept (solved with --no-cache?): {path}")
     written = write_levels(target, name, read_levels(path))
     print(f"wrote {written} (one step a level: the displacement and the indicator eta^2)", file=sys.stderr)
-
-
-def _states(scene) -> list[dict]:
-    """A scene with events: each state's time, events and mesh (a cut adds vertices and boundary faces)."""
-    if not scene.events:
-        return []
-    from verification.events import states
-
-    return [
-        {
-            "time": s.time,
-            "label": s.label,
-            "n_vertices": s.scene.mesh.n_vertices,
-            "n_tets": s.scene.mesh.n_tets,
-            "boundary_faces": len(s.scene.mesh.boundary),
-        }
-        for s in states(scene)
-    ]
 
 
 def cmd_reference(args) -> int:
