@@ -13,7 +13,6 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .linsolve import FACTOR_LIMIT
 from .model import Model
 
 
@@ -54,19 +53,28 @@ def max_eigenvalue(model: Model, u: np.ndarray | None = None, tol: float = 1e-8)
     return float(spla.eigsh(op, k=1, which="LA", tol=tol, v0=v0, return_eigenvectors=False)[0])
 
 
-def min_eigenvalue(model: Model, tol: float = 1e-3) -> float:
+#: Free components up to which ``min_eigenvalue`` factors the rest stiffness for shift-invert Lanczos:
+#: one factor and a few solves, where Lanczos on the force kernel needs more products the finer the
+#: mesh. SOFA's liver refined twice (57 987 free components): 10.8 s by shift-invert (scipy's SuperLU,
+#: COLAMD), over 4 minutes unfinished by Lanczos on the force kernel.
+SHIFT_INVERT_LIMIT = 100_000
+
+
+def min_eigenvalue(model: Model, tol: float = 1e-3, factored_only: bool = False) -> float | None:
     """Smallest eigenvalue omega_1^2 (1/s^2) of M^-1 K on the free components, at rest, to a relative
     tolerance ``tol`` (enough to choose a time step): the slowest mode, the one a static relaxation
     must settle.
 
     Where the rest stiffness is known as a matrix (Model.rest_stiffness: exact at rest for every model
-    without the volume penalty) and small enough to factor, by shift-invert Lanczos about 0 (a few
+    without the volume penalty) and small enough to factor (SHIFT_INVERT_LIMIT), by shift-invert Lanczos about 0 (a few
     iterations whatever the conditioning); otherwise by Lanczos on the force kernel, whose iterations
     grow with the condition number (2e5 products on the cantilever at nu = 0.4999, 20 s).
+    ``factored_only``: None instead of that (and of a singular K's 0), for a caller that wants the value
+    only where it is cheap (``statics.solve_static``'s damping).
     """
     fidx = np.flatnonzero(model.loading.free.reshape(-1) != 0.0)
     v0 = np.random.default_rng(0).standard_normal(len(fidx))
-    if not model.materials.per_tet("volume_penalty").any() and len(fidx) <= FACTOR_LIMIT:
+    if not model.materials.per_tet("volume_penalty").any() and len(fidx) <= SHIFT_INVERT_LIMIT:
         K = model.rest_stiffness()[fidx][:, fidx].tocsc()
         M = sp.diags(np.repeat(model.mass, 3)[fidx]).tocsc()
         try:
@@ -74,6 +82,8 @@ def min_eigenvalue(model: Model, tol: float = 1e-3) -> float:
             return float(lam[0])
         except RuntimeError:  # K singular (a free body): its smallest eigenvalue is 0, which Lanczos finds
             pass
+    if factored_only:
+        return None
     op = _scaled_stiffness(model)
     return float(
         spla.eigsh(op, k=1, which="SA", tol=tol, v0=v0, maxiter=100 * op.shape[0], return_eigenvectors=False)[0]

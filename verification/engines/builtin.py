@@ -54,6 +54,15 @@ def _omega2_key(inputs: SceneInputs, model_name: str, options: dict | None, *at)
     return (inputs.sha256, model_name, json.dumps(options or {}, sort_keys=True, default=str), *at)
 
 
+def omega2_min_rest(inputs: SceneInputs, model, options: dict | None = None) -> float | None:
+    """omega_1^2 (1/s^2) of ``model`` at rest where it is cheap (``min_eigenvalue``'s shift-invert; None
+    where not), computed once per scene, model and options: the damping of every settling of it."""
+    key = _omega2_key(inputs, model.name, options, "min")
+    if key not in _OMEGA2:
+        _OMEGA2[key] = min_eigenvalue(model, factored_only=True)
+    return _OMEGA2[key]
+
+
 def omega2_rest(inputs: SceneInputs, model, options: dict | None = None) -> float:
     """omega_max^2 (1/s^2) of ``model`` at rest, computed once per scene, model and options."""
     key = _omega2_key(inputs, model.name, options, "rest")
@@ -182,11 +191,15 @@ def _settle_explicit(inputs, model, integ, omega2, dt, dt_fraction, rtol, max_st
         ticker.tick(taken, f": residual {residual:.2e} of the load (asked {rtol:.0e})")
 
     static = None
+    slowest = omega2_min_rest(inputs, model, options)
     if not model.linear:
         key = _omega2_key(inputs, model.name, options, "settled", rtol)
         if key not in _OMEGA2:
             try:
-                static = solve_static(model, dt=None, rtol=rtol, max_steps=max_steps, progress=progress, omega2=omega2)
+                static = solve_static(
+                    model, dt=None, rtol=rtol, max_steps=max_steps, progress=progress, omega2=omega2,
+                    omega2_min=slowest,
+                )  # fmt: skip
             except DivergenceError as exc:
                 refuse_unbounded(inputs, exc)
                 raise
@@ -199,7 +212,7 @@ def _settle_explicit(inputs, model, integ, omega2, dt, dt_fraction, rtol, max_st
         dt = (0.9 if dt_fraction is None else dt_fraction) * dt_crit
     if static is None or static.dt != dt:
         try:
-            static = solve_static(model, dt=dt, rtol=rtol, max_steps=max_steps, progress=progress)
+            static = solve_static(model, dt=dt, rtol=rtol, max_steps=max_steps, progress=progress, omega2_min=slowest)
         except DivergenceError as exc:
             refuse_unbounded(inputs, exc)
             raise
