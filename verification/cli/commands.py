@@ -457,7 +457,11 @@ def cmd_gate(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    if args.solvers:
+    if args.advice:
+        from verification.bench.advice import format_table, run
+
+        out = run(cases=args.cases)
+    elif args.solvers:
         from mpi4py import MPI
 
         from verification.bench.solvers import format_table, run

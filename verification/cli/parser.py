@@ -344,7 +344,14 @@ def _bench(sub) -> None:
         help="the reference's linear solvers side by side (GAMG, ML, BoomerAMG, MUMPS: iterations, seconds, memory)",
     )
     s.add_argument(
-        "--cases", nargs="+", help="with --reference or --solvers: only the cases whose label contains one of these"
+        "--advice",
+        action="store_true",
+        help="advise on SOFA's liver and a user's liver at 5%% and 60 Hz, each from an empty cache: seconds, answer",
+    )
+    s.add_argument(
+        "--cases",
+        nargs="+",
+        help="with --reference, --solvers or --advice: only the cases whose label contains one of these",
     )
     s.add_argument(
         "--newton",
