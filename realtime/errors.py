@@ -24,6 +24,15 @@ class LoadingError(InputError):
     """A Loading or a model option with a wrong shape, dtype, index range or value."""
 
 
+def did_you_mean(word: str, choices) -> str:
+    """ " (did you mean 'x'?)" naming the choice closest to a mistyped ``word`` (difflib's ratio of at
+    least 0.6), or "" where none is close: the end of an error's line."""
+    import difflib
+
+    near = difflib.get_close_matches(str(word), [str(c) for c in choices], n=1)
+    return f" (did you mean {near[0]!r}?)" if near else ""
+
+
 def is_real(value) -> bool:
     """Whether ``value`` is a real number: a Python or numpy int or float, not a bool (a flag passed
     where a number belongs) and not a string."""

@@ -228,3 +228,18 @@ def test_the_solvers_bench_solves_the_livers_first_newton_system_and_names_debia
     assert row["case"] == "liver P2 refined 0, nu 0.4" and row["n_dofs"] > 10_000
     assert row["reason"] > 0 and 0 < row["iterations"] < 500 and row["peak_memory_bytes"] > 0
     assert "hypre" in format_table(out) and "mumps" in format_table(out)
+
+
+def test_the_advice_bench_counts_a_decision_only_where_the_advice_decided():
+    """``bench --advice`` measures whether the advisor decides on the organs users bring: a pick decides;
+    "no model" decides only with a truth whose bar is at most a third of the tolerance and no candidate
+    left undecided; "cannot decide", an unknown bar or a wide one do not."""
+    from verification.bench.advice import decided
+
+    pick = {"model": "stvk-tm", "integrator": "symplectic-euler", "refine": 2, "undecided": []}
+    assert decided(pick, 0.05) == (True, "stvk-tm (symplectic-euler) on the mesh refined 2 times")
+    none = {"model": None, "undecided": [], "reference": {"bar": 0.016}}
+    assert decided(none, 0.05) == (True, "no model")
+    assert not decided({**none, "reference": {"bar": 0.017}}, 0.05)[0]  # over a third of 5%
+    assert not decided({**none, "reference": {"bar": None}}, 0.05)[0]  # unknown: never a decision
+    assert decided({**none, "undecided": ["linear-tm ..."]}, 0.05) == (False, "cannot decide")

@@ -208,7 +208,12 @@ def test_options_are_checked_on_one_line(capsys):
         (["run", "cantilever", "--model", "linear-tm", "--dt", "nan"], "finite number > 0"),
         (["run", "cantilever", "--model", "linear-tm", "--dt=-1e-4"], "finite number > 0"),
         (["reference", "cantilever", "--refine", "9"], "0 to 4"),
-        (["bench", "--meshes", "livr"], "argument --meshes: invalid choice: 'livr'"),  # was a KeyError traceback
+        (["bench", "--meshes", "livr"], "argument --meshes: invalid choice: 'livr' (did you mean 'liver'?)"),
+        # a mistyped name is answered with the closest one: models, engines, commands, choices
+        (["run", "cantilever", "--model", "stvk"], "no engine offers 'stvk' (did you mean 'stvk-tm'?)"),
+        (["sweep", "cantilever", "--models", "linaer-tm"], "model = 'linaer-tm' (did you mean 'linear-tm'?)"),
+        (["run", "cantilever", "--engine", "newtn", "--model", "x"], "--engine 'newtn' (did you mean 'newton'?)"),
+        (["compar", "cantilever"], "invalid choice: 'compar' (did you mean 'compare'?)"),
     ):
         code, _, err = run(args, capsys)
         assert code == 2

@@ -35,7 +35,7 @@ def decided(out: dict, tol: float) -> tuple[bool, str]:
     ``tol`` by the verdict rule), or no model with a truth whose bar is at most NO_MODEL_BAR ``tol`` and
     no candidate left undecided."""
     if out.get("model"):
-        return True, f"{out['model']} ({out['integrator']}) at level {out.get('level', 0)}"
+        return True, f"{out['model']} ({out['integrator']}) on the mesh refined {out.get('refine') or 0} times"
     bar = (out.get("reference") or {}).get("bar")
     if out.get("undecided") or bar is None or bar > NO_MODEL_BAR * tol:
         return False, "cannot decide" if out.get("undecided") else f"no model, the truth's bar {bar} too wide"

@@ -4,9 +4,11 @@ a bad value into a one-line error."""
 from __future__ import annotations
 
 import argparse
+import re
 
 from meshes.store import stored_names
 from realtime import INTEGRATORS, MODELS
+from realtime.errors import did_you_mean
 from verification.cli.commands import (
     cmd_advise,
     cmd_bench,
@@ -42,6 +44,12 @@ class _Parser(argparse.ArgumentParser):
     """argparse with its errors on one line (the usage is in --help) and exit status 2."""
 
     def error(self, message):
+        # argparse's "invalid choice: 'compar' (choose from 'scenes', ...)": the closest choice named first
+        wrong = re.match(r"argument [^:]+: invalid choice: '([^']*)' \(choose from (.*)\)$", message)
+        if wrong:
+            message = message.replace(
+                " (choose from", did_you_mean(wrong[1], re.findall(r"'([^']*)'", wrong[2])) + " (choose from", 1
+            )
         self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
 
 

@@ -5,7 +5,7 @@
 
 from __future__ import annotations
 
-from realtime.errors import InputError
+from realtime.errors import InputError, did_you_mean
 
 from .builtin import BUILTIN
 
@@ -29,7 +29,8 @@ def engine_for(model: str):
         if model in engine.models:
             return engine
     offered = sorted(m for e in ENGINES.values() for m in e.models)
-    raise InputError(f"model: no engine offers {model!r}; the models are {', '.join(offered)}")
+    hint = did_you_mean(model, offered)
+    raise InputError(f"model: no engine offers {model!r}{hint}; the models are {', '.join(offered)}")
 
 
 def load_engine(spec: str):
@@ -49,7 +50,8 @@ def load_engine(spec: str):
         return engine
     where, _, name = spec.rpartition(":")
     if not where or not name:
-        raise InputError(f"--engine {spec!r}: give {' or '.join(ADAPTERS)}, MODULE:CLASS or FILE.py:CLASS")
+        hint = did_you_mean(spec, ADAPTERS)
+        raise InputError(f"--engine {spec!r}{hint}: give {' or '.join(ADAPTERS)}, MODULE:CLASS or FILE.py:CLASS")
     try:
         if where.endswith(".py"):
             loader = importlib.util.spec_from_file_location(Path(where).stem, where)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+from realtime.errors import did_you_mean
 from realtime.registry import QUASI_STATIC
 from reference.errors import ReferenceSolveError
 from verification.engines import offered, plug_in
@@ -131,7 +132,8 @@ def sweep(
         fractions = list(default_fractions(scene))
     unknown = [m for m in models if m not in offered()]
     if unknown:
-        raise SceneError(f"model = {unknown[0]!r}: must be one of {', '.join(offered())}")
+        hint = did_you_mean(unknown[0], offered())
+        raise SceneError(f"model = {unknown[0]!r}{hint}: must be one of {', '.join(offered())}")
     rank, size = (comm.rank, comm.size) if comm is not None else (0, 1)
     ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
     ref = reference_result(scene, **ref_opts)  # collective under MPI; cached afterwards
