@@ -330,6 +330,43 @@ def test_a_model_that_cannot_represent_the_scene_is_a_candidate_not_applicable_n
     assert out["model"] == "linear-tm"
 
 
+def test_advice_with_no_model_names_each_candidates_best_tolerance_and_the_cheapest_change():
+    """Where nothing qualifies the advice still gives something to act on: the smallest tolerance each
+    candidate holding the rate can be said to meet (the top of its interval; a candidate over the frame,
+    or with no interval, has none), and the cheapest refined mesh the proposal predicts to meet the
+    tolerance and the rate, leaving out a plan tried there that failed."""
+    from verification.studies.advise import format_advice
+
+    def cand(model, integrator, interval, holds=True):
+        best = interval[1] if interval and holds else None
+        return {"model": model, "integrator": integrator, "interval": interval, "best_tol": best}
+
+    def plan(model, level, err, build):
+        return {"model": model, "integrator": "symplectic-euler", "level": level, "predicted_error": err,
+                "error_bound": 2 * err, "predicted_frame": "8 steps of 900 us per frame", "holds": True,
+                "hopeful": True, "fits_memory": True, "predicted_build_s": build}  # fmt: skip
+
+    out = {
+        "model": None, "why": "no model meets rel_l2 <= 0.05 at 60 Hz on this mesh", "rate": 60.0, "metric": "rel_l2",
+        "candidates": [
+            cand("stvk-tm", "symplectic-euler", (0.17, 0.57)), cand("stvk-tm", "symplectic-euler", (0.15, 0.55)),
+            cand("linear-tm", "implicit-euler", (0.2, 0.6)), cand("hybrid-tm", "symplectic-euler", (0.1, 0.3), False),
+            cand("ffd", "quasi-static", None),
+        ],
+        "proposal": {"tried": [{"model": "linear-tm", "integrator": "symplectic-euler", "level": 1, "ok": False}],
+                     "predicted": [plan("linear-tm", 1, 0.04, 3.0), plan("stvk-tm", 2, 0.03, 40.0),
+                                   plan("stvk-tm", 1, 0.045, 5.0)]},
+    }  # fmt: skip
+    lines = format_advice(out).splitlines()
+    assert lines[1] == (
+        "best tolerance at 60 Hz on the scene's mesh: stvk-tm (symplectic-euler) 0.55, linear-tm (implicit-euler) 0.6"
+    )
+    assert lines[2] == (
+        "cheapest change: the mesh refined once for stvk-tm (symplectic-euler): rel_l2 predicted 0.045 (at most "
+        "0.09); 8 steps of 900 us per frame, its first answer in about 5 s"
+    )
+
+
 # ---------------------------------------------------------------------------------------------
 # a truth sharp enough for the question
 
@@ -373,8 +410,9 @@ def test_the_cost_of_a_sharper_reference_is_predicted_from_the_levels_solved():
 @pytest.mark.parametrize("budget", [1e9, 0.0])
 def test_a_coarse_dynamic_truth_is_refined_within_the_budget_or_the_advice_says_it_cannot_decide(monkeypatch, budget):
     """A dynamic truth (no P3 check, so nothing to adapt by) whose bar (2.5%) is over SHARP of the
-    tolerance (5%) is solved refined once more when that is predicted within TIGHTEN_BUDGET_S, and the
-    advice judges with it; past the budget the advice keeps it and says what a sharper one would take.
+    tolerance (5%) is solved refined once more when that is predicted within the truth's budget
+    (``advise --truth-budget``), and the advice judges with it; past the budget the advice keeps it and
+    says what a sharper one would take, and which option allows it.
     The references are stand-ins (what is tested is the rule, not the solver): each refinement divides
     the bar by 8."""
     from types import SimpleNamespace
@@ -389,14 +427,13 @@ def test_a_coarse_dynamic_truth_is_refined_within_the_budget_or_the_advice_says_
         return SimpleNamespace(meta={"ref_err_estimate": 0.025 / 8**refine, "solves": solves})
 
     monkeypatch.setattr(truth, "reference_result", fake)
-    monkeypatch.setattr(truth, "TIGHTEN_BUDGET_S", budget)
-    opts, said = truth.sharp_reference(load_scene("cantilever-dynamic"), 0.05, "rel_l2")
+    opts, said = truth.sharp_reference(load_scene("cantilever-dynamic"), 0.05, "rel_l2", budget_s=budget)
     if budget:
         assert opts["refine"] == 1 and asked == [0, 1] and said["sharp"]
         assert said["bar"] == pytest.approx(0.025 / 8) and "refined once more" in said["why"]
     else:
         assert opts["refine"] == 0 and asked == [0] and not said["sharp"]
-        assert "predicted to take" in said["why"] and "undecided" in said["why"]
+        assert "predicted to take" in said["why"] and "(--truth-budget)" in said["why"] and "undecided" in said["why"]
 
 
 def test_the_truth_is_asked_for_what_the_undecided_candidates_cheaper_than_a_sure_pick_need():

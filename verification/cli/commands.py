@@ -432,6 +432,7 @@ def cmd_advise(args) -> int:
         models=args.models,
         haptic_rate=args.haptic_rate,
         force_tol=args.force_tol,
+        truth_budget=args.truth_budget,
     )
     if _rank0(comm):
         _emit(args, out, format_advice)

@@ -310,6 +310,13 @@ def _advise(sub) -> None:
     s.add_argument(
         "--force-tol", type=_positive, help="largest acceptable error of the tool's force (relative; default --tol)"
     )
+    s.add_argument(
+        "--truth-budget",
+        type=_positive,
+        metavar="SECONDS",
+        help="time a sharper truth may take where the default one leaves candidates undecided (default 180 "
+        "adapting a static truth, 120 refining a dynamic one)",
+    )
     s.add_argument("--models", nargs="+", help="choose among these only (default: every model, plug-ins' too)")
     s.add_argument("--engine", action="append", metavar="MODULE:CLASS", help=ENGINE_HELP)
     s.add_argument("--no-cache", action="store_true")

@@ -209,6 +209,7 @@ def advise(
     models=None,
     haptic_rate: float | None = None,
     force_tol: float | None = None,
+    truth_budget: float | None = None,
 ) -> dict:
     """The cheapest (model, integrator, dt, mesh) whose ``metric`` is at most ``tol`` while a simulator
     holds ``rate`` frames per second on this machine (``frame_budget`` with FRAME_SHARE of each frame),
@@ -219,7 +220,8 @@ def advise(
 
     ``haptic_rate``: the simulator also runs a haptic loop at that rate (Hz): the model steps there, and
     a candidate qualifies only if its tool force is within ``force_tol`` (default ``tol``) too, judged
-    at the haptic rate (``frame.judgement``)."""
+    at the haptic rate (``frame.judgement``). ``truth_budget``: the seconds a sharper truth may take
+    (``truth.sharp_reference``'s ``budget_s``)."""
     haptic = check_question(scene, tol, rate, metric, haptic_rate, force_tol)
     dynamic = scene.time.mode == "dynamic"
     # the truth is made sharper only where a candidate it leaves undecided asks for it, and as far as it asks
@@ -228,7 +230,7 @@ def advise(
     need = needed_bar(rows, metric, tol, dynamic)
     if need is not None and not (truth["sharp"] and truth["bar"] <= need):
         log(f"advise {scene.name}: {_undecided_count(rows, metric, tol)} undecided; the truth's bar asked: {need:.3g}")
-        sharper_opts, truth = sharp_reference(scene, tol, metric, haptic, target=need)
+        sharper_opts, truth = sharp_reference(scene, tol, metric, haptic, target=need, budget_s=truth_budget)
         if sharper_opts != ref_opts:  # judged again against the sharper truth (its runs are cached by it)
             ref_opts = sharper_opts
             rows = _candidates(scene, metric, rate, use_cache, comm, f"advise {scene.name}", models, ref_opts, haptic)
@@ -356,8 +358,11 @@ def _candidate(r: Row, metric: str, tol: float) -> dict:
     """One candidate of the scene's mesh, whatever engine ran it: its step, error with the interval the
     reference's bar leaves (``frame.row_interval``) and verdict."""
     state, why = judgement(r, metric, tol)
+    interval = row_interval(r, metric)
+    # the smallest tolerance it can be said to meet at the rate asked: its interval's top, where its frame holds
+    best = interval[1] if interval and r.ok and (r.frame or {}).get("holds") else None
     return {"model": r.model, "integrator": r.integrator, "dt": r.dt, "step_us": r.step_us,
-            metric: getattr(r, metric), "interval": row_interval(r, metric),
+            metric: getattr(r, metric), "interval": interval, "best_tol": best,
             "qualifies": state == QUALIFIES, "verdict": state, "why": why}  # fmt: skip
 
 
@@ -461,6 +466,41 @@ def _command(scene: Scene, row: Row, level: int, rate: float) -> str:
     return " ".join(parts)
 
 
+def _best_tolerances(out: dict) -> list[str]:
+    """The smallest tolerance each candidate on the scene's mesh that holds the rate can be said to meet
+    (the top of its interval), one per model and integrator, smallest first."""
+    best = {}
+    for c in out.get("candidates") or []:
+        key = f"{c['model']} ({c['integrator']})"
+        if c.get("best_tol") is not None and c["best_tol"] < best.get(key, math.inf):
+            best[key] = c["best_tol"]
+    head = f"best tolerance at {out['rate']:g} Hz on the scene's mesh: "
+    if not best:
+        return [head + "none (no candidate holds the rate with a known interval)"]
+    return [head + ", ".join(f"{k} {v:.3g}" for k, v in sorted(best.items(), key=lambda kv: kv[1]))]
+
+
+def _cheapest_change(out: dict) -> list[str]:
+    """Where nothing qualifies: the refined mesh the proposal predicts to meet the tolerance and the rate
+    at the fewest refinements (then the smallest predicted error), not one tried there and failed, with
+    its predicted error, frame and first answer's wait."""
+    prop = out.get("proposal") or {}
+    failed = {(t["model"], t["integrator"], t["level"]) for t in prop.get("tried") or [] if not t["ok"]}
+    plans = [
+        p for p in prop.get("predicted") or []
+        if p["holds"] and p["fits_memory"] and (p["model"], p["integrator"], p["level"]) not in failed
+    ]  # fmt: skip
+    if not plans:
+        return []
+    p = min(plans, key=lambda p: (p["level"], p["predicted_error"]))
+    wait = "" if p["predicted_build_s"] is None else f", its first answer in about {p['predicted_build_s']:.3g} s"
+    return [
+        f"cheapest change: the mesh refined {refined_times(p['level'])} for {p['model']} ({p['integrator']}): "
+        f"{out['metric']} predicted {p['predicted_error']:.3g} (at most {p['error_bound']:.3g}); "
+        f"{p['predicted_frame']}{wait}"
+    ]
+
+
 def format_advice(out: dict) -> str:
     """The advisor's answer as text."""
     lines = []
@@ -468,6 +508,7 @@ def format_advice(out: dict) -> str:
     truth = (out.get("reference") or {}).get("why")
     if out.get("model") is None:
         lines.append(out["why"])
+        lines += _best_tolerances(out) + _cheapest_change(out)
     else:
         m = out["mesh"]
         mesh = (
@@ -488,6 +529,7 @@ def format_advice(out: dict) -> str:
             r = out["runner_up"]
             lines.append(f"runner-up: {r['model']} ({out['metric']} {r['value']:.3g}; {r['frame']['why']})")
         lines.append(f"check it: {out['command']}")
+        lines += _best_tolerances(out)
     if prop and prop.get("mesh_part"):
         lines.append(
             f"mesh: P1's error is {prop['mesh_part'][0]:.3g} on the scene's mesh and {prop['mesh_part'][1]:.3g} refined "

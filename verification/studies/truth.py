@@ -71,7 +71,7 @@ def _asked(t: float, want: float) -> str:
     return f"the {want:.3g} the undecided candidates need (tolerance {t:g})"
 
 
-def _why(bars: list, over: list, how: str, nxt: dict | None) -> str:
+def _why(bars: list, over: list, how: str, nxt: dict | None, budget_s: float = TIGHTEN_BUDGET_S) -> str:
     """What the truth says of itself: each bar within what the question asks and how it was made so
     (``how``), or each that blocks (unknown, or over) and what a sharper truth would take."""
     if not over:
@@ -89,24 +89,24 @@ def _why(bars: list, over: list, how: str, nxt: dict | None) -> str:
             f"; a sharper one (P2 refined once more, {nxt['n_dofs']} dofs) is predicted to take {nxt['seconds']:.0f} s"
         )
         why += (
-            f", over the advisor's {TIGHTEN_BUDGET_S:.0f} s"
-            if nxt["seconds"] > TIGHTEN_BUDGET_S
+            f", over the advisor's {budget_s:.0f} s (--truth-budget)"
+            if nxt["seconds"] > budget_s
             else f"; the advisor refines its truth {refined_times(TIGHTEN_LEVELS)} at most"
         )
     return why + ": candidates whose interval contains the tolerance are undecided"
 
 
-def _adapted(scene: Scene, opts: dict, ref, needs: list) -> tuple[dict, object, str]:
+def _adapted(scene: Scene, opts: dict, ref, needs: list, budget_s: float) -> tuple[dict, object, str]:
     """A static P2 truth adapted where its error lives until each needed bar is within what it is asked
-    (``reference.adaptive``, within ADAPT_BUDGET_S): its options, the reference and how it was made, where
+    (``reference.adaptive``, within ``budget_s`` s): its options, the reference and how it was made, where
     its bars are known and the one on the metric is under the reference's ``ref`` had; else ``opts``,
     ``ref`` and why the adapted one was not taken."""
-    adapt = {"target": needs[0][3], "budget_s": ADAPT_BUDGET_S, "max_levels": ADAPT_LEVELS}
+    adapt = {"target": needs[0][3], "budget_s": budget_s, "max_levels": ADAPT_LEVELS}
     if len(needs) > 1:
         adapt["force_target"] = needs[1][3]
     log(
         f"advise {scene.name}: adapting the reference where its error lives until its bar is at most "
-        f"{adapt['target']:.3g} (at most {ADAPT_BUDGET_S:.0f} s)"
+        f"{adapt['target']:.3g} (at most {budget_s:.0f} s)"
     )
     sharper_opts = {**opts, "estimate": "adaptive", "adapt": adapt}
     sharper = reference_result(scene, **sharper_opts)
@@ -131,6 +131,7 @@ def sharp_reference(
     haptic: dict | None = None,
     target: float | None = None,
     tighten: bool = True,
+    budget_s: float | None = None,
 ) -> tuple[dict, dict]:
     """The reference the advice judges with (``reference_result`` options) and what it says of itself:
     REFERENCE_DEFAULTS, made sharper while a bar the question needs is over what it is asked to reach:
@@ -143,6 +144,8 @@ def sharp_reference(
     truth has no limit, and the advice says so instead of spending its budget on it.
     A bar the reference does not have is unknown, and refining does not make one: the truth is then not
     sharp, and ``why`` names it. ``tighten`` False: REFERENCE_DEFAULTS as it is, and what it says of itself.
+    ``budget_s``: the seconds a sharper truth may take (``advise --truth-budget``; default ADAPT_BUDGET_S
+    adapting, TIGHTEN_BUDGET_S refining).
 
     Returns (options, {"bar": the bar on ``metric``, "force_bar": on the tool force (None without
     ``haptic``), "refine", "sharp", "tightened": uniform refinements added, "estimate": "adaptive" where
@@ -160,11 +163,12 @@ def sharp_reference(
     if held_at_points:  # no truth converges there: refining only spends the budget to show it
         tighten, how = False, f" (not made sharper: {held_at_points[0]})"
     if tighten and static and (over := _blocking(bars)) and all(b[1] is not None for b in over):
-        opts, ref, how = _adapted(scene, opts, ref, needs)
+        opts, ref, how = _adapted(scene, opts, ref, needs, ADAPT_BUDGET_S if budget_s is None else budget_s)
         bars = _bars(ref.meta, needs)
+    refining = TIGHTEN_BUDGET_S if budget_s is None else budget_s
     while tighten and not static and (over := _blocking(bars)) and all(b[1] is not None for b in over):
         nxt = reference_cost(ref.meta)
-        if tightened >= TIGHTEN_LEVELS or nxt is None or nxt["seconds"] > TIGHTEN_BUDGET_S:
+        if tightened >= TIGHTEN_LEVELS or nxt is None or nxt["seconds"] > refining:
             break
         shown = ", ".join(f"its bar on {n} {b:.3g} is over {w:.3g}" for n, b, _, w in over)
         opts = {**opts, "refine": opts["refine"] + 1}
@@ -185,5 +189,5 @@ def sharp_reference(
         "estimate": opts.get("estimate"),
         "next": nxt,
         "blocking": [b[0] for b in over],
-        "why": _why(bars, over, how, nxt),
+        "why": _why(bars, over, how, nxt, refining),
     }
