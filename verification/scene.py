@@ -180,6 +180,7 @@ def implausible(scene: Scene) -> list[str]:
         )
         out.append(f"mesh: the body is {extent:.3g} m across, outside the {low:g} to {high:g} m of an organ{fix}")
     out += point_held(scene)
+    out += [line for line in small_tools(scene) if line.split(":")[0] not in {p.split(":")[0] for p in out}]
     tables = [m for _, m in scene.zones] if scene.zones else [scene.material]
     for i, m in enumerate(tables):
         where = f"material[{i}]" if scene.zones else "material"
@@ -191,6 +192,10 @@ def implausible(scene: Scene) -> list[str]:
             if not low <= v <= high:
                 out.append(f"{where}.{key} = {v:g} {unit}: soft tissue spans {low:g} to {high:g} ({hint})")
     return out
+
+
+#: A tool holding fewer vertices than this is warned of (``small_tools``): a patch of a few triangles.
+SMALL_TOOL = 6
 
 
 def point_held(scene: Scene) -> list[str]:
@@ -212,12 +217,29 @@ def point_held(scene: Scene) -> list[str]:
     for table, region in held:
         chosen = np.zeros(mesh.n_vertices, dtype=bool)
         chosen[region.vertices(mesh)] = True
+        n = int(chosen.sum())
         if chosen.any() and not chosen[faces].all(axis=1).any():
-            n = int(chosen.sum())
             out.append(
                 f"{table}: {region.describe()} holds {n} vertex{'es' if n > 1 else ''} and no face between them: "
                 "a displacement held at points or along edges has no limit under refinement (in 3D a point "
                 "has no stiffness), so no truth converges on it; make the region hold at least one face"
+            )
+    return out
+
+
+def small_tools(scene: Scene) -> list[str]:
+    """One line per tool (a [[load]] of prescribed displacement) holding a face but fewer than SMALL_TOOL
+    vertices: a truth exists, but the tool is a few triangles whose rim, where the error lives, is a
+    vertex or two wide on the scene's mesh."""
+    from reference.problem import Displacement
+
+    out = []
+    for i, ld in enumerate(scene.problem.loads):
+        if isinstance(ld, Displacement) and 0 < (n := len(ld.region.vertices(scene.mesh))) < SMALL_TOOL:
+            out.append(
+                f"load[{i}]: {ld.region.describe()} holds {n} vertices: a tool this small is a few triangles of "
+                "this mesh, its rim (where the error lives) a vertex or two wide, so the models' errors and tool "
+                "forces under it depend on the mesh more than on the model; a finer mesh or a wider tool resolves it"
             )
     return out
 
