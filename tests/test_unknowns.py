@@ -73,6 +73,7 @@ class _Scene:
     mode, mesh's sizes and refined scenes (itself: the stubs answer the same at every level)."""
 
     name = "a scene"
+    events = ()
 
     def refined(self, level):
         return self

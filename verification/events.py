@@ -139,7 +139,8 @@ def states(scene) -> list[State]:
     from verification.scene import SceneError
 
     mesh = scene.mesh
-    # a refined scene's states are solved on their own meshes: its base has no cut
+    # a refined scene's states are made on its own mesh, their base the base scene's states (its base has
+    # no cut: the cut is in the states)
     whole = dataclasses.replace(scene, events=(), **({"base": None, "level": 0} if scene.level else {}))
     points, tets = mesh.points, mesh.tets
     union = np.arange(mesh.n_vertices)  # the union vertex of each current vertex
@@ -175,6 +176,10 @@ def states(scene) -> list[State]:
         same = len(points) == mesh.n_vertices and np.array_equal(tets, mesh.tets)  # sutured whole again
         state = whole if same else _state_scene(whole, _mesh(mesh, points, tets, origin[union], label), origin[union])
         out.append(State(t, label, state, _stand_in(parent, union), union))
+    if scene.level:  # each state poses its base state's problem: its truth is that one's, evaluated here
+        bases = states(scene.base)
+        out = [dataclasses.replace(s, scene=dataclasses.replace(s.scene, base=b.scene, level=scene.level))
+               for s, b in zip(out, bases, strict=True)]  # fmt: skip
     return out
 
 

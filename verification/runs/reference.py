@@ -363,6 +363,10 @@ def reference_at(scene: Scene, points: np.ndarray, **options) -> Result:
     degree, refine, estimate = options["degree"], options["refine"], options["estimate"]
     newton = (options.get("newton_steps", 1), options.get("min_increment", 1e-4))
     petsc, adapt = options.get("petsc_options"), options.get("adapt")
+    if scene.level and not options.get("own_mesh"):  # a refined scene's truth is its base's, evaluated here
+        sol = _solve_static(scene, scene.base, degree, refine, estimate, newton, petsc, True, points, adapt)
+        meta = {**base.meta, **sol["meta"]}
+        return Result(points, empty, np.zeros(1), sol["displacement"][None], sol["reaction"][None], meta)
     memo = _memo(scene, degree, refine, estimate, *newton, petsc, adapt)
     fields = _fields_path(reference_path(scene, degree, refine, estimate, *newton, False, petsc, adapt))
     if memo not in _SOLVED and fields.exists():

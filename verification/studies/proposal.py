@@ -69,11 +69,8 @@ def propose_mesh(
         return {"level": None, "why": "no error budget (no P1 solution on this mesh): no mesh size can be proposed"}
     e0 = budgets[0]["mesh"]
     truth = reference_result(scene, **(ref_opts or REFERENCE_DEFAULTS))
-    fine = scene.refined(1)
-    p1 = reference_result(fine, **P1_OWN_MESH)
-    n = scene.mesh.n_vertices  # nested: the base vertices come first on the refined mesh
     scale = float(np.linalg.norm(truth.displacement))
-    e1 = float(np.linalg.norm(p1.displacement[:, :n] - truth.displacement) / scale)
+    e1 = float(np.linalg.norm(_refined_p1_here(scene) - truth.displacement) / scale)
     observed = math.log2(e0 / e1) if e1 > 0 else math.inf
     out = {"mesh_part": [e0, e1], "observed_order": observed}
     if not observed > 0.5:
@@ -108,6 +105,24 @@ def propose_mesh(
     )
     out.update(level=plans[0]["level"], order=order, plans=plans)
     return out
+
+
+def _refined_p1_here(scene: Scene) -> np.ndarray:
+    """P1 on the scene's mesh refined once, at the scene's vertices (T, N, 3) m: the refined mesh's first
+    vertices are the base's (nested). A scene with events is taken state by state, the refined state's P1
+    evaluated at the base state's vertices (nudged into their own side's cells: a cut's lips are no
+    nested vertices), and stitched as its truth is (``runs.staged``)."""
+    fine = scene.refined(1)
+    if not scene.events:
+        return reference_result(fine, **P1_OWN_MESH).displacement[:, : scene.mesh.n_vertices]
+    from verification.events import nudged, states
+    from verification.runs.reference import reference_at
+    from verification.runs.staged import stitched
+
+    parts = [
+        (s, reference_at(f.scene, nudged(s), **P1_OWN_MESH)) for s, f in zip(states(scene), states(fine), strict=True)
+    ]
+    return stitched(scene, parts).displacement
 
 
 def _plans(scene: Scene, rows: list[Row], e1: float, order: float, tol: float, rate: float, haptic=None) -> list[dict]:
