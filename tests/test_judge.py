@@ -155,3 +155,57 @@ def test_an_xdmf_time_series_is_judged_like_a_paraview_one(tmp_path, capsys, mon
     code, out = _judge(capsys, "cantilever-dynamic", str(path))
     assert code == 0, out
     assert out["n_times"] == len(run.times) and out["rel_l2"] == pytest.approx(row.rel_l2, rel=1e-9)
+
+
+def _write(tmp_path, name, u, **arrays):
+    path = tmp_path / name
+    np.savez(path, displacement=u[None], **{k: v[None] if k == "reaction" else v for k, v in arrays.items()})
+    return str(path)
+
+
+@pytest.mark.parametrize(
+    "case, needle",
+    [
+        ("mm", "1000 times the reference's"),
+        ("cm", "100 times the reference's"),
+        ("stale tool", "a result exported before the tool moved"),
+        ("held moved", "which the scene holds at 0: a result in another frame"),
+    ],
+)
+def test_a_result_that_does_not_match_its_scene_is_one_line_naming_the_likely_cause(tmp_path, capsys, case, needle):
+    """A newcomer's results on cantilever-pull's own vertices, written without points: in millimetres the
+    judge gave rel_l2 1134 and exit 0, in centimetres 112.6; one exported before the tool moved (here the
+    tool at half its place: the linear field scaled by 0.5) scored 0.33 with no word. Each is now one
+    line naming what does not match and the likely cause, exit 2; so is a result shifted 1 mm (its held
+    vertices moved). The mm and cm lines name the --scale that judges them."""
+    scene = load_scene("cantilever-pull")
+    truth = reference_result(scene).displacement[0]
+    u = {
+        "mm": 1e3 * truth,
+        "cm": 1e2 * truth,
+        "stale tool": 0.5 * truth,
+        "held moved": truth + np.array([1e-3, 0.0, 0.0]),
+    }[case]
+    code, err = _judge(capsys, "cantilever-pull", _write(tmp_path, "r.npz", u))
+    last = err.strip().splitlines()[-1]
+    assert code == 2 and last.startswith("tissuebench: ") and needle in last
+    if case in ("mm", "cm"):
+        assert f"--scale {0.001 if case == 'mm' else 0.01:g}" in last
+        code, out = _judge(
+            capsys, "cantilever-pull", _write(tmp_path, "r.npz", u), "--scale", "0.001" if case == "mm" else "0.01"
+        )
+        assert code == 0 and out["rel_l2"] == pytest.approx(0.0, abs=1e-12)  # the truth itself, rescaled
+
+
+def test_a_tool_force_of_the_opposite_sign_is_told_so_with_both_numbers(tmp_path, capsys):
+    """The tool force judged is the tools' total force on the body; a user's flipped sign gave
+    reaction_rel_err 2 with no hint. The judge still scores it as written and warns, naming both."""
+    scene = load_scene("cantilever-pull")
+    ref = reference_result(scene)
+    path = _write(tmp_path, "r.npz", ref.displacement[0], reaction=-ref.reaction[0])
+    code, out = _judge(capsys, "cantilever-pull", path)
+    assert code == 0 and out["reaction_rel_err"] == pytest.approx(2.0, rel=1e-12)
+    assert len(out["warnings"]) == 1 and "opposite sign (reaction_rel_err 2, 0 negated)" in out["warnings"][0]
+    right = _write(tmp_path, "right.npz", ref.displacement[0], reaction=ref.reaction[0])
+    code, out = _judge(capsys, "cantilever-pull", right)
+    assert code == 0 and out["warnings"] == [] and out["reaction_rel_err"] == pytest.approx(0.0, abs=1e-12)

@@ -8,7 +8,8 @@ scene's output instants (the reference is known there). The metrics are ``compar
 points and times, max_err, and with the result's tetrahedra surface_rel_l2, volume_err and the error
 budget's mesh part on the engine's own mesh (``_mesh_part``); the tool force's error when the result
 carries it. A step time the user gives (``step_us``) is the engine's own,
-labelled so.
+labelled so. Before any number, the result is checked against the scene (``consistency``): its units,
+its held vertices, its tools' place, its tool force's sign.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from verification.metrics import compute, error_interval, rel_l2
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_at
 from verification.runs.simulate import output_times
 from verification.scene import Scene
+from verification.studies.consistency import check_held_and_tools, check_units, flipped_force
 
 #: How far outside the body (relative to its largest extent) a result's point may lie and be judged at
 #: the nearest point of the body's surface.
@@ -144,7 +146,10 @@ def judge(scene: Scene, path: str, scale: float = 1.0, outside: float = OUTSIDE,
     which = _times(scene, result)
     ref = reference_at(scene, at, **REFERENCE_DEFAULTS)
     ref_u = ref.displacement[which]
+    check_units(result.source, result.displacement, ref_u)  # before any number: one line, the likely cause
+    check_held_and_tools(scene, result.source, result.points, result.displacement, ref_u, which)
     tools = bool(scene.problem.tools) and result.reaction is not None
+    flipped = flipped_force(result.reaction, ref.reaction[which]) if tools else None
     est = ref.meta.get("ref_err_estimate")
     tets = result.tets
     if tets is None and np.array_equal(result.points, scene.mesh.points):
@@ -177,6 +182,7 @@ def judge(scene: Scene, path: str, scale: float = 1.0, outside: float = OUTSIDE,
         "moved_onto_surface": moved,
         **metrics,
         "engine_step_us": step_us,
+        "warnings": [flipped] if flipped else [],
         "reference": {k: ref.meta.get(k) for k in ("law", "degree", "refine", "ref_err_estimate", "cache_key")},
     }
 
@@ -227,4 +233,5 @@ def format_judgement(out: dict) -> str:
         lines.append(f"  {out['moved_onto_surface']} points a hair outside the body were judged at its surface")
     if out["engine_step_us"] is not None:
         lines.append(f"  {'step (engine)':<18} {out['engine_step_us']:.4g} us, as the engine reports it")
+    lines += [f"  warning: {w}" for w in out.get("warnings") or []]
     return "\n".join(lines)
