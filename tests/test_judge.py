@@ -209,3 +209,20 @@ def test_a_tool_force_of_the_opposite_sign_is_told_so_with_both_numbers(tmp_path
     right = _write(tmp_path, "right.npz", ref.displacement[0], reaction=ref.reaction[0])
     code, out = _judge(capsys, "cantilever-pull", right)
     assert code == 0 and out["warnings"] == [] and out["reaction_rel_err"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_every_metric_is_given_with_scale_as_without(tmp_path, capsys):
+    """A result on the scene's own vertices written in mm with its points: read with --scale 0.001 its
+    points are the scene's to round-off, not bit for bit, and surface_rel_l2, volume_err and the error
+    budget went "-". They are the same as the result in metres gives (to round-off: the rescaling)."""
+    scene = load_scene("cantilever-pull")
+    u = run_model(scene, "linear-tm").displacement[0]
+    metres = _write(tmp_path, "m.npz", u, points=scene.mesh.points)
+    mm = _write(tmp_path, "mm.npz", 1e3 * u, points=1e3 * scene.mesh.points)
+    code, a = _judge(capsys, "cantilever-pull", metres)
+    assert code == 0, a
+    code, b = _judge(capsys, "cantilever-pull", mm, "--scale", "0.001")
+    assert code == 0, b
+    for key in ("rel_l2", "surface_rel_l2", "volume_err", "max_err"):
+        assert a[key] is not None and b[key] == pytest.approx(a[key], rel=1e-9), key
+    assert b["error_budget"]["mesh"] == pytest.approx(a["error_budget"]["mesh"], rel=1e-9)

@@ -26,7 +26,7 @@ from verification.metrics import compute, error_interval, rel_l2
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_at
 from verification.runs.simulate import output_times
 from verification.scene import Scene
-from verification.studies.consistency import check_held_and_tools, check_units, flipped_force
+from verification.studies.consistency import COINCIDE, check_held_and_tools, check_units, flipped_force
 
 #: How far outside the body (relative to its largest extent) a result's point may lie and be judged at
 #: the nearest point of the body's surface.
@@ -110,6 +110,14 @@ def _own_mesh(points: np.ndarray, tets):
         return None, None
 
 
+def _on_scene_vertices(scene: Scene, points: np.ndarray) -> bool:
+    """Whether ``points`` (K, 3) m are the scene mesh's vertices, in order, to COINCIDE of its size: a
+    result in mm read with --scale 0.001 has them to round-off, and keeps its surface and volume metrics."""
+    own = scene.mesh.points
+    size = float(np.ptp(own, axis=0).max())
+    return points.shape == own.shape and float(np.abs(points - own).max()) <= COINCIDE * size
+
+
 def _times(scene: Scene, result) -> np.ndarray:
     """Which of the reference's output instants each result field is at (indices (T,))."""
     if scene.time.mode == "static":
@@ -152,8 +160,8 @@ def judge(scene: Scene, path: str, scale: float = 1.0, outside: float = OUTSIDE,
     flipped = flipped_force(result.reaction, ref.reaction[which]) if tools else None
     est = ref.meta.get("ref_err_estimate")
     tets = result.tets
-    if tets is None and np.array_equal(result.points, scene.mesh.points):
-        tets = scene.mesh.tets  # an .npz on the scene mesh's own vertices
+    if tets is None and _on_scene_vertices(scene, result.points):
+        tets = scene.mesh.tets  # an .npz on the scene mesh's own vertices (scaled: to round-off)
     tets, surface = _own_mesh(result.points, tets)
     if tets is not None:
         reactions = (result.reaction, ref.reaction[which]) if tools else (None, None)
