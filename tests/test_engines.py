@@ -275,6 +275,11 @@ def test_an_engine_in_another_process_is_judged_through_the_seam(capsys):
             f"{sys.executable} -c 'import numpy, sys; numpy.savez(sys.argv[1], displacement=numpy.zeros((3, 3)))' {{result}}",
             ("result.npz: displacement must be (554, 3) or (T, 554, 3) for its 554 points, got (1, 3, 3)",),
         ),
+        (  # the right shape on other points: it read "its displacement is (1, 554, 3), not (1, 554, 3)"
+            f"{sys.executable} -c 'import numpy as n, sys; n.savez(sys.argv[1], displacement=n.zeros((554, 3)), "
+            f"points=n.ones((554, 3)))' {{result}}",
+            ("its points are not the scene's vertices: point ", "write the answer on the exported mesh's vertices"),
+        ),
     ],
 )
 def test_a_failing_command_engine_is_one_line_and_exit_2(capsys, command, needles):
