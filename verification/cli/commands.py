@@ -229,6 +229,7 @@ def cmd_compare(args) -> int:
 
 def _print_row(scene, args, row) -> None:
     """A compare row as text: its metrics, error budget, frame budget and what the model did not represent."""
+    from verification.runs.compare import cancelling
     from verification.studies.frame import reference_bar, true_range, with_bar
 
     at = "its quasi-static update" if row.dt is None else f"dt = {row.dt:.3g} s"
@@ -242,6 +243,12 @@ def _print_row(scene, args, row) -> None:
     if b.get("mesh") is not None:
         parts = ", ".join(f"{p} {b[p]:.3g}" for p in ("mesh", "model", "time") if b.get(p) is not None)
         print(f"  {'error_budget':<18} {parts}: the {b['dominant']}'s part dominates")
+        if cancelling(row.rel_l2, b["mesh"], b.get("model")):
+            print(
+                f"  {'':<18} errors cancelling: rel_l2 {row.rel_l2:.3g} is below the mesh's part with a model part "
+                f"of {b['model']:.3g}: the model's error offsets P1's, right for a wrong reason; a finer mesh "
+                "shrinks the mesh's part, not the model's"
+            )
     if row.adaptation:
         a = row.adaptation
         print(

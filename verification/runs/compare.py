@@ -71,6 +71,16 @@ def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integr
     return out
 
 
+def cancelling(total: float | None, mesh: float | None, model: float | None) -> bool:
+    """Whether a model's total error is errors cancelling: below the mesh's part (P1 on the same mesh)
+    while its own part is over half of it. The model is then right for a wrong reason, its error offsetting
+    P1's (mass-spring's missing Poisson effect against P1's locking), and a finer mesh, which shrinks the
+    mesh's part and not its own, does not make it better."""
+    if total is None or mesh is None or model is None:
+        return False
+    return total < mesh and model > mesh / 2.0
+
+
 def float32_twin(scene: Scene, res: Result) -> dict:
     """The run of ``res`` (a float64 explicit run of a model in FLOAT32_MODELS) again with its model
     built in float32, at the same dt: on a dynamic scene the same trajectory, on a static one the same

@@ -31,6 +31,7 @@ from verification.engines import ENGINES, engine_for
 from verification.engines.adapters import AdapterEngine
 from verification.engines.builtin import BUILTIN, STABLE_STEPS
 from verification.inputs import scene_inputs
+from verification.runs.compare import cancelling
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
 from verification.runs.store import cached_compare
@@ -254,7 +255,7 @@ def format_engines(out: dict) -> str:
                 + (f"; its distance from P1 on the same mesh {own:.3g}" if own is not None else "")
                 + (
                     " (below the mesh's own error: right for a wrong reason)"
-                    if own and mesh and b["rel_l2"] < mesh and own > mesh / 2
+                    if cancelling(b["rel_l2"], mesh, own)
                     else ""
                 )
             )
