@@ -570,3 +570,20 @@ def test_a_tool_of_a_few_vertices_is_warned_of_as_barely_resolved(tmp_path, caps
     data["load"][0]["sphere"]["radius"] = 0.03
     wide = load_scene(str(write_scene(tmp_path / "wide.toml", data)))
     assert len(wide.problem.loads[0].region.vertices(wide.mesh)) >= SMALL_TOOL and small_tools(wide) == []
+
+
+def test_a_mesh_in_unknown_units_gets_every_unit_that_makes_it_an_organ(tmp_path, capsys):
+    """SOFA's liver2.msh read as it is, 2.1 units across: the hint named millimetres only, which would
+    make it a 2 mm liver. It names each unit that gives an organ's size, with its scale and the size."""
+    from verification.scene import units_hint
+
+    data = builtin("sofa-liver")
+    data["mesh"]["file"] = str(SCENES_DIR / data["mesh"]["file"])
+    data["mesh"]["scale"] = 1.0
+    data["fixed"][0]["sphere"] = {"center": [-0.29, 0.53, -0.13], "radius": 0.25}
+    data["load"][0]["sphere"] = {"center": [-0.8, -0.01, 0.35], "radius": 0.15}
+    code, out, _ = run(["check", str(write_scene(tmp_path / "raw.toml", data))], capsys)
+    warning = next(line for line in out.splitlines() if "m across, outside" in line)
+    assert code == 0 and "centimetres (scale = 0.01: 0.0214 m across)" in warning
+    assert "decimetres (scale = 0.1: 0.214 m across)" in warning and "millimetres" not in warning
+    assert "millimetres (scale = 0.001: 0.214 m across)" in units_hint(214.4)  # the mm case keeps its hint

@@ -172,12 +172,7 @@ def implausible(scene: Scene) -> list[str]:
     extent = float(np.max(hi - lo))
     low, high = TISSUE_RANGES["extent"]
     if not low <= extent <= high:
-        unit = "millimetres: scale = 0.001" if extent > high else "other units: scale = the metres in one of them"
-        fix = (
-            f"; if the file is in {unit} in [mesh]"
-            if scene.mesh_spec["generator"] == "file"
-            else " (lengths in metres)"
-        )
+        fix = f"; {units_hint(extent)}" if scene.mesh_spec["generator"] == "file" else " (lengths in metres)"
         out.append(f"mesh: the body is {extent:.3g} m across, outside the {low:g} to {high:g} m of an organ{fix}")
     out += point_held(scene)
     out += [line for line in small_tools(scene) if line.split(":")[0] not in {p.split(":")[0] for p in out}]
@@ -192,6 +187,24 @@ def implausible(scene: Scene) -> list[str]:
             if not low <= v <= high:
                 out.append(f"{where}.{key} = {v:g} {unit}: soft tissue spans {low:g} to {high:g} ({hint})")
     return out
+
+
+#: The sizes an organ's mesh spans across, m (a kidney's 1 cm pole to a 50 cm liver): what ``units_hint``
+#: reads a file's units by.
+ORGAN_SIZE = (0.01, 0.5)
+#: The length units a mesh file may be in, with the [mesh] scale that reads each as metres.
+FILE_UNITS = (("millimetres", 0.001), ("centimetres", 0.01), ("decimetres", 0.1), ("metres", 1.0))
+
+
+def units_hint(extent: float) -> str:
+    """What a mesh file ``extent`` units across (read as metres) is likely in: each unit of FILE_UNITS
+    that makes it an organ's size (ORGAN_SIZE), with the scale that reads it so and the size it gives.
+    SOFA's liver2.msh, 2.1 units across, is a 2.1 cm or a 21 cm liver, not a 2.1 mm one."""
+    fits = [(u, f) for u, f in FILE_UNITS if ORGAN_SIZE[0] <= extent * f <= ORGAN_SIZE[1] and f != 1.0]
+    if not fits:
+        return "set [mesh] scale to the metres in one of the file's units"
+    said = " or ".join(f"{u} (scale = {f:g}: {extent * f:.3g} m across)" for u, f in fits)
+    return f"if the file is in {said}, set it in [mesh] (an organ is {ORGAN_SIZE[0]:g} to {ORGAN_SIZE[1]:g} m)"
 
 
 #: A tool holding fewer vertices than this is warned of (``small_tools``): a patch of a few triangles.
