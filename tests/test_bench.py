@@ -243,3 +243,18 @@ def test_the_advice_bench_counts_a_decision_only_where_the_advice_decided():
     assert not decided({**none, "reference": {"bar": 0.017}}, 0.05)[0]  # over a third of 5%
     assert not decided({**none, "reference": {"bar": None}}, 0.05)[0]  # unknown: never a decision
     assert decided({**none, "undecided": ["linear-tm ..."]}, 0.05) == (False, "cannot decide")
+
+
+def test_the_advice_bench_asks_about_scenes_a_truth_converges_on():
+    """Its scenes load, and each tool holds a face of the mesh: a tool held at points has no converging
+    truth (``scene.point_held``), and the bench would time a question nothing can decide. The user's 5 mm
+    tool holds four vertices of sofa-liver2.msh, one of them inside the body."""
+    from verification.bench.advice import CASES
+    from verification.scene import point_held
+    from verification.scene_file import load_scene
+
+    for _, name, _, _ in CASES:
+        scene = load_scene(name)
+        assert point_held(scene) == [], name
+    user = load_scene(CASES[1][1])
+    assert user.mesh.n_vertices == 507 and len(user.problem.loads[0].region.vertices(user.mesh)) == 4
