@@ -379,8 +379,11 @@ class BuiltinSimulation:
 
     def settle_steps(self, dt: float, steps: int) -> None:
         """Damped dynamics from rest for exactly ``steps`` steps of dt (s): a float32 twin's settling,
-        whose residual cannot say when to stop, takes as many steps as its float64 run did."""
-        static = solve_static(self.model_obj, dt=dt, steps=steps)
+        whose residual cannot say when to stop, takes as many steps as its float64 run did, with its
+        damping: omega_1 found once, under the float64 run's key (the precision does not change it)."""
+        twin = {k: v for k, v in self.options.items() if k != "precision"}
+        slowest = omega2_min_rest(self.inputs, self.model_obj, twin)
+        static = solve_static(self.model_obj, dt=dt, steps=steps, omega2_min=slowest)
         self.state, self.dt, self._sample = static.state, dt, None
 
     def step(self, n: int) -> None:
