@@ -574,7 +574,8 @@ def test_a_tool_of_a_few_vertices_is_warned_of_as_barely_resolved(tmp_path, caps
 
 def test_a_mesh_in_unknown_units_gets_every_unit_that_makes_it_an_organ(tmp_path, capsys):
     """SOFA's liver2.msh read as it is, 2.1 units across: the hint named millimetres only, which would
-    make it a 2 mm liver. It names each unit that gives an organ's size, with its scale and the size."""
+    make it a 2 mm liver. It names each unit that gives an organ's size and volume, with its scale, the
+    size and the volume, and the one organ range it assumes."""
     from verification.scene import units_hint
 
     data = builtin("sofa-liver")
@@ -584,6 +585,9 @@ def test_a_mesh_in_unknown_units_gets_every_unit_that_makes_it_an_organ(tmp_path
     data["load"][0]["sphere"] = {"center": [-0.8, -0.01, 0.35], "radius": 0.15}
     code, out, _ = run(["check", str(write_scene(tmp_path / "raw.toml", data))], capsys)
     warning = next(line for line in out.splitlines() if "m across, outside" in line)
-    assert code == 0 and "centimetres (scale = 0.01: 0.0214 m across)" in warning
-    assert "decimetres (scale = 0.1: 0.214 m across)" in warning and "millimetres" not in warning
-    assert "millimetres (scale = 0.001: 0.214 m across)" in units_hint(214.4)  # the mm case keeps its hint
+    assert code == 0 and "centimetres (scale = 0.01: 0.0214 m across, 1.13 mL)" in warning
+    assert "decimetres (scale = 0.1: 0.214 m across, 1.13 L)" in warning and "millimetres" not in warning
+    assert "an organ: 1 to 50 cm across, 0.1 mL to 20 L" in warning  # the range it assumes, one range
+    # the mm case keeps its hint; a 214-unit plate of 2 cubic units is no organ in any unit: no guess
+    assert "millimetres (scale = 0.001: 0.214 m across, 1.13 L)" in units_hint(214.4, 1.125e6)
+    assert "if the file is in" not in units_hint(214.4, 2.0)

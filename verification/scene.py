@@ -172,8 +172,9 @@ def implausible(scene: Scene) -> list[str]:
     extent = float(np.max(hi - lo))
     low, high = TISSUE_RANGES["extent"]
     if not low <= extent <= high:
-        fix = f"; {units_hint(extent)}" if scene.mesh_spec["generator"] == "file" else " (lengths in metres)"
-        out.append(f"mesh: the body is {extent:.3g} m across, outside the {low:g} to {high:g} m of an organ{fix}")
+        volume = float(scene.mesh.volumes().sum())
+        fix = f"; {units_hint(extent, volume)}" if scene.mesh_spec["generator"] == "file" else " (lengths in metres)"
+        out.append(f"mesh: the body is {extent:.3g} m across, outside the {low:g} to {high:g} m of tissue{fix}")
     out += point_held(scene)
     out += [line for line in small_tools(scene) if line.split(":")[0] not in {p.split(":")[0] for p in out}]
     tables = [m for _, m in scene.zones] if scene.zones else [scene.material]
@@ -189,22 +190,40 @@ def implausible(scene: Scene) -> list[str]:
     return out
 
 
-#: The sizes an organ's mesh spans across, m (a kidney's 1 cm pole to a 50 cm liver): what ``units_hint``
-#: reads a file's units by.
+#: What an organ's mesh spans, in m across and m^3 (a 1 cm node of 0.1 mL to a 50 cm liver of 20 L): the
+#: range ``units_hint`` reads a file's units by, and the one its hint states.
 ORGAN_SIZE = (0.01, 0.5)
+ORGAN_VOLUME = (1e-7, 2e-2)
 #: The length units a mesh file may be in, with the [mesh] scale that reads each as metres.
 FILE_UNITS = (("millimetres", 0.001), ("centimetres", 0.01), ("decimetres", 0.1), ("metres", 1.0))
 
 
-def units_hint(extent: float) -> str:
-    """What a mesh file ``extent`` units across (read as metres) is likely in: each unit of FILE_UNITS
-    that makes it an organ's size (ORGAN_SIZE), with the scale that reads it so and the size it gives.
-    SOFA's liver2.msh, 2.1 units across, is a 2.1 cm or a 21 cm liver, not a 2.1 mm one."""
-    fits = [(u, f) for u, f in FILE_UNITS if ORGAN_SIZE[0] <= extent * f <= ORGAN_SIZE[1] and f != 1.0]
+def _volume(v: float) -> str:
+    """A volume in m^3 as a user says it: mL below a litre, L above."""
+    return f"{v * 1e6:.3g} mL" if v < 1e-3 else f"{v * 1e3:.3g} L"
+
+
+def units_hint(extent: float, volume: float) -> str:
+    """What a mesh file ``extent`` units across, of ``volume`` cubic units (read as metres), is likely
+    in: each unit of FILE_UNITS that makes it an organ by both its size and its volume (ORGAN_SIZE,
+    ORGAN_VOLUME), with the scale that reads it so and the size and volume it gives. SOFA's liver2.msh,
+    2.1 units across and 1.1 cubic units, is a 2.1 cm organ of 1.1 mL or a 21 cm one of 1.1 L (a human
+    liver is about 1.5 L), not a 2.1 mm one."""
+    fits = [
+        (u, f)
+        for u, f in FILE_UNITS
+        if f != 1.0
+        and ORGAN_SIZE[0] <= extent * f <= ORGAN_SIZE[1]
+        and ORGAN_VOLUME[0] <= volume * f**3 <= ORGAN_VOLUME[1]
+    ]
+    organ = (
+        f"{ORGAN_SIZE[0] * 100:g} to {ORGAN_SIZE[1] * 100:g} cm across, "
+        f"{_volume(ORGAN_VOLUME[0])} to {_volume(ORGAN_VOLUME[1])}"
+    )
     if not fits:
-        return "set [mesh] scale to the metres in one of the file's units"
-    said = " or ".join(f"{u} (scale = {f:g}: {extent * f:.3g} m across)" for u, f in fits)
-    return f"if the file is in {said}, set it in [mesh] (an organ is {ORGAN_SIZE[0]:g} to {ORGAN_SIZE[1]:g} m)"
+        return f"set [mesh] scale to the metres in one of the file's units (an organ is {organ})"
+    said = " or ".join(f"{u} (scale = {f:g}: {extent * f:.3g} m across, {_volume(volume * f**3)})" for u, f in fits)
+    return f"if the file is in {said}, set it in [mesh] (the units that make it an organ: {organ})"
 
 
 #: A tool holding fewer vertices than this is warned of (``small_tools``): a patch of a few triangles.
