@@ -273,7 +273,20 @@ def cmd_export(args) -> int:
     from verification.inputs import scene_inputs
 
     scene = _scene(args)
-    path = export(scene_inputs(scene), args.directory)
+    extra = None
+    if scene.events:  # one static problem per state: the body as meshed here, each later one in state-K/
+        from verification.events import states
+
+        every = states(scene)
+        listed = [
+            {"state": k, "time_s": s.time, "label": s.label, "directory": "." if k == 0 else f"state-{k}"}
+            for k, s in enumerate(every)
+        ]
+        for k, s in list(enumerate(every))[1:]:
+            extra = {"states": listed, "state": listed[k]}
+            export(scene_inputs(s.scene), Path(args.directory) / f"state-{k}", extra)
+        extra = {"states": listed, "state": listed[0]}
+    path = export(scene_inputs(scene), args.directory, extra)
     out = {"scene": scene.name, "written": str(path.parent), "files": sorted(p.name for p in path.parent.iterdir())}
     _emit(args, out, lambda o: f"{o['scene']}: {', '.join(o['files'])} in {o['written']}")
     return 0
@@ -283,7 +296,7 @@ def cmd_judge(args) -> int:
     from verification.studies.judge import format_judgement, judge
 
     scene = _scene(args)
-    out = judge(scene, args.result, scale=args.scale, outside=args.outside, step_us=args.step_us)
+    out = judge(scene, args.result, scale=args.scale, outside=args.outside, step_us=args.step_us, state=args.state)
     _emit(args, out, format_judgement)
     return 0
 

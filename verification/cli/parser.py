@@ -401,6 +401,13 @@ def _judge(sub) -> None:
         help="how far outside the body, relative to its size, a result point may lie (judged at the surface)",
     )
     s.add_argument("--step-us", type=_positive, help="the engine's own step time, us (reported as the engine's)")
+    s.add_argument(
+        "--state",
+        type=int,
+        metavar="K",
+        help="a scene with events (a cut): judge the result of state K alone (0: as meshed), on that state's "
+        "mesh as the export writes it",
+    )
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_judge)
 

@@ -13,6 +13,10 @@ DIR receives, each written whole (a temporary file, then a rename):
   the reference applies), the tools' vertices, components and the prescribed displacement of each at
   every output time (T, P, 3) m, so that an engine need not implement the ramp;
 - ``mesh.vtu`` and ``mesh.msh`` (gmsh 2.2 ASCII): the mesh, with the material index per tetrahedron.
+
+A scene with events (a cut) is one static problem per state: DIR holds the body as meshed, and
+``state-K/`` each later state's body (its mesh cut open), written the same way; every ``scene.json``
+lists the states under ``states`` and names its own under ``state``.
 """
 
 from __future__ import annotations
@@ -115,8 +119,9 @@ def describe(inputs: SceneInputs) -> dict:
     }
 
 
-def export(inputs: SceneInputs, directory: str | Path) -> Path:
-    """Write the scene as data into ``directory`` (created); returns ``scene.json``'s path."""
+def export(inputs: SceneInputs, directory: str | Path, extra: dict | None = None) -> Path:
+    """Write the scene as data into ``directory`` (created); returns ``scene.json``'s path. ``extra``:
+    more keys for ``scene.json`` (a scene with events: its states, and which one this is)."""
     import meshio
 
     out = Path(directory)
@@ -144,5 +149,5 @@ def export(inputs: SceneInputs, directory: str | Path) -> Path:
         cell_data={"gmsh:physical": [mats.index + 1], "gmsh:geometrical": [mats.index + 1]},
     )
     atomic_write(out / "mesh.msh", lambda tmp: meshio.write(tmp, msh, file_format="gmsh22", binary=False))
-    text = json.dumps(describe(inputs), indent=1)
+    text = json.dumps(describe(inputs) | (extra or {}), indent=1)
     return atomic_write(out / "scene.json", lambda tmp: Path(tmp).write_text(text))

@@ -8,6 +8,7 @@ import html
 
 import numpy as np
 
+from meshes import TetMesh
 from verification.progress import log
 from verification.report.common import fmt
 from verification.report.plots import (
@@ -207,7 +208,12 @@ def _pictures(scene, ref, rows: list[Row]) -> tuple[list[str], dict]:
         at = "quasi-static" if r.dt is None else f"dt = {r.dt:.3g} s"
         when = f", t = {ref.times[k]:.3g} s" if scene.time.mode == "dynamic" else ""
         title = f"{scene.name}: {model} ({at}{when}), rel_l2 = {r.rel_l2:.3g}"
-        pictures.append(plot_deformation(scene.mesh, ref.displacement[k], res.displacement[k], model, title))
+        # a cut scene's results live on the union of its states' vertices, on the mesh cut open
+        # (``runs.staged.stitched``): every state is drawn on that mesh, whose lips coincide before the cut
+        mesh = TetMesh(res.points, res.tets) if scene.events else scene.mesh
+        if scene.events:
+            title += f"\nthe state {res.meta['states'][k]['label']}"
+        pictures.append(plot_deformation(mesh, ref.displacement[k], res.displacement[k], model, title))
         reactions[model] = res.reaction
     return pictures, reactions
 

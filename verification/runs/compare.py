@@ -150,7 +150,7 @@ def compare(
         )
     except DivergenceError as exc:  # named by what stepped it: another engine's own solver
         return Row(**{**base, "integrator": getattr(exc, "solver", None) or base["integrator"]}, **_diverged(exc))
-    metrics = _metrics(scene, res, ref)
+    metrics = run_metrics(scene, res, ref)
     mesh = scene.mesh
     if vtk is not None:
         _write_vtk(vtk, scene, model_name, res, ref)
@@ -257,7 +257,7 @@ def _diverged(exc: DivergenceError) -> dict:
     }
 
 
-def _metrics(scene: Scene, res: Result, ref: Result) -> dict:
+def run_metrics(scene: Scene, res: Result, ref: Result) -> dict:
     """The run's metrics against its reference (``metrics.compute``), the tool force where there are tools.
     A scene with events is measured on the union of its states' vertices (``runs.staged``), its surface
     every state's (a cut's lips included), and each state's rel_l2 and bar are listed in ``states``."""

@@ -40,7 +40,9 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
     one P2 reference on the finest level, solved once, and the reference's own self-convergence (P1
     and P2 at each level against it). The geometry never changes, curved or not: refinement splits the
     coarse mesh's own tetrahedra. Orders are fitted against h. The reference solves come first, one
-    process per core (``prefetch.static_displacements``), then the model runs."""
+    process per core (``prefetch.static_displacements``), then the model runs. A scene with events (a
+    cut) is studied in its last state, the body the events leave, which the result names."""
+    from verification.events import states
     from verification.runs.simulate import run_model
     from verification.studies.prefetch import static_displacements
 
@@ -48,6 +50,10 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
         raise SceneError(f"{scene.path}: converge --in space studies static scenes")
     if scene.level:
         raise SceneError(f"{scene.path}: converge --in space refines the scene's own mesh; leave out --refine")
+    state = None
+    if scene.events:  # each state's truth is its own body's: refine the state's mesh, not the meshed body
+        last = states(scene)[-1]
+        state, scene = last.label, last.scene
     scenes = [scene]
     for _ in range(levels - 1):
         scenes.append(scenes[-1].refined())
@@ -79,7 +85,7 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
                 series["reference P2"].append(None)  # the truth itself
             else:
                 series[f"reference P{deg}"].append(float(np.linalg.norm(next(own) - truth) / scale))
-    out = {"scene": scene.name, "kind": "space", "h": hs, "series": []}
+    out = {"scene": scene.name, "kind": "space", "h": hs, "series": [], **({"state": state} if state else {})}
     for label, errs in series.items():
         pts = [(h, e) for h, e in zip(hs, errs, strict=True) if e]
         order = (
@@ -124,7 +130,9 @@ def converge_time(scene: Scene, models=("linear-tm",), integrators=("symplectic-
 
 def format_converge(res: dict) -> str:
     unit = "dt (s)" if res["kind"] == "time" else "h"
-    out = [f"converge {res['scene']} ({res['kind']})"]
+    out = [
+        f"converge {res['scene']} ({res['kind']})" + (f": the body after the {res['state']}" if "state" in res else "")
+    ]
     for s in res["series"]:
         theory = f" (theory {s['theory']})" if s.get("theory") is not None else ""
         order = "-" if s["order"] is None else f"{s['order']:.2f}"

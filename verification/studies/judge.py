@@ -146,9 +146,24 @@ def _times(scene: Scene, result) -> np.ndarray:
     return index
 
 
-def judge(scene: Scene, path: str, scale: float = 1.0, outside: float = OUTSIDE, step_us: float | None = None) -> dict:
+def judge(
+    scene: Scene,
+    path: str,
+    scale: float = 1.0,
+    outside: float = OUTSIDE,
+    step_us: float | None = None,
+    state: int | None = None,
+) -> dict:
     """The metrics of the result in ``path`` (``engines.foreign.read_result``, its lengths times
-    ``scale``) against the scene's reference, with the reference's own estimate (module docstring)."""
+    ``scale``) against the scene's reference, with the reference's own estimate (module docstring).
+    A scene with events (a cut) is judged state by state (``state``: its index, 0 the body as meshed,
+    against that state's own body as ``tissuebench export`` writes it), or whole (``_staged``)."""
+    if scene.events:
+        if state is None:
+            return _staged(scene, path, scale, step_us)
+        scene = _state_scene(scene, state)
+    elif state is not None:
+        raise EngineResultError(f"{scene.path}: --state {state}: the scene has no events, so it has one state")
     result = read_result(path, scene.mesh.points, scale)
     at, moved = onto_body(scene.mesh, result.points, outside, result.source)
     which = _times(scene, result)
@@ -191,6 +206,64 @@ def judge(scene: Scene, path: str, scale: float = 1.0, outside: float = OUTSIDE,
         **metrics,
         "engine_step_us": step_us,
         "warnings": [flipped] if flipped else [],
+        "reference": {k: ref.meta.get(k) for k in ("law", "degree", "refine", "ref_err_estimate", "cache_key")},
+    }
+
+
+def _state_scene(scene: Scene, state: int) -> Scene:
+    """State ``state`` of a scene with events, or EngineResultError naming the states there are."""
+    from verification.events import states
+
+    every = states(scene)
+    if not 0 <= state < len(every):
+        said = "; ".join(f"{k}: {s.label} (t = {s.time:g} s)" for k, s in enumerate(every))
+        raise EngineResultError(f"{scene.path}: --state {state}: the scene's states are {said}")
+    return every[state].scene
+
+
+def _staged(scene: Scene, path: str, scale: float, step_us: float | None) -> dict:
+    """A whole result of a scene with events: one field per state, at the union of the states' vertices
+    in order (``runs.staged``; what ``tissuebench run --out`` writes), judged as ``compare`` judges a run
+    (``runs.compare.run_metrics``). A field's values at union vertices its state does not have (a cut's
+    lips before the cut) are taken from the vertex standing for each. Anything else: one line naming
+    both ways to give it."""
+    from verification.events import states, union_points
+    from verification.runs.compare import run_metrics
+    from verification.runs.reference import reference_result
+    from verification.runs.results import Result
+
+    every = states(scene)
+    points = union_points(every)
+    result = read_result(path, points, scale)
+    size = float(np.ptp(points, axis=0).max())
+    same = result.points.shape == points.shape and float(np.abs(result.points - points).max()) <= COINCIDE * size
+    if len(result.displacement) != len(every) or not same:
+        said = ", ".join(f"{k}: {s.label}" for k, s in enumerate(every))
+        raise EngineResultError(
+            f"{result.source}: {scene.name} has {len(every)} states ({said}); give one field per state at the "
+            f"{len(points)} vertices of their union (as `tissuebench run --out` writes), or judge one state's "
+            f"result with --state K on that state's mesh (`tissuebench export` writes each state's); got "
+            f"{len(result.displacement)} field(s) at {len(result.points)} points"
+        )
+    u = np.stack([result.displacement[k][s.union[s.of_union]] for k, s in enumerate(every)])
+    ref = reference_result(scene, **REFERENCE_DEFAULTS)
+    check_units(result.source, u, ref.displacement)
+    check_held_and_tools(scene, result.source, points, u, ref.displacement, np.arange(len(every)))
+    tets = max(every, key=lambda s: s.scene.mesh.n_vertices)
+    reaction = result.reaction if result.reaction is not None else np.full((len(every), 3), np.nan)
+    res = Result(points, tets.union[tets.scene.mesh.tets], ref.times, u, reaction, {})
+    metrics = run_metrics(scene, res, ref)
+    return {
+        "scene": scene.name,
+        "result": result.source,
+        "scale": scale,
+        "error_budget": None,
+        "n_points": len(points),
+        "n_times": len(every),
+        "moved_onto_surface": 0,
+        **metrics,
+        "engine_step_us": step_us,
+        "warnings": [],
         "reference": {k: ref.meta.get(k) for k in ("law", "degree", "refine", "ref_err_estimate", "cache_key")},
     }
 
@@ -241,5 +314,7 @@ def format_judgement(out: dict) -> str:
         lines.append(f"  {out['moved_onto_surface']} points a hair outside the body were judged at its surface")
     if out["engine_step_us"] is not None:
         lines.append(f"  {'step (engine)':<18} {out['engine_step_us']:.4g} us, as the engine reports it")
+    for k, st in enumerate(out.get("states") or ()):
+        lines.append(f"  state {k} ({st['label']}): rel_l2 {st['rel_l2']:.4g}")
     lines += [f"  warning: {w}" for w in out.get("warnings") or []]
     return "\n".join(lines)
