@@ -96,3 +96,31 @@ def test_the_report_draws_a_cut_scene_on_its_cut_mesh(tmp_path):
     pictures, _ = _pictures(scene, reference_result(scene, **REFERENCE_DEFAULTS), rows)
     assert len(pictures) == 1 and len(pictures[0]) > 1000  # a PNG's base64, drawn
     assert len(run_model(scene, "linear-tm").points) == 514  # what it is drawn on: the union, cut open
+
+
+def test_check_draws_the_scene_with_its_regions_where_the_scene_puts_them(tmp_path, capsys):
+    """check --picture: a PNG of the body from three sides in which the held patch and the tool are
+    drawn in their colours (found among its pixels), at the vertices their regions hold (the picture's
+    regions are the scene's, counted as check counts them), the tool's arrow along its motion; the
+    cut's opened faces on the cut scene. A file that is not .png is one line, exit 2."""
+    import matplotlib.colors
+    import matplotlib.image
+
+    from verification.report.scene_picture import HELD_COLOURS, LOAD_COLOURS, _regions
+
+    assert main(["check", "sofa-liver", "--picture", str(tmp_path / "liver.png")]) == 0
+    assert "picture: " in capsys.readouterr().out
+    pixels = matplotlib.image.imread(tmp_path / "liver.png")[:, :, :3].reshape(-1, 3)
+    for colour in (HELD_COLOURS[0], LOAD_COLOURS[0]):
+        rgb = np.array(matplotlib.colors.to_rgb(colour))
+        assert (np.abs(pixels - rgb).max(axis=1) < 0.02).sum() > 50, colour  # markers of that colour drawn
+    scene = load_scene("sofa-liver")
+    held, tool = _regions(scene)
+    assert np.array_equal(held["vertices"], scene.problem.fixed[0].region.vertices(scene.mesh))
+    assert np.linalg.norm(scene.mesh.points[held["vertices"]] - [-0.029, 0.053, -0.013], axis=1).max() <= 0.025
+    assert np.allclose(tool["direction"], [0.0, 0.0, -0.01]) and tool["label"].startswith("load[0]: tool")
+    cut = _regions(load_scene(CUT))[-1]
+    assert cut["label"].startswith("cut at t = 1 s") and len(cut["faces"]) > 0
+
+    assert main(["check", "sofa-liver", "--picture", str(tmp_path / "liver.jpg")]) == 2
+    assert capsys.readouterr().err.strip() == f"tissuebench: --picture {tmp_path / 'liver.jpg'}: give a .png file"

@@ -92,7 +92,16 @@ def cmd_check(args) -> int:
     from verification.cli.describe import check_text, describe
 
     scene = _scene(args, warn=False, solves=False)  # check prints them with the rest
-    _emit(args, describe(scene), check_text)
+    out = describe(scene)
+    if args.picture:
+        from meshes.io import atomic_write
+        from verification.report.scene_picture import scene_picture
+
+        if Path(args.picture).suffix.lower() != ".png":
+            return _fail(f"tissuebench: --picture {args.picture}: give a .png file", 2)
+        data = scene_picture(scene)
+        out["picture"] = str(atomic_write(args.picture, lambda tmp: Path(tmp).write_bytes(data)))
+    _emit(args, out, check_text)
     return 0
 
 

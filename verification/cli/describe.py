@@ -130,4 +130,6 @@ def check_text(o: dict) -> str:
         f"{st['boundary_faces']} boundary faces"
         for st in o["states"]
     ]
+    if o.get("picture"):
+        lines.append(f"  picture: {o['picture']} (from above, the front and the side)")
     return "\n".join(lines)

@@ -122,6 +122,11 @@ def _check(sub) -> None:
     s = sub.add_parser("check", help="read a scene (mesh, regions, loading) and describe it, solving nothing")
     s.add_argument("scene")
     s.add_argument("--mesh-refine", type=_level, default=0, metavar="K", help=MESH_REFINE_HELP)
+    s.add_argument(
+        "--picture",
+        metavar="FILE.png",
+        help="also draw the scene from three sides (axes in m, each held region, tool and cut labelled)",
+    )
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_check)
 

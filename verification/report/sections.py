@@ -4,6 +4,7 @@ page or from the caches, which record the run that made them."""
 
 from __future__ import annotations
 
+import base64
 import html
 
 import numpy as np
@@ -21,6 +22,7 @@ from verification.report.plots import (
     plot_reaction,
 )
 from verification.report.plots import img as _img
+from verification.report.scene_picture import scene_picture
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
 from verification.runs.simulate import run_model
@@ -225,7 +227,8 @@ def _mesh_html(scene, q: dict) -> str:
 <h3>Mesh</h3>
 <p>{q["n_vertices"]} vertices, {q["n_tets"]} tetrahedra, sha256 <code>{mesh.sha256()[:16]}</code>; dihedral angles
 {q["min_dihedral_deg"]:.1f} to {q["max_dihedral_deg"]:.1f} degrees, aspect ratio up to {q["max_aspect_ratio"]:.2f},
-edges {q["min_edge_m"] * 1e3:.2f} to {q["max_edge_m"] * 1e3:.2f} mm.{_repairs(mesh)}</p>"""
+edges {q["min_edge_m"] * 1e3:.2f} to {q["max_edge_m"] * 1e3:.2f} mm.{_repairs(mesh)}</p>
+{_img(base64.b64encode(scene_picture(scene)).decode(), f"{scene.name} from three sides", wide=True)}"""
 
 
 def _reference_html(ref) -> str:
