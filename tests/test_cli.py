@@ -113,11 +113,21 @@ def test_report_has_plots_and_data(tmp_path, monkeypatch):
 
     # a plug-in engine beside the built-in models: on the same plot and in the same tables
     monkeypatch.setattr(engines, "ENGINES", {**engines.ENGINES, "direct-p1": DirectP1()})
-    path = write_report(["cantilever-pull"], out=tmp_path / "r", fractions=(0.9, 1.1))  # 0.9: the advisor's too
+    from verification.report.sections import Question
+
+    # the user's own question (the report's was fixed at 5% and 1 kHz): 10% at 60 Hz, a 500 Hz haptic loop
+    question = Question(0.1, 60.0, 500.0)
+    path = write_report(
+        ["cantilever-pull"], out=tmp_path / "r", fractions=(0.9, 1.1), question=question
+    )  # 0.9: the advisor's too
     text = path.read_text()
+    data = json.loads((tmp_path / "r" / "data.json").read_text())
+    advice = data["scenes"][0]["advice"]
+    assert data["question"] == {"tol": 0.1, "rate_hz": 60.0, "haptic_rate_hz": 500.0}
+    assert (advice["tol"], advice["rate"], advice["haptic"]["rate"]) == (0.1, 60.0, 500.0)
+    assert "rel_l2 &le; 0.1 at 60 Hz, tool force within 0.1 at 500 Hz" in text and "1000 Hz" not in text
     assert text.count("data:image/png;base64,") >= 2  # the error/speed plot and a deformation picture
     assert "diverged at step" in text  # 1.1 x the critical step blows up, and the page says so
-    data = json.loads((tmp_path / "r" / "data.json").read_text())
     assert {r["status"] for r in data["scenes"][0]["sweep"]["rows"]} == {"ok", "diverged"}
     assert data["scenes"][0]["advice"]["why"]
     assert "<th>Pareto</th>" in text and "<h3>Advisor</h3>" in text

@@ -124,3 +124,15 @@ def test_check_draws_the_scene_with_its_regions_where_the_scene_puts_them(tmp_pa
 
     assert main(["check", "sofa-liver", "--picture", str(tmp_path / "liver.jpg")]) == 2
     assert capsys.readouterr().err.strip() == f"tissuebench: --picture {tmp_path / 'liver.jpg'}: give a .png file"
+
+
+def test_the_reports_question_drops_its_haptic_part_where_no_tool_gives_a_force():
+    """report --haptic-rate on a page with a cut liver hung under gravity: that section's advisor asks
+    the rate alone (advise refuses a haptic question without a tool); a pressed liver keeps it."""
+    from verification.report.sections import Question
+
+    q = Question(0.6, 60.0, 500.0)
+    assert str(q) == "rel_l2 &le; 0.6 at 60 Hz, tool force within 0.6 at 500 Hz"
+    assert q.of(load_scene(CUT)) == Question(0.6, 60.0, None)
+    assert q.of(load_scene(str(ORGANS / "liver-inclusion.toml"))) == q
+    assert Question.answered({"tol": 0.6, "rate": 60.0, "haptic": {"rate": 500.0}}) == q

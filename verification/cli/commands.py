@@ -322,7 +322,10 @@ def cmd_report(args) -> int:
         seeds_report_dir(args.out)  # a directory that cannot be made fails before half an hour of runs
         path = write_seeds_report(run_seeds(), out=args.out)
     else:
-        path = write_report(args.scenes or None, out=args.out, fractions=args.fractions)
+        from verification.report.sections import Question
+
+        question = Question(tol=args.tol, rate=args.rate, haptic_rate=args.haptic_rate)
+        path = write_report(args.scenes or None, out=args.out, fractions=args.fractions, question=question)
     print(f"report written to {path}")
     return 0
 

@@ -228,6 +228,11 @@ def _report(sub) -> None:
         help="time steps as fractions of each model's critical step (default: the sweep's, 0.25 0.5 0.9 on a "
         "dynamic scene and 0.9 on a static one, and 1.1 to show the limit)",
     )
+    s.add_argument("--tol", type=_positive, default=0.05, help="the advisor's tolerance on rel_l2 (default 0.05)")
+    s.add_argument("--rate", type=_positive, default=1000.0, help="the advisor's update rate, Hz (default 1000)")
+    s.add_argument(
+        "--haptic-rate", type=_positive, metavar="HZ", help="the advisor also asks the tool force within --tol there"
+    )
     s.add_argument("--seeds", action="store_true", help="the page of the seeds experiments (reports/seeds)")
     s.add_argument("--engine", action="append", metavar="MODULE:CLASS", help=ENGINE_HELP)
     s.set_defaults(func=cmd_report)

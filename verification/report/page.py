@@ -21,8 +21,10 @@ from verification.cache import git_commit, versions
 from verification.report.common import CSS, REPORTS, make_report_dir
 from verification.report.cutting import CUT_SCENE, cut_cells, cutting_section
 from verification.report.sections import (
+    DEFAULT_QUESTION,
     STABILITY_MODELS,
     STABILITY_SCENE,
+    Question,
     convergence_section,
     first_screen,
     scene_section,
@@ -51,9 +53,11 @@ def write_report(
     out: str | None = None,
     fractions=None,
     studies: bool | None = None,
+    question: Question = DEFAULT_QUESTION,
 ) -> Path:
     """Run everything the report shows and write it; returns the HTML file's path. The convergence and
-    stability sections are part of the default report (``studies`` None) and optional otherwise."""
+    stability sections are part of the default report (``studies`` None) and optional otherwise. The
+    advisor asks ``question`` of every scene."""
     scenes = scenes or DEFAULT_SCENES
     default = scenes == DEFAULT_SCENES
     studies = default if studies is None else studies
@@ -73,7 +77,7 @@ def write_report(
     )
     sections, data = [], {"scenes": []}
     for s in scenes:
-        sec, d = scene_section(s, fractions)
+        sec, d = scene_section(s, fractions, question)
         sections.append(sec)
         data["scenes"].append(d)
     if studies:
@@ -92,6 +96,7 @@ def write_report(
         "wall_s": time.perf_counter() - t0,
     }
     data["meta"] = meta
+    data["question"] = {"tol": question.tol, "rate_hz": question.rate, "haptic_rate_hz": question.haptic_rate}
     names = [d["scene"] for d in data["scenes"]]
     nav = "".join(f"<a href='#{html.escape(s)}'>{html.escape(s)}</a> " for s in names)
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>tissuebench report: {html.escape(name)}</title>
@@ -103,7 +108,7 @@ its own error estimate allows. Step times are medians of repeated compiled n-ste
 machine.</p>
 <p>Commit {html.escape(meta["commit"])}, {meta["date"]}, {html.escape(json.dumps(meta["versions"]))}; written in {meta["wall_s"]:.0f} s.
 Data: <a href="data.json">data.json</a>, <a href="runs.csv">runs.csv</a>. Scenes: {nav}</p>
-{first_screen(data["scenes"])}
+{first_screen(data["scenes"], question)}
 {"".join(sections)}
 </body></html>"""
     outdir.mkdir(parents=True, exist_ok=True)

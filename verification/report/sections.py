@@ -5,7 +5,9 @@ page or from the caches, which record the run that made them."""
 from __future__ import annotations
 
 import base64
+import dataclasses
 import html
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -42,11 +44,33 @@ TIME_ERROR = "relative L2 error against dt_crit / 40 (fraction)"
 BEYOND_LIMIT = 1.1
 
 
-#: The advisor's question on every scene of the report: 5% error at a haptic 1 kHz.
-ADVISE_TOL = 0.05
+@dataclass(frozen=True)
+class Question:
+    """The advisor's question on every scene of a report (``report --tol --rate --haptic-rate``): rel_l2
+    at most ``tol`` (relative) at ``rate`` Hz, and with ``haptic_rate`` (Hz) a haptic loop whose tool
+    force is within ``tol`` too. The default: 5% at a haptic device's 1 kHz update."""
+
+    tol: float = 0.05
+    rate: float = 1000.0
+    haptic_rate: float | None = None
+
+    def __str__(self) -> str:
+        haptic = "" if self.haptic_rate is None else f", tool force within {self.tol:g} at {self.haptic_rate:g} Hz"
+        return f"rel_l2 &le; {self.tol:g} at {self.rate:g} Hz{haptic}"
+
+    def of(self, scene) -> Question:
+        """The question as it applies to ``scene``: without its haptic part where no tool gives a device a
+        force to hold (a scene hung under gravity is judged at the rate alone, not refused)."""
+        return self if scene.problem.tools else dataclasses.replace(self, haptic_rate=None)
+
+    @staticmethod
+    def answered(advice: dict) -> Question:
+        """The question an ``advise`` answer was given."""
+        return Question(advice["tol"], advice["rate"], (advice.get("haptic") or {}).get("rate"))
 
 
-ADVISE_RATE = 1000.0
+#: The report's question when none is asked.
+DEFAULT_QUESTION = Question()
 
 
 #: The stability study of the default report: the cantilever, two models (the others' columns
@@ -105,7 +129,7 @@ def _sweep_table(rows: list[Row]) -> str:
     return "<table>" + "".join(out) + "</table>"
 
 
-def _advice_html(a: dict) -> str:
+def _advice_html(a: dict, q: Question) -> str:
     """The advisor's answer: the pick (on the mesh it names), its frame budget, why, the command that
     re-runs it, and every cheaper option with the reason it failed."""
     rej = "".join(f"<li>{html.escape(x)}</li>" for x in a.get("cheaper_failed") or a.get("rejected") or [])
@@ -124,7 +148,7 @@ def _advice_html(a: dict) -> str:
     runner = a.get("runner_up")
     ru = f" Runner-up: <b>{runner['model']}</b> (rel_l2 {runner['value']:.3g})." if runner else ""
     return (
-        f"<p class='advice'>For rel_l2 &le; {ADVISE_TOL} at {ADVISE_RATE:.0f} Hz: <b>{a['model']}</b> "
+        f"<p class='advice'>For {q}: <b>{a['model']}</b> "
         f"({step}){mesh}: rel_l2 {html.escape(with_bar(a['value'], (a.get('reference') or {}).get('bar')))}; "
         f"{html.escape(a['frame']['why'])}. "
         f"{html.escape(a['why'][0].upper() + a['why'][1:])}.{ru} Check it: <code>{html.escape(a['command'])}</code></p>"
@@ -138,9 +162,9 @@ def section_fractions(scene, fractions=None) -> list[float]:
     return list(fractions) if fractions else [*default_fractions(scene), BEYOND_LIMIT]
 
 
-def scene_section(name: str, fractions=None) -> tuple[str, dict]:
+def scene_section(name: str, fractions=None, question: Question = DEFAULT_QUESTION) -> tuple[str, dict]:
     """A scene's section and its data; ``fractions`` of the critical step (default: the sweep's for the
-    scene, and BEYOND_LIMIT to show the limit)."""
+    scene, and BEYOND_LIMIT to show the limit); the advisor asked ``question``."""
     scene = load_scene(name)
     fractions = section_fractions(scene, fractions)
     mesh = scene.mesh
@@ -148,7 +172,8 @@ def scene_section(name: str, fractions=None) -> tuple[str, dict]:
     log(f"report: sweep {scene.name}")
     sw = sweep(scene, fractions=fractions)
     rows = sw["rows"]
-    adv = advise(scene, tol=ADVISE_TOL, rate=ADVISE_RATE)
+    question = question.of(scene)
+    adv = advise(scene, tol=question.tol, rate=question.rate, haptic_rate=question.haptic_rate)
     pictures, reactions = _pictures(scene, ref, rows)
     q = mesh.quality()
     budgets = budget_rows(rows)
@@ -157,7 +182,7 @@ def scene_section(name: str, fractions=None) -> tuple[str, dict]:
 <h2>{html.escape(scene.name)} ({scene.time.mode})</h2>
 <p>{html.escape(scene.description)}</p>
 <h3>Advisor</h3>
-{_advice_html(adv)}
+{_advice_html(adv, question)}
 {_mesh_html(scene, q)}
 {_reference_html(ref)}
 <h3>Error against speed</h3>
@@ -351,8 +376,8 @@ Tolerance on rel_l2: {res["tol"]}; "(Nx)" is the error against the model's own e
     return text, res
 
 
-def first_screen(scenes: list[dict]) -> str:
-    """The page's opening table, scene by scene: the advisor's pick for ADVISE_TOL at ADVISE_RATE, its
+def first_screen(scenes: list[dict], q: Question = DEFAULT_QUESTION) -> str:
+    """The page's opening table, scene by scene: the advisor's pick for the question ``q``, its
     error with the interval the reference's own error bar allows (the true relative error lies within
     the measured one plus or minus the bar, by the triangle inequality), its rate and the verdict."""
     rows = []
@@ -369,13 +394,13 @@ def first_screen(scenes: list[dict]) -> str:
         step = "quasi-static" if a["dt"] is None else f"{a['integrator']}, dt = {a['dt']:.3g} s"
         mesh = f", mesh refined {refined_times(a['refine'])}" if a["refine"] else ""
         surely = "" if est is None else " whatever the reference's own error (the whole interval)"
-        verdict = f"qualifies: rel_l2 &le; {ADVISE_TOL:g}{surely} at {ADVISE_RATE:g} Hz"
+        verdict = f"qualifies: {Question.answered(a)}{surely}"
         rows.append(
             f"<tr><td>{link}</td><td><b>{html.escape(a['model'])}</b> ({html.escape(step)}{mesh})</td>"
             f"<td>{value:.3g} ({interval})</td><td>{a['rate_hz']:.0f} Hz</td><td style='text-align:left'>{verdict}</td></tr>"
         )
     head = (
-        f"<tr><th>scene</th><th>cheapest model for rel_l2 &le; {ADVISE_TOL:g} at {ADVISE_RATE:g} Hz</th>"
+        f"<tr><th>scene</th><th>cheapest model for {q}{' (where a tool gives it a force)' if q.haptic_rate else ''}</th>"
         "<th>its rel_l2 (interval from the reference's bar)</th><th>its step rate</th><th>verdict</th></tr>"
     )
     return f"<table class='first'>{head}{''.join(rows)}</table>"
