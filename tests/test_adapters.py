@@ -311,3 +311,94 @@ def test_the_advisor_names_each_adapters_step_error_and_verdict(monkeypatch):
         assert c["step_us"] > 0.0 and c["dt"] > 0.0 and c["rel_l2"] == pytest.approx(0.2838, abs=1e-3)
         assert c["why"].startswith(model) and isinstance(c["qualifies"], bool)
     assert out["model"] in picks and "--engine mujoco" in out["command"]
+
+
+def test_an_engines_known_warning_is_explained_once_and_its_other_lines_are_named(capsys):
+    """MuJoCo's compiler prints 'flex ... is not rigid and has no equality constraints or passive
+    forces' for every flex with an <elasticity> (its own check does not count it): users saw it raw on
+    every run. The harness explains it once, drops its element line, passes the adapter's progress as
+    it is and names any other line as the engine's."""
+    from verification.engines import adapters
+    from verification.engines.adapters import ADAPTERS, AdapterSimulation
+
+    adapters._EXPLAINED.clear()
+    sim = AdapterSimulation.__new__(AdapterSimulation)
+    sim.engine, sim._skip_next = ADAPTERS["mujoco"], False
+    for _ in range(2):  # two runs' worth
+        sim.relay("WARNING: flex 'body' is not rigid and has no equality constraints or passive forces")
+        sim.relay("Element name 'body', id 0, line 3")
+        sim.relay("")
+    sim.relay("mujoco_flex discrete: settled in 400 steps")
+    sim.relay("Element name 'x' on a line of its own")
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].startswith("mujoco: MuJoCo's compiler warns") and "nothing is wrong" in err[0]
+    assert err[1:] == [
+        "mujoco_flex discrete: settled in 400 steps",
+        "mujoco (the engine's own output): Element name 'x' on a line of its own",
+    ]
+
+
+def _study_with_fake_runs(monkeypatch, stop_at: int | None):
+    """engines_study on the cantilever with two models whose runs are made up (no adapter runs): each
+    planned run answers at once, and with ``stop_at`` the run of that index is a Ctrl-C."""
+    from verification.engines.adapters import ADAPTERS
+    from verification.studies import engines
+
+    pairs = [(ADAPTERS["mujoco"], "mujoco-flex-euler"), (ADAPTERS["newton"], "newton-vbd")]
+    monkeypatch.setattr(engines, "adapter_models", lambda models=None: pairs)
+    calls = []
+
+    def fake(scene, item, ref, use_cache):
+        calls.append(item)
+        if stop_at is not None and len(calls) == stop_at + 1:
+            raise KeyboardInterrupt
+        if item["model"] == "newton-vbd":  # never an answer: a series with nothing to draw
+            return Row(scene.name, item["model"], "own", "not settled", dt=item["dt"])
+        status = "ok" if item["knob"] != "stability" or item["dt"] < 1e-4 else "diverged"
+        return Row(scene.name, item["model"], "own", status, dt=item["dt"], rel_l2=0.01 * len(calls), step_us=50.0)
+
+    monkeypatch.setattr(engines, "_run", fake)
+    return engines
+
+
+def test_the_engines_study_prints_each_run_as_it_finishes_and_keeps_what_finished_when_stopped(monkeypatch):
+    """`tissuebench engines` on the liver ran 25 minutes with nothing on stdout and was killed at run 31
+    of 62, its table lost. Each run is handed on as it finishes (the command prints it), and a Ctrl-C
+    returns the runs that finished with how far it came, which the table says is partial."""
+    from verification.scene_file import load_scene
+
+    engines = _study_with_fake_runs(monkeypatch, stop_at=5)
+    seen = []
+    out = engines.engines_study(load_scene("cantilever"), on_run=seen.append)
+    assert len(out["runs"]) == 5 and seen == out["runs"]
+    assert out["stopped"].startswith("stopped after 5 of the ") and "resumes from the cache" in out["stopped"]
+    text = engines.format_engines(out)
+    assert text.endswith("the table above is partial") and engines.run_line(seen[0]) in text
+    full = _study_with_fake_runs(monkeypatch, stop_at=None).engines_study(load_scene("cantilever"))
+    assert "stopped" not in full and len(full["runs"]) > 5
+
+
+def test_the_engines_plot_shows_every_model(monkeypatch):
+    """The plot drew only the models with a timed answer (MuJoCo's): every model is now in its legend,
+    the ones with no answer named with why, the built-in ones beside them."""
+    import base64
+
+    from matplotlib.axes import Axes
+
+    from verification.report import plots
+    from verification.scene_file import load_scene
+
+    out = _study_with_fake_runs(monkeypatch, stop_at=None).engines_study(load_scene("cantilever"))
+    out["builtin"] = [{"model": "linear-tm", "status": "ok", "dt": 1e-4, "rel_l2": 0.2, "step_us": 5.0}]
+    labels = []
+    legend = Axes.legend
+
+    def keep(ax, *args, **kwargs):
+        labels.extend(h for h in ax.get_legend_handles_labels()[1])
+        return legend(ax, *args, **kwargs)
+
+    monkeypatch.setattr(Axes, "legend", keep)
+    png = base64.b64decode(plots.plot_engines(out))
+    assert png.startswith(b"\x89PNG")
+    assert "mujoco-flex-euler" in labels and "linear-tm" in labels
+    assert "newton-vbd: no answer to draw (not settled)" in labels

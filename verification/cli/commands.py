@@ -386,13 +386,17 @@ def cmd_sweep(args) -> int:
 def cmd_engines(args) -> int:
     from verification.engines import load_engine
     from verification.engines.adapters import ADAPTERS
-    from verification.studies.engines import engines_study, format_engines
+    from verification.studies.engines import engines_study, format_engines, run_line
 
     for name in args.engine or ADAPTERS:  # every adapter unless some are named
         load_engine(name)
     scene = _scene(args)
     comm = _mpi_comm()
-    out = engines_study(scene, models=args.models, use_cache=not args.no_cache, comm=comm, builtin=args.builtin)
+    # each run's row on stdout as it finishes (the study takes minutes a run); --json keeps stdout whole
+    on_run = None if args.json else (lambda r: print(run_line(r), flush=True))
+    out = engines_study(
+        scene, models=args.models, use_cache=not args.no_cache, comm=comm, builtin=args.builtin, on_run=on_run
+    )
     if not _rank0(comm):
         return 0
     if args.plot:
@@ -404,7 +408,7 @@ def cmd_engines(args) -> int:
         data = base64.b64decode(plot_engines(out))
         atomic_write(args.plot, lambda tmp: Path(tmp).write_bytes(data))
     _emit(args, out, format_engines)
-    return 0
+    return 130 if out.get("stopped") else 0
 
 
 def cmd_converge(args) -> int:

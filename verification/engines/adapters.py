@@ -17,6 +17,7 @@ Their runs are cached like the built-in models' (the adapters and their pinned v
 from __future__ import annotations
 
 import os
+import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +52,9 @@ class AdapterEngine:
     cacheable: bool = True
     isolated: bool = True  # its adapter runs in a process of its own
     spec: str = ""
+    #: The engine's own warnings the harness knows: a regular expression of the line, and what it means
+    #: here. Each is explained once a process, in place of the engine's line and the element line after it.
+    known_warnings: tuple = ()
     models: tuple = field(init=False)
 
     def __post_init__(self):
@@ -83,8 +87,24 @@ ADAPTERS = {
         {"mujoco-flex": "discrete", "mujoco-flex-euler": "Euler"},
         knobs=("substeps",),
         explicit=("mujoco-flex-euler",),
+        known_warnings=(
+            (
+                r"^WARNING: flex '.*' is not rigid and has no equality constraints or passive forces",
+                "MuJoCo's compiler warns that the flex is 'not rigid and has no equality constraints or "
+                "passive forces': it does not count the flex's own <elasticity>, which is the passive force "
+                "that holds it (its answer is P1 StVK to 3e-8, tests/test_adapters.py); nothing is wrong",
+            ),
+            (
+                r"^WARNING: Nan, Inf or huge value in Q",
+                "MuJoCo warns of NaN, Inf or huge values when a run blows up (its step above the stable one): "
+                "the harness stops that run there and its row says diverged",
+            ),
+        ),
     ),
 }
+
+#: The warnings already explained in this process (one explanation each, not one a run).
+_EXPLAINED: set = set()
 
 
 def engines_python() -> Path:
@@ -109,6 +129,7 @@ class AdapterSimulation(CommandSimulation):
     def __init__(self, engine: AdapterEngine, inputs: SceneInputs, model: str, options: dict):
         super().__init__(engine, inputs, model)
         self.options, self.asked_dt, self.report = options, None, {}
+        self._skip_next = False  # the element line after a known warning
         self.integrator = engine.solvers[model]
 
     @property
@@ -125,7 +146,24 @@ class AdapterSimulation(CommandSimulation):
         return args
 
     def relay(self, line: str) -> None:
-        print(line, file=sys.stderr, flush=True)
+        """A line the adapter wrote on stderr: a warning the harness knows is explained once (and the
+        engine's element line after it dropped); the adapter's progress is passed on as it is, and any
+        other line (the engine's own) named as the engine's."""
+        if self._skip_next and line.startswith("Element name "):
+            self._skip_next = False
+            return
+        self._skip_next = False
+        if not line.strip():
+            return
+        for pattern, meaning in self.engine.known_warnings:
+            if re.search(pattern, line):
+                self._skip_next = True
+                if pattern not in _EXPLAINED:
+                    _EXPLAINED.add(pattern)
+                    print(f"{self.engine.name}: {meaning}", file=sys.stderr, flush=True)
+                return
+        ours = line.startswith(Path(self.engine.script).stem)  # the adapter's own progress names itself
+        print(line if ours else f"{self.engine.name} (the engine's own output): {line}", file=sys.stderr, flush=True)
 
     def _read(self, path: Path) -> tuple:
         with np.load(path) as z:

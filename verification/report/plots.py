@@ -66,9 +66,10 @@ def _legend_beside(ax) -> None:
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
 
 
-def plot_error_vs_speed(rows: list[Row], ref_est: float | None, title: str) -> str:
+def plot_error_vs_speed(rows: list[Row], ref_est: float | None, title: str, notes=()) -> str:
     """Log-log rel_l2 against step_us, one series per model (the plug-in engines' beside the built-in
-    ones), the Pareto front as a staircase."""
+    ones), the Pareto front as a staircase; ``notes``: legend lines for what has no point (a model with
+    no answer)."""
     fig, ax = plt.subplots(figsize=(7.2, 4.6))
     ok = [r for r in rows if r.ok and r.step_us is not None]  # timed: a plug-in may report no step time
     colours = plt.get_cmap("tab20").colors
@@ -101,6 +102,8 @@ def plot_error_vs_speed(rows: list[Row], ref_est: float | None, title: str) -> s
     ax.set_ylabel("relative L2 displacement error (fraction)")
     ax.set_title(title + "  (labels: dt / dt_crit; q-s: quasi-static; ms: another engine's step)", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
+    for note in notes:
+        ax.plot([], [], " ", label=note)
     _legend_beside(ax)
     return png(fig)
 
@@ -119,11 +122,33 @@ def _step_label(r: Row) -> str:
 
 
 def plot_engines(out: dict) -> str:
-    """``tissuebench engines``' plot: every adapter run's error against its step time, labelled by its step
-    and iterations, beside the reference's error estimate."""
+    """``tissuebench engines``' plot: every model of the study, each a series: the adapters' answers
+    (their steps and iterations; not the stability probes, which answer nothing) and, with --builtin,
+    the built-in models at their default step, beside the reference's error estimate. A model with no
+    answer to draw (every run unsettled or diverged) is named in the legend with why, not left out."""
     fields = set(Row.__dataclass_fields__)
-    rows = [Row.from_json({k: v for k, v in r.items() if k in fields}) for r in out["runs"]]
-    return plot_error_vs_speed(rows, out.get("reference_estimate"), f"{out['scene']}: other engines")
+    rows = [Row.from_json({k: v for k, v in r.items() if k in fields}) for r in out["runs"] if r["knob"] != "stability"]
+    rows += [
+        Row(
+            out["scene"],
+            b["model"],
+            "quasi-static" if b["dt"] is None else "built-in",
+            b["status"],
+            dt=b["dt"],
+            rel_l2=b["rel_l2"],
+            step_us=b["step_us"],
+        )
+        for b in out.get("builtin") or []
+    ]
+    drawn = {r.model for r in rows if r.ok and r.step_us is not None and r.rel_l2 is not None}
+    missing = {}
+    for r in rows:
+        if r.model not in drawn:
+            missing.setdefault(r.model, set()).add(r.status if not r.ok else "not timed")
+    notes = [f"{m}: no answer to draw ({', '.join(sorted(why))})" for m, why in sorted(missing.items())]
+    return plot_error_vs_speed(
+        [r for r in rows if r.model in drawn], out.get("reference_estimate"), f"{out['scene']}: engines", notes
+    )
 
 
 def budget_rows(rows: list[Row]) -> list[Row]:

@@ -127,10 +127,15 @@ def builtin_beside(scene: Scene, ref, use_cache: bool) -> list[dict]:
     return out
 
 
-def engines_study(scene: Scene, models=None, use_cache: bool = True, comm=None, builtin: bool = False) -> dict:
+def engines_study(
+    scene: Scene, models=None, use_cache: bool = True, comm=None, builtin: bool = False, on_run=None
+) -> dict:
     """The study (module docstring): its rows, each model's summary, the mesh's own error (the P1 solution
     of the scene's law on its mesh against the reference: what every engine on this mesh pays); with
-    ``builtin``, the built-in models measured in the same run (``builtin_beside``)."""
+    ``builtin``, the built-in models measured in the same run (``builtin_beside``). ``on_run(run)`` is
+    called with each run's entry of "runs" as it finishes (the command prints it). Stopped by Ctrl-C,
+    the study returns what had finished, with ``stopped`` saying how far it came (every finished run is
+    in the cache: the same command resumes)."""
     pairs = adapter_models(models)
     rank, size = (comm.rank, comm.size) if comm is not None else (0, 1)
     ref = reference_result(scene, **REFERENCE_DEFAULTS)
@@ -140,16 +145,21 @@ def engines_study(scene: Scene, models=None, use_cache: bool = True, comm=None, 
     except ReferenceSolveError:
         mesh_part = None
     plan = engines_plan(scene, pairs)
-    rows = []
-    for k, item in enumerate(plan):
-        if k % size != rank:
-            continue
-        row = _run(scene, item, ref, use_cache).replace(plan_index=k)
-        rows.append((item, row))
-        # every rank says what it finished: the runs are each a process of their own, minutes long
-        who = f" (rank {rank})" if size > 1 else ""
-        line(f"engines {scene.name}{who}: run {k + 1} of {len(plan)}, {item['model']} {item['knob']} "
-             f"{_knob_value(item)}: {_state(row)}")  # fmt: skip
+    rows, stopped = [], None
+    try:
+        for k, item in enumerate(plan):
+            if k % size != rank:
+                continue
+            row = _run(scene, item, ref, use_cache).replace(plan_index=k)
+            rows.append((item, row))
+            # every rank says what it finished: the runs are each a process of their own, minutes long
+            who = f" (rank {rank})" if size > 1 else ""
+            line(f"engines {scene.name}{who}: run {k + 1} of {len(plan)}, {item['model']} {item['knob']} "
+                 f"{_knob_value(item)}: {_state(row)}")  # fmt: skip
+            if on_run is not None:
+                on_run(_entry(item, row))
+    except KeyboardInterrupt:
+        stopped = f"stopped after {len(rows)} of the {len(plan)} runs; the same command resumes from the cache"
     if comm is not None and size > 1:
         gathered = comm.gather(rows, root=0)
         if rank != 0:
@@ -157,12 +167,33 @@ def engines_study(scene: Scene, models=None, use_cache: bool = True, comm=None, 
         rows = sorted((r for part in gathered for r in part), key=lambda ir: ir[1].plan_index)
     return {
         "scene": scene.name,
-        "builtin": builtin_beside(scene, ref, use_cache) if builtin else [],
+        "builtin": builtin_beside(scene, ref, use_cache) if builtin and not stopped else [],
         "reference_estimate": ref.meta.get("ref_err_estimate"),
         "mesh_error": mesh_part,
-        "runs": [{"knob": item["knob"], "options": item["options"], **row.to_json()} for item, row in rows],
+        "runs": [_entry(item, row) for item, row in rows],
         "summary": [_summary(model, [(i, r) for i, r in rows if r.model == model]) for _, model in pairs],
+        **({"stopped": stopped} if stopped else {}),
     }
+
+
+def _entry(item: dict, row: Row) -> dict:
+    """A run's entry of the study's "runs": its knob and options with its row."""
+    return {"knob": item["knob"], "options": item["options"], **row.to_json()}
+
+
+def run_line(r: dict) -> str:
+    """One run (an entry of "runs") as a line of the table."""
+    knob = f"iterations {r['options']['iterations']}" if r["knob"] == "iterations" else f"dt {r['dt']:.3g} s"
+    if r["knob"] == "stability":
+        state = f"probe: {'stable' if r['status'] == 'ok' else 'diverged at step ' + str(r['step'])}"
+    elif r["status"] == "ok":
+        model = (r.get("error_budget") or {}).get("model")
+        state = f"rel_l2 {r['rel_l2']:.4g}  {r['step_us']:.4g} us" + (
+            f"  (model part {model:.3g})" if model is not None else ""
+        )
+    else:
+        state = r["status"]
+    return f"  {r['model']:<22} {knob:<18} {state}"
 
 
 def _knob_value(item: dict) -> str:
@@ -278,16 +309,7 @@ def format_engines(out: dict) -> str:
             big = "quasi-static" if b["largest_stable_dt"] is None else f"largest stable {b['largest_stable_dt']:.3g} s"
             lines.append(f"  {b['model']:<22} rel_l2 {b['rel_l2']:.4g}  {b['step_us']:.4g} us  {big}")
     lines.append("\nruns:")
-    for r in out["runs"]:
-        knob = f"iterations {r['options']['iterations']}" if r["knob"] == "iterations" else f"dt {r['dt']:.3g} s"
-        if r["knob"] == "stability":
-            state = f"probe: {'stable' if r['status'] == 'ok' else 'diverged at step ' + str(r['step'])}"
-        elif r["status"] == "ok":
-            model = (r.get("error_budget") or {}).get("model")
-            state = f"rel_l2 {r['rel_l2']:.4g}  {r['step_us']:.4g} us" + (
-                f"  (model part {model:.3g})" if model is not None else ""
-            )
-        else:
-            state = r["status"]
-        lines.append(f"  {r['model']:<22} {knob:<18} {state}")
+    lines += [run_line(r) for r in out["runs"]]
+    if out.get("stopped"):
+        lines.append(f"\n{out['stopped']}: the table above is partial")
     return "\n".join(lines)
