@@ -342,3 +342,45 @@ bound = 1e-9
     assert plug["passed"] and result["passed"] and not strict["passed"]
     assert plug["value"] == pytest.approx(result["value"], rel=1e-6) and result["integrator"] == "result file"
     assert "exceeds the bound 1e-09" in strict["why"]
+
+
+#: direct_p1's answer spoilt the ways a user's engine spoils it: written in mm, with the tool's vertices
+#: where a stale export put them (its motion halved), with a held vertex moved.
+SPOIL = """
+import subprocess, sys
+import numpy as np
+scene, result, how = sys.argv[1:4]
+subprocess.run([sys.executable, sys.argv[4], scene, result], check=True)
+z = dict(np.load(result))
+u = z["displacement"]
+a = np.load(scene + "/arrays.npz")
+if how == "mm":
+    u = u * 1000.0
+elif how == "stale":
+    u[..., a["tool_vertex"], :] *= 0.5
+else:
+    held = np.flatnonzero((a["free"] == 0.0).all(axis=1) & ~np.isin(np.arange(len(a["points"])), a["tool_vertex"]))
+    u[..., held[0], :] += 0.001
+z["displacement"] = u
+np.savez(result, **z)
+"""
+
+
+@pytest.mark.parametrize(
+    "how, needles",
+    [
+        ("mm", ("its tools' vertices moved 1000 times as far as the scene moves them: lengths in millimetres?",)),
+        ("stale", ("the tool's vertex ", "from where the scene puts it", "a stale export")),
+        ("held", ("moved 0.001 m in x (output 0), which the scene holds at 0", "another frame")),
+    ],
+)
+def test_an_engine_commands_answer_is_checked_against_the_scene_before_it_is_scored(tmp_path, capsys, how, needles):
+    """--engine-cmd's answer passes judge's checks before any number: an answer in mm, one whose tool is
+    where a stale export put it, one that moved a held vertex; each is one line naming the likely cause,
+    exit 2 (the same engine unspoilt scores linear-tm's error, test above)."""
+    spoil = tmp_path / "spoil.py"
+    spoil.write_text(SPOIL)
+    direct = Path(__file__).parent / "engines" / "direct_p1.py"
+    command = f"{sys.executable} {spoil} {{scene}} {{result}} {how} {direct}"
+    code = main(["compare", "cantilever-pull", "--degree", "1", "--engine-cmd", command, "--model", "numpy-p1"])
+    _one_line_exit_2(code, capsys.readouterr().err, needles)

@@ -23,8 +23,8 @@ import numpy as np
 
 from realtime.errors import InputError
 
-from .export import export, output_times
-from .foreign import EngineResultError, read_result
+from .export import export, output_times, tool_motions
+from .foreign import GAP, SHAPE_MATCH, UNITS, EngineResultError, read_result
 from .protocol import SceneInputs, Settling
 
 #: Seconds a command may run before it is stopped (a hang is a failure, named).
@@ -116,6 +116,7 @@ class CommandSimulation:
                 f"{self.label}: its points are not the scene's vertices: point {v} is {gap[v]:.3g} m from vertex "
                 f"{v} {own[v].tolist()}; write the answer on the exported mesh's vertices, in its order, in metres"
             )
+        on_scene(self.inputs, self.label, res.displacement)
         with np.load(path) as z:
             step_us = float(z["step_us"]) if "step_us" in z.files else None
         reaction = res.reaction if res.reaction is not None else np.full((expected, 3), np.nan)  # none given
@@ -153,6 +154,44 @@ class CommandSimulation:
     def tool_force(self) -> np.ndarray:
         self._run()
         return self._answer[1][self._k]
+
+
+def on_scene(inputs: SceneInputs, label: str, u: np.ndarray) -> None:
+    """CommandError where a command's answer ``u`` (T, N, 3) m does not keep the scene's own
+    constraints, before any score: its tool vertices 100 or 1000 times where the scene puts them (its
+    lengths in cm or mm), or away from there (an export made before the tool moved, another tool path),
+    or a held component that moved (another frame, other vertices held). A gap within GAP of the
+    largest displacement passes: a penalty tool holds its place to a few percent."""
+    lo = inputs.loading
+    _, wanted = tool_motions(inputs)  # (T, P, 3) m
+    mask = lo.tool_mask != 0.0
+    scale = max(float(np.abs(wanted).max(initial=0.0)), float(np.abs(u).max()), 1e-300)
+    if mask.any():
+        got = u[:, lo.tool_vertex]
+        size = max(float(np.linalg.norm(wanted * mask)), 1e-300)
+        for k, unit in UNITS.items():
+            if np.linalg.norm((got / 10.0**k - wanted) * mask) <= SHAPE_MATCH * size:
+                raise CommandError(
+                    f"{label}: its tools' vertices moved {10**k} times as far as the scene moves them: lengths in "
+                    f"{unit}? write the answer in metres, as the export is"
+                )
+        gap = np.abs(got - wanted) * mask
+        if gap.max() > GAP * scale:
+            t, p, c = np.unravel_index(int(np.argmax(gap)), gap.shape)
+            v = int(lo.tool_vertex[p])
+            raise CommandError(
+                f"{label}: the tool's vertex {v} is {gap[t, p, c]:.3g} m off in {'xyz'[c]} from where the scene "
+                f"puts it ({wanted[t, p, c]:.4g} m at output {t}): another tool path, or a stale export"
+            )
+    held = lo.free == 0.0
+    held[lo.tool_vertex] &= ~mask
+    moved = np.abs(u) * held
+    if moved.max() > GAP * scale:
+        t, v, c = np.unravel_index(int(np.argmax(moved)), moved.shape)
+        raise CommandError(
+            f"{label}: vertex {v} moved {moved[t, v, c]:.3g} m in {'xyz'[c]} (output {t}), which the scene holds at "
+            "0: a result in another frame, or an engine that held other vertices"
+        )
 
 
 def _call(args: list[str], timeout: float, relay, label: str, cwd: str) -> tuple[int, str]:

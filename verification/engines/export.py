@@ -59,7 +59,7 @@ def output_times(inputs: SceneInputs) -> np.ndarray:
     return np.arange(int(round(ts.end / ts.output_every)) + 1) * ts.output_every
 
 
-def _tools(inputs: SceneInputs) -> tuple[list[dict], np.ndarray]:
+def tool_motions(inputs: SceneInputs) -> tuple[list[dict], np.ndarray]:
     """Each tool in words (kind, motion, ramp) and the prescribed displacement (T, P, 3) m of every
     tool vertex at every output time (a static scene's single time is the tools' final place)."""
     lo = inputs.loading
@@ -83,7 +83,7 @@ def _tools(inputs: SceneInputs) -> tuple[list[dict], np.ndarray]:
 def describe(inputs: SceneInputs) -> dict:
     """``scene.json``'s content."""
     mats = Materials.of(inputs.material, len(inputs.tets))
-    tools, _ = _tools(inputs)
+    tools, _ = tool_motions(inputs)
     ts = inputs.time
     return {
         "format": FORMAT,
@@ -128,7 +128,7 @@ def export(inputs: SceneInputs, directory: str | Path, extra: dict | None = None
     out.mkdir(parents=True, exist_ok=True)
     lo = inputs.loading
     mats = Materials.of(inputs.material, len(inputs.tets))
-    _, tool_u = _tools(inputs)
+    _, tool_u = tool_motions(inputs)
     atomic_savez(
         out / "arrays.npz",
         points=inputs.points,

@@ -24,6 +24,14 @@ import numpy as np
 
 from realtime.errors import InputError
 
+#: A held component or a tool vertex may be this far (relative to the largest displacement) from where
+#: the scene puts it: an engine whose tool is a penalty or a soft constraint holds it to a few percent;
+#: an export made before the tool moved, or a result in another frame, is off by far more.
+GAP = 0.05
+#: A result whose displacements are 10^k times the expected ones (k in UNITS) and whose rescaled field
+#: is within SHAPE_MATCH of them (relative L2) is in other length units.
+UNITS = {2: "centimetres", 3: "millimetres"}
+SHAPE_MATCH = 0.5
 #: The names a displacement field goes by, tried in this order.
 FIELD_NAMES = ("displacement", "Displacement", "u", "U", "disp")
 

@@ -19,20 +19,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from verification.engines.foreign import EngineResultError
+from verification.engines.foreign import GAP, SHAPE_MATCH, UNITS, EngineResultError
 from verification.metrics import rel_l2
 from verification.scene import Scene
 
 #: A result's point within this of a scene vertex (relative to the body's size) is that vertex.
 COINCIDE = 1e-9
-#: A held component or a tool vertex may be this far (relative to the reference's largest displacement)
-#: from where the scene puts it: an engine whose tool is a penalty or a soft constraint holds it to a few
-#: percent; an export made before the tool moved, or a result in another frame, is off by far more.
-GAP = 0.05
-#: A result whose displacements are 10^k times the reference's (k in UNITS) and whose rescaled field is
-#: within SHAPE_MATCH of it (rel_l2) is in other length units.
-UNITS = {2: "centimetres", 3: "millimetres"}
-SHAPE_MATCH = 0.5
 #: A tool force that matches the reference's at most this share of its error when negated has the
 #: opposite sign.
 FLIPPED = 0.5
