@@ -269,6 +269,36 @@ def _dynamic_bars(u: tuple, r: tuple, refine: int) -> dict:
     )
 
 
+#: Newmark's average-acceleration rule is second order in dt (the trapezoidal rule; Hughes, The Finite
+#: Element Method, 9.1): the error of the run at dt is 2^2 / (2^2 - 1) = 4/3 of its difference to dt / 2.
+NEWMARK_RICHARDSON = 4.0 / 3.0
+
+
+def _dynamic_p3_bars(u: tuple, r: tuple, refine: int) -> dict:
+    """A dynamic reference's ``p3`` bars, from its runs' displacements u = (u2, u3, u2 at dt / 2) at
+    refinement R + 1, each (T, N, 3) m (P2 returned, P3 beside it at the same dt, P2 at half the step),
+    and tool forces r, the same three (T, 3) N: space P3_SAFETY |u2 - u3| / |u3| (the static p3 bar: the
+    same dt, so the time error cancels) plus time NEWMARK_RICHARDSON |u_dt - u_dt/2| / |u_dt/2| (on the
+    returned mesh: the time error's direction follows the modes that mesh resolves), relative."""
+    space = P3_SAFETY * float(np.linalg.norm(u[0] - u[1]) / max(np.linalg.norm(u[1]), 1e-300))
+    tim = NEWMARK_RICHARDSON * float(np.linalg.norm(u[0] - u[2]) / max(np.linalg.norm(u[2]), 1e-300))
+    f_space, f_time = relative(r[0], r[1]), relative(r[0], r[2])
+    known = f_space is not None and f_time is not None
+    return dict(
+        ref_err_estimate=space + tim,
+        ref_err_space=space,
+        ref_err_time=tim,
+        ref_reaction_err_estimate=P3_SAFETY * f_space + NEWMARK_RICHARDSON * f_time if known else None,
+        ref_reaction_err_space=None if f_space is None else P3_SAFETY * f_space,
+        ref_reaction_err_time=None if f_time is None else NEWMARK_RICHARDSON * f_time,
+        returned_level=refine + 1,
+        estimator="p3",
+        estimate=f"{P3_SAFETY:g} |u2 - u3| + {NEWMARK_RICHARDSON:.3g} |u_dt - u_dt/2| (relative, over vertices "
+        f"and output times, P2 and P3 at refine {refine + 1}): the returned P2 trajectory's space error within "
+        "P3's own, doubled, plus its time error by Richardson for Newmark's second order",
+    )
+
+
 def solve_dynamic(
     mesh: TetMesh,
     material: Material | Materials,
@@ -278,7 +308,7 @@ def solve_dynamic(
     rayleigh=(0.0, 0.0),
     degree: int = 2,
     refine: int = 0,
-    estimate: bool = True,
+    estimate: bool | str = True,
     substeps: int = 4,
     comm=MPI.COMM_WORLD,
     points: np.ndarray | None = None,
@@ -290,7 +320,8 @@ def solve_dynamic(
     The time step is output_every / substeps. With the estimate, the returned trajectory is the one at
     refinement R + 1 (and dt), and ``ref_err_estimate`` = space + 2 time bounds its relative error when
     halving h or dt at least halves the error of each: space = |u_R - u_R+1| / |u_R+1| (same dt), time
-    = |u_dt - u_dt/2| / |u_dt/2| (level R), norms over all vertices and output times.
+    = |u_dt - u_dt/2| / |u_dt/2| (level R), norms over all vertices and output times. ``estimate =
+    "p3"``: the same trajectory, its bar from P3 and dt / 2 on its own mesh (``_dynamic_p3_bars``).
     Returns a dict: times (T,), displacement (T, N, 3), reaction (T, 3), meta.
     """
     import dolfinx
@@ -299,12 +330,13 @@ def solve_dynamic(
 
     dt = output_every / substeps
 
-    def run(level, step):
+    def run(level, step, deg=degree):
         t0 = time.perf_counter()
         # building the level and Newmark's set-up (its first solves, a mass factorisation) report nothing
         # of their own: a heartbeat until the time loop, which reports itself
-        with Heartbeat(f"reference: refine {level}, dt {step:.3g} s: building and setting up Newmark", comm.rank) as hb:
-            ep = ElasticityProblem(mesh, material, problem, degree=degree, refine=level, comm=comm)
+        what = f"reference: P{deg} refine {level}, dt {step:.3g} s: building and setting up Newmark"
+        with Heartbeat(what, comm.rank) as hb:
+            ep = ElasticityProblem(mesh, material, problem, degree=deg, refine=level, comm=comm)
             run = ep.solve_dynamic(
                 step,
                 end,
@@ -314,11 +346,14 @@ def solve_dynamic(
                 petsc_options=petsc_options,
                 before_loop=hb.stop,
             )
-        run.info.update(level=level, n_dofs=ep.n_dofs, wall_s=time.perf_counter() - t0)
+        run.info.update(level=level, degree=deg, n_dofs=ep.n_dofs, wall_s=time.perf_counter() - t0)
         return run.times, run.values, run.reactions, run.info
 
-    times, vals, reac, info = run(refine, dt)
-    solves = [info]
+    if estimate == "p3" and degree != 2:
+        raise ValueError(f"estimate p3 checks a P2 reference against P3; degree is {degree}")
+    # p3: P2 at R + 1 returned, P3 beside it and P2 at dt / 2 there; else u_R, u_R+1 and u_R at dt / 2
+    first = refine + 1 if estimate == "p3" else refine
+    times, vals, reac, info = run(first, dt)
     meta = {
         "solver": "reference",
         "law": "+".join(sorted({m.law for m in _materials_of(material)})),
@@ -329,13 +364,19 @@ def solve_dynamic(
         "mpi_ranks": comm.size,
         "petsc_options": info["petsc_options"],
         "versions": {"dolfinx": dolfinx.__version__, "python": platform.python_version()},
+        "returned_level": refine,
+        "estimate": "none: reference unverified",
+        "solves": [info],
     }
-    meta.update(returned_level=refine, estimate="none: reference unverified")
-    if estimate:
+    if estimate == "p3":
+        _, p3, p3_reac, i3 = run(first, dt, 3)
+        _, half, half_reac, i2 = run(first, dt / 2)
+        meta["solves"] += [i3, i2]
+        meta.update(_dynamic_p3_bars((vals, p3, half), (reac, p3_reac, half_reac), refine))
+    elif estimate:
         _, fine_space, fine_reac, i2 = run(refine + 1, dt)
         _, fine_time, fine_time_reac, i3 = run(refine, dt / 2)
-        solves += [i2, i3]
+        meta["solves"] += [i2, i3]
         meta.update(_dynamic_bars((vals, fine_space, fine_time), (reac, fine_reac, fine_time_reac), refine))
         vals, reac = fine_space, fine_reac
-    meta["solves"] = solves
     return {"times": times, "displacement": vals, "reaction": reac, "meta": meta}

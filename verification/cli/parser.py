@@ -151,7 +151,8 @@ def _reference(sub) -> None:
         choices=("difference", "p3", "adaptive"),
         default="difference",
         help="the bar: the difference of two refinements, twice the distance to P3 on the returned mesh "
-        "(static P2; docs/effectivity.md), or that P3 bar on a mesh refined where the error lives",
+        "(P2; dynamic: plus 4/3 of the distance to dt / 2 there; docs/effectivity.md), or that P3 bar on a "
+        "mesh refined where the error lives (static)",
     )
     s.add_argument(
         "--target",

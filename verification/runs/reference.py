@@ -198,8 +198,8 @@ def reference_result(
     levels' meshes and indicator are kept beside the result (``levels_path``)."""
     from mpi4py import MPI
 
-    if estimate in ("p3", "adaptive") and scene.time.mode == "dynamic":
-        raise SceneError(f"{scene.path}: the {estimate} estimate checks a static P2 reference; this scene is dynamic")
+    if estimate == "adaptive" and scene.time.mode == "dynamic":
+        raise SceneError(f"{scene.path}: the adaptive estimate adapts a static P2 reference; this scene is dynamic")
     path = reference_path(scene, degree, refine, estimate, newton_steps, min_increment, own_mesh, petsc_options, adapt)
     cached = read_cached(path, Result.load) if use_cache else None
     if cached is not None and (changed := solver_changed(cached.meta, petsc_options)):

@@ -16,6 +16,10 @@ the scene's vertices (the norm of ``reference.driver``'s bar):
   itself, within the P3 solution's own error: within (1 -/+ r) of it, r = e(P3) / e(P2) on that mesh,
   so the safety factor keeps it above the error while r < 1 - 1 / P3_SAFETY.
 
+A dynamic case's bars add the time step's part, by the reference's own rules (``reference.driver``):
+``difference`` adds 2 |u_dt - u_dt/2| at the coarse level; ``p3`` adds 4/3 |u_dt - u_dt/2| on the
+returned mesh (Richardson for Newmark's second order). Its truth is P2 two refinements finer at dt / 4.
+
 The adaptive reference (``reference.adaptive``: P2 refined where its P3 check says the error lives, the
 same P3 bar at every level) is measured beside them on its own solution: from refinement 0, adapted
 ``returned`` + 1 times, so that no cell of its mesh is finer than the uniform truth's minus one level. Its row
@@ -87,6 +91,9 @@ CASES = {
     ),  # three cells a side: the core's sphere (8 mm) holds the middle cell's tetrahedra
     "cut beam": Case("cantilever-cut", "the beam cut half through at mid-span, under its weight", {"mesh.h": 0.01}, 1),
     "layered slab": Case("layered-slab", "three linear layers of different stiffness, pressed", {"mesh.h": 0.01}),
+    "dynamic beam": Case(
+        "cantilever-dynamic", "a beam's end pushed 5 mm in 50 ms and held, 0.3 s of damped motion", GRID
+    ),
     "manufactured": Case("manufactured", "the manufactured StVK solution on the unit cube, exact"),
 }
 
@@ -145,6 +152,49 @@ def _scene_solutions(scene, returned: int) -> tuple[dict, dict]:
     return u, dofs
 
 
+def _dynamic_solutions(scene, returned: int) -> tuple[dict, dict]:
+    """A dynamic case's Newmark trajectories at the scene's vertices, each (displacement (T, K, 3) m, tool
+    force (T, 3) N), keyed (degree, refinement, dt divisor), dt the reference's (``reference.driver``:
+    output_every / 4): what the default bar reads (P2 at ``returned`` - 1 at dt and dt / 2, and at
+    ``returned``), what the p3 bar reads (P3 at ``returned``, P2 there at dt / 2), and the truth, P2 two
+    refinements finer at dt / 4; and their sizes."""
+    from reference.fem import ElasticityProblem
+
+    ts, x = scene.time, scene.mesh.points
+    dt = ts.output_every / 4
+    plan = [(2, returned, 1), (3, returned, 1), (2, returned, 2)]
+    plan += [(2, returned - 1, 1), (2, returned - 1, 2)] if returned >= 1 else []
+    u, dofs = {}, {}
+    for degree, level, divisor in [*plan, (2, returned + 2, 4)]:
+        t0 = time.perf_counter()
+        ep = ElasticityProblem(scene.mesh, scene.body_material(), scene.problem, degree=degree, refine=level)
+        run = ep.solve_dynamic(
+            dt / divisor, ts.end, ts.output_every, x, rayleigh=(ts.damping_mass, ts.damping_stiffness)
+        )
+        u[(degree, level, divisor)], dofs[(degree, level)] = (run.values, run.reactions), ep.n_dofs
+        log(
+            f"effectivity: {scene.name} P{degree} refined {level} at dt / {divisor}: {ep.n_dofs} dofs, "
+            f"{time.perf_counter() - t0:.1f} s"
+        )
+        del ep
+        gc.collect()
+    return u, dofs
+
+
+def _dynamic_estimates(u: dict, r: int) -> dict:
+    """Each estimator's relative bar on the trajectory returned at refinement ``r`` (P2 at dt), computed by
+    the reference's own rules (``reference.driver``) from ``_dynamic_solutions``."""
+    from reference.driver import _dynamic_bars, _dynamic_p3_bars
+
+    def bars(rule, keys, level):
+        return rule(tuple(u[k][0] for k in keys), tuple(u[k][1] for k in keys), level)["ref_err_estimate"]
+
+    return {
+        "difference": bars(_dynamic_bars, [(2, r - 1, 1), (2, r, 1), (2, r - 1, 2)], r - 1) if r >= 1 else None,
+        "p3": bars(_dynamic_p3_bars, [(2, r, 1), (3, r, 1), (2, r, 2)], r - 1),
+    }
+
+
 def _adaptive(scene, returned: int, truth: np.ndarray) -> dict:
     """The adaptive reference from refinement 0, adapted ``returned`` + 1 times (module docstring), judged
     against ``truth`` (K, 3) m at the scene's vertices: its P2 dofs, true error, bar and effectivity."""
@@ -196,17 +246,21 @@ def measure(name: str, returned: int = RETURNED) -> dict:
     if case.scene == "manufactured":
         u, dofs, exact = _manufactured_solutions(scene, returned)
         truth, kind = exact, "exact"
+    elif scene.time.mode == "dynamic":  # the truth is a trajectory; a dynamic reference is not adapted
+        u, dofs = _dynamic_solutions(scene, returned)
+        truth, kind = u[(2, returned + 2, 4)][0], f"P2 refined {returned + 2} times at dt / 4"
+        u[(2, returned)] = u[(2, returned, 1)][0]
     else:
         u, dofs = _scene_solutions(scene, returned)
         truth, kind = u[(2, returned + 2)], f"P2 refined {returned + 2} times"
         adaptive = _adaptive(scene, returned, truth)
     err = float(np.linalg.norm(u[(2, returned)] - truth) / np.linalg.norm(truth))
-    bars = _estimates(u, returned)
+    bars = _dynamic_estimates(u, returned) if scene.time.mode == "dynamic" else _estimates(u, returned)
     return {
         "case": name,
         "what": case.what,
         "scene": case.scene,
-        "vertices": len(truth),
+        "vertices": truth.shape[-2],
         "returned": returned,
         "dofs": dofs[(2, returned)],
         "p3_dofs": dofs[(3, returned)],
@@ -283,7 +337,9 @@ def format_markdown(table: dict) -> str:
         f"`p3` is {m['p3_safety']:g} |u_1 - u_1^P3| / |u_1^P3| (verification/studies/effectivity.py says why). "
         "`adaptive` is the reference refined where its error lives (`reference --estimate adaptive`, from "
         "refinement 0, one level more than the returned refinement), judged on its own solution: its P2 dofs, "
-        "its true error against the same truth and its P3 bar.",
+        "its true error against the same truth and its P3 bar. A dynamic case's bars add the time step's part: "
+        "`difference` 2 |u_dt - u_dt/2| at refinement 0, `p3` 4/3 |u_dt - u_dt/2| at refinement 1 (Newmark's "
+        "second order); its truth is also at dt / 4, and a dynamic reference is not adapted.",
         "",
         "| case | vertices | dofs | true error | truth | "
         + " | ".join(f"{e} bar (effectivity)" for e in ESTIMATORS)
