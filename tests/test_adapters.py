@@ -402,3 +402,34 @@ def test_the_engines_plot_shows_every_model(monkeypatch):
     assert png.startswith(b"\x89PNG")
     assert "mujoco-flex-euler" in labels and "linear-tm" in labels
     assert "newton-vbd: no answer to draw (not settled)" in labels
+
+
+def test_an_engine_that_cannot_represent_the_scene_is_not_applicable_not_unsettled(monkeypatch):
+    """MuJoCo's flex on a two-material liver: its adapter exits 2 with the reason (one elasticity per
+    flex). The study read that as "not settled" ten times, each run a process, and its summary said every
+    step diverged. It is "not applicable" with the reason, asked once, and the summary says so."""
+    from verification.engines.adapters import ADAPTERS, AdapterSimulation
+    from verification.scene_file import load_scene
+    from verification.studies import engines
+
+    sim = AdapterSimulation.__new__(AdapterSimulation)
+    sim.engine, sim.model = ADAPTERS["mujoco"], "mujoco-flex"
+    reason = "mujoco_flex: MuJoCo's flex takes one elasticity per flex; this scene has several materials"
+    from realtime.errors import ModelRestriction
+
+    with pytest.raises(ModelRestriction, match="one elasticity per flex"):
+        sim.failed(2, reason)
+    monkeypatch.setattr(engines, "adapter_models", lambda models=None: [(ADAPTERS["mujoco"], "mujoco-flex")])
+    asked = []
+
+    def refuse(scene, item, ref, use_cache):
+        asked.append(item)
+        return Row(scene.name, item["model"], "own", "not applicable", dt=item["dt"], message=reason)
+
+    monkeypatch.setattr(engines, "_run", refuse)
+    out = engines.engines_study(load_scene("cantilever"))
+    assert len(asked) == 1 and len(out["runs"]) == 10  # asked once; every planned run says why
+    (s,) = out["summary"]
+    assert s["not_applicable"] == reason and s["largest_stable_dt"] is None and s["first_diverged_dt"] is None
+    text = engines.format_engines(out)
+    assert f"mujoco-flex: not applicable: {reason}" in text and "diverged" not in text

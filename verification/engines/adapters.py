@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from realtime import DivergenceError, NotConvergedError
-from realtime.errors import InputError
+from realtime.errors import InputError, ModelRestriction
 
 from .command import TIMEOUT, CommandSimulation
 from .protocol import SceneInputs, Settling
@@ -144,6 +144,14 @@ class AdapterSimulation(CommandSimulation):
         for k, v in sorted(self.options.items()):
             args += [f"--{k}", str(v)]
         return args
+
+    def failed(self, status: int, last: str) -> None:
+        """An adapter exits 2 with one line when its engine cannot represent the scene (several
+        materials for MuJoCo's one flex elasticity, a law it has no match for): that model's answer,
+        "not applicable" with the reason in a study of many (``ModelRestriction``); else CommandError."""
+        if status == 2 and last:
+            raise ModelRestriction(last)  # the adapter's line names it and the reason
+        super().failed(status, last)
 
     def relay(self, line: str) -> None:
         """A line the adapter wrote on stderr: a warning the harness knows is explained once (and the

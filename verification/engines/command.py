@@ -91,10 +91,14 @@ class CommandSimulation:
             status, last = _call(args, e.timeout, self.relay, self.label, work)
             wall = time.perf_counter() - t0
             if status != 0:
-                raise CommandError(f"{self.label}: exited with status {status}: {last or 'no message'}")
+                self.failed(status, last)
             if not result.exists():
                 raise CommandError(f"{self.label}: wrote no {{result}} file (it ran {wall:.3g} s)")
             self._answer = self._read(result)
+
+    def failed(self, status: int, last: str) -> None:
+        """The command exited with ``status`` (not 0), ``last`` its last stderr line: CommandError."""
+        raise CommandError(f"{self.label}: exited with status {status}: {last or 'no message'}")
 
     def _read(self, path: Path) -> tuple:
         """What the command wrote, checked: on the scene's vertices, at every output instant."""

@@ -75,10 +75,12 @@ def _run(scene: Scene, item: dict, ref, use_cache: bool) -> Row:
     """One planned run as a row; a run that gives no answer (unsettled, stopped past its time bound,
     failed) is a row saying so, and the study goes on."""
     from realtime import NotConvergedError
-    from realtime.errors import InputError
+    from realtime.errors import InputError, ModelRestriction
 
     try:
         return _probe(scene, item) if item["knob"] == "stability" else _compare(scene, item, ref, use_cache)
+    except ModelRestriction as exc:  # the engine cannot represent the scene: its answer, said so
+        return Row(scene.name, item["model"], "own", "not applicable", dt=item["dt"], message=str(exc))
     except (NotConvergedError, InputError) as exc:
         return Row(scene.name, item["model"], "own", "not settled", dt=item["dt"], message=str(exc))
 
@@ -145,12 +147,17 @@ def engines_study(
     except ReferenceSolveError:
         mesh_part = None
     plan = engines_plan(scene, pairs)
-    rows, stopped = [], None
+    rows, stopped, refused = [], None, {}
     try:
         for k, item in enumerate(plan):
             if k % size != rank:
                 continue
-            row = _run(scene, item, ref, use_cache).replace(plan_index=k)
+            if item["model"] in refused:  # the engine cannot represent the scene: no run of it will
+                row = refused[item["model"]].replace(dt=item["dt"], plan_index=k)
+            else:
+                row = _run(scene, item, ref, use_cache).replace(plan_index=k)
+            if row.status == "not applicable":
+                refused[item["model"]] = row
             rows.append((item, row))
             # every rank says what it finished: the runs are each a process of their own, minutes long
             who = f" (rank {rank})" if size > 1 else ""
@@ -184,7 +191,7 @@ def _entry(item: dict, row: Row) -> dict:
 def run_line(r: dict) -> str:
     """One run (an entry of "runs") as a line of the table."""
     knob = f"iterations {r['options']['iterations']}" if r["knob"] == "iterations" else f"dt {r['dt']:.3g} s"
-    if r["knob"] == "stability":
+    if r["knob"] == "stability" and r["status"] in ("ok", "diverged"):
         state = f"probe: {'stable' if r['status'] == 'ok' else 'diverged at step ' + str(r['step'])}"
     elif r["status"] == "ok":
         model = (r.get("error_budget") or {}).get("model")
@@ -192,7 +199,7 @@ def run_line(r: dict) -> str:
             f"  (model part {model:.3g})" if model is not None else ""
         )
     else:
-        state = r["status"]
+        state = r["status"] + (f": {r['message']}" if r["status"] == "not applicable" and r.get("message") else "")
     return f"  {r['model']:<22} {knob:<18} {state}"
 
 
@@ -211,7 +218,7 @@ def _state(row: Row) -> str:
 def _summary(model: str, runs: list[tuple[dict, Row]]) -> dict:
     """One model's answers: the largest stable step (and the smallest diverged above it), its best run,
     and whether its answer depends on the iteration count."""
-    probes = sorted((r.dt, r.ok) for i, r in runs if i["knob"] == "stability")
+    probes = sorted((r.dt, r.ok) for i, r in runs if i["knob"] == "stability" and r.status in ("ok", "diverged"))
     stable = [dt for dt, held in probes if held]
     largest = max(stable) if stable else None
     above = [dt for dt, held in probes if not held and (largest is None or dt > largest)]
@@ -233,6 +240,7 @@ def _summary(model: str, runs: list[tuple[dict, Row]]) -> dict:
             "model_part": (best.error_budget or {}).get("model"),
         },
         "iterations": None,
+        "not_applicable": next((r.message for _, r in runs if r.status == "not applicable"), None),
     }
     by_count = sorted((i["options"]["iterations"], r) for i, r in runs if i["knob"] == "iterations")
     if by_count:
@@ -264,6 +272,9 @@ def format_engines(out: dict) -> str:
     if mesh is not None:
         lines.append(f"  the mesh's own error (P1 on this mesh, what every engine here pays): {mesh:.3g}")
     for s in out["summary"]:
+        if s.get("not_applicable"):
+            lines.append(f"\n{s['model']}: not applicable: {s['not_applicable']}")
+            continue
         lines.append(f"\n{s['model']}: {(s['engine'] or {}).get('engine', 'no run reached an answer')}")
         if s["engine"]:
             lines.append(f"  law: {s['engine'].get('law')}")
