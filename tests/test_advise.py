@@ -365,6 +365,29 @@ def test_advice_with_no_model_names_each_candidates_best_tolerance_and_the_cheap
         "cheapest change: the mesh refined once for stvk-tm (symplectic-euler): rel_l2 predicted 0.045 (at most "
         "0.09); 8 steps of 900 us per frame, its first answer in about 5 s"
     )
+    # with a haptic loop the tool force has its best tolerances too, and the change says what it does not
+    # predict: the force, which is what failed (SOFA's liver at 25%: shapes within 0.16, forces 0.86 at best)
+    out["haptic"] = {"rate": 1000.0, "force_tol": 0.05}
+    out["candidates"][0]["best_force_tol"], out["candidates"][2]["best_force_tol"] = 0.86, 2.27
+    lines = format_advice(out).splitlines()
+    assert lines[2] == (
+        "best tolerance of the tool force at 1000 Hz on the scene's mesh: stvk-tm (symplectic-euler) 0.86, "
+        "linear-tm (implicit-euler) 2.27"
+    )
+    assert lines[3].endswith("; its tool force there is not predicted, only measured once run")
+
+
+def test_the_sentence_of_no_model_names_the_part_of_the_question_that_fails():
+    """SOFA's liver at 25%, 60 Hz and a 1 kHz haptic loop: the sentence said "no model meets rel_l2 <=
+    0.25" beside a list of shapes within 0.16; the question's failing part was the tool force. It names
+    the whole question, the most accurate shape and the most accurate tool force."""
+    from verification.studies.advise import _why_none
+
+    rows = [_row(err=0.0851, step_us=30.0).replace(reaction_rel_err=1.6), _row(err=0.13).replace(reaction_rel_err=0.57)]
+    why = _why_none(rows, "rel_l2", 0.25, 60.0, None, [], {"rate": 1000.0, "force_tol": 0.25})
+    assert why.startswith("no model meets rel_l2 <= 0.25 at 60 Hz with its tool force within 0.25 at 1000 Hz")
+    assert "with 0.0851, the most accurate tool force " in why and "'s with 0.57" in why
+    assert "tool force" not in _why_none(rows, "rel_l2", 0.25, 60.0, None, [])  # no haptic loop: not named
 
 
 # ---------------------------------------------------------------------------------------------

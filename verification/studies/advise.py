@@ -257,7 +257,7 @@ def advise(
     out["proposal"] = proposal_summary(proposal, tried)
     out["candidates"] = [_candidate(r, metric, tol) for r in rows]
     if choice is None:
-        why = _why_none(rows, metric, tol, rate, proposal, tried)
+        why = _why_none(rows, metric, tol, rate, proposal, tried, haptic)
         if out["undecided"]:
             why = f"cannot decide: {truth['why']}; {why}"
         out.update(model=None, integrator=None, dt=None, why=f"{why}; {physics}", rejected=rejected, runner_up=None)
@@ -356,13 +356,18 @@ def _answer(scene, choice: Row, rows, ranked, rejected, metric: str, tol: float,
 
 def _candidate(r: Row, metric: str, tol: float) -> dict:
     """One candidate of the scene's mesh, whatever engine ran it: its step, error with the interval the
-    reference's bar leaves (``frame.row_interval``) and verdict."""
+    reference's bar leaves (``frame.row_interval``) and verdict. ``best_tol``: the smallest tolerance it
+    can be said to meet at the rate asked (its interval's top, where its frame holds); with a haptic loop,
+    ``best_force_tol`` the same of its tool force at the haptic rate."""
     state, why = judgement(r, metric, tol)
     interval = row_interval(r, metric)
-    # the smallest tolerance it can be said to meet at the rate asked: its interval's top, where its frame holds
-    best = interval[1] if interval and r.ok and (r.frame or {}).get("holds") else None
+    frame = r.frame or {}
+    best = interval[1] if interval and r.ok and frame.get("holds") else None
+    haptic = frame.get("haptic") if r.ok else None
+    force = row_interval(r, "reaction_rel_err") if haptic and haptic.get("holds") else None
     return {"model": r.model, "integrator": r.integrator, "dt": r.dt, "step_us": r.step_us,
             metric: getattr(r, metric), "interval": interval, "best_tol": best,
+            **({"best_force_tol": force[1] if force else None} if haptic else {}),
             "qualifies": state == QUALIFIES, "verdict": state, "why": why}  # fmt: skip
 
 
@@ -371,12 +376,19 @@ def _runner_up(ranked: list[Row], choice: Row, metric: str, tol: float) -> Row |
     return next((r for r in ranked if r is not choice and r.model != choice.model and verdict(r, metric, tol)[0]), None)
 
 
-def _why_none(rows: list[Row], metric: str, tol: float, rate: float, proposal, tried: list) -> str:
-    """Why no candidate qualified: the most accurate, and what the mesh proposal found."""
-    best = min((r for r in rows if r.status == "ok"), key=lambda r: getattr(r, metric), default=None)
-    why = f"no model meets {metric} <= {tol:g} at {rate:g} Hz on this mesh"
+def _why_none(rows: list[Row], metric: str, tol: float, rate: float, proposal, tried: list, haptic=None) -> str:
+    """Why no candidate qualified: the most accurate (in the tool force too, with a haptic loop: the
+    question's part that may be the one failing), and what the mesh proposal found."""
+    ok = [r for r in rows if r.status == "ok"]
+    best = min(ok, key=lambda r: getattr(r, metric), default=None)
+    asked = "" if not haptic else f" with its tool force within {haptic['force_tol']:g} at {haptic['rate']:g} Hz"
+    why = f"no model meets {metric} <= {tol:g} at {rate:g} Hz{asked} on this mesh"
     if best is not None:
         why += f": the most accurate is {label(best)} with {getattr(best, metric):.3g}"
+    forces = [r for r in ok if r.reaction_rel_err is not None]
+    if haptic and forces:
+        f = min(forces, key=lambda r: r.reaction_rel_err)
+        why += f", the most accurate tool force {label(f)}'s with {f.reaction_rel_err:.3g}"
     if proposal is not None and proposal.get("level") is None:
         why += f"; {proposal['why']}"
     elif proposal is not None and tried:
@@ -469,15 +481,22 @@ def _command(scene: Scene, row: Row, level: int, rate: float) -> str:
 def _best_tolerances(out: dict) -> list[str]:
     """The smallest tolerance each candidate on the scene's mesh that holds the rate can be said to meet
     (the top of its interval), one per model and integrator, smallest first."""
-    best = {}
+    best, force = {}, {}
     for c in out.get("candidates") or []:
         key = f"{c['model']} ({c['integrator']})"
         if c.get("best_tol") is not None and c["best_tol"] < best.get(key, math.inf):
             best[key] = c["best_tol"]
+        if c.get("best_force_tol") is not None and c["best_force_tol"] < force.get(key, math.inf):
+            force[key] = c["best_force_tol"]
     head = f"best tolerance at {out['rate']:g} Hz on the scene's mesh: "
+    lines = [head + ", ".join(f"{k} {v:.3g}" for k, v in sorted(best.items(), key=lambda kv: kv[1]))]
     if not best:
-        return [head + "none (no candidate holds the rate with a known interval)"]
-    return [head + ", ".join(f"{k} {v:.3g}" for k, v in sorted(best.items(), key=lambda kv: kv[1]))]
+        lines = [head + "none (no candidate holds the rate with a known interval)"]
+    if out.get("haptic"):
+        head = f"best tolerance of the tool force at {out['haptic']['rate']:g} Hz on the scene's mesh: "
+        said = ", ".join(f"{k} {v:.3g}" for k, v in sorted(force.items(), key=lambda kv: kv[1]))
+        lines.append(head + (said or "none (no candidate holds the haptic rate with a known interval)"))
+    return lines
 
 
 def _cheapest_change(out: dict) -> list[str]:
@@ -494,10 +513,11 @@ def _cheapest_change(out: dict) -> list[str]:
         return []
     p = min(plans, key=lambda p: (p["level"], p["predicted_error"]))
     wait = "" if p["predicted_build_s"] is None else f", its first answer in about {p['predicted_build_s']:.3g} s"
+    force = "; its tool force there is not predicted, only measured once run" if out.get("haptic") else ""
     return [
         f"cheapest change: the mesh refined {refined_times(p['level'])} for {p['model']} ({p['integrator']}): "
         f"{out['metric']} predicted {p['predicted_error']:.3g} (at most {p['error_bound']:.3g}); "
-        f"{p['predicted_frame']}{wait}"
+        f"{p['predicted_frame']}{wait}{force}"
     ]
 
 
