@@ -330,7 +330,13 @@ def test_an_engines_known_warning_is_explained_once_and_its_other_lines_are_name
         sim.relay("")
     sim.relay("mujoco_flex discrete: settled in 400 steps")
     sim.relay("Element name 'x' on a line of its own")
+    newton = AdapterSimulation.__new__(AdapterSimulation)
+    newton.engine, newton._skip_next = ADAPTERS["newton"], False
+    newton.relay(
+        "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver. GPU execution will not be available."
+    )
     err = capsys.readouterr().err.splitlines()
+    assert err.pop().startswith("newton: warp finds no CUDA driver on this machine, so newton runs on warp's CPU")
     assert err[0].startswith("mujoco: MuJoCo's compiler warns") and "nothing is wrong" in err[0]
     assert err[1:] == [
         "mujoco_flex discrete: settled in 400 steps",

@@ -80,6 +80,13 @@ ADAPTERS = {
         knobs=("iterations", "substeps"),
         explicit=("newton-semi-implicit",),
         iterative=("newton-vbd", "newton-xpbd"),
+        known_warnings=(
+            (
+                r"^Warp CUDA warning: Could not find or load the NVIDIA CUDA driver",
+                "warp finds no CUDA driver on this machine, so newton runs on warp's CPU device: its step times "
+                "here are CPU times, not those of the GPU newton is built for; its answers are the same",
+            ),
+        ),
     ),
     "mujoco": AdapterEngine(
         "mujoco",
