@@ -4,6 +4,7 @@ more on a dynamic one) within a budget, or said to be too coarse, with how far i
 
 from __future__ import annotations
 
+from reference.errors import ReferenceSolveError
 from verification.progress import log
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.scene import Scene, point_held
@@ -37,7 +38,8 @@ def _dynamic_p3(scene, opts: dict, ref, needs: list, bars: list, budget_s: float
     """A dynamic truth's bar read again by P3 and dt / 2 on the mesh it returns (``reference.driver``'s
     ``p3``: the same trajectory, its bar within 1 to 3 times its error where the default's reached 4 to
     6, docs/effectivity.md) when that is predicted within ``budget_s``. Kept where it lowers every bar
-    that blocks; else the default stays. Returns (options, reference, bars, how)."""
+    that blocks; else, or where the P3 run finds no answer (Newton on an inverted element), the default
+    stays. Returns (options, reference, bars, how)."""
     cost = p3_cost(ref.meta)
     if cost is None or cost["seconds"] > budget_s:
         return opts, ref, bars, ""
@@ -47,7 +49,11 @@ def _dynamic_p3(scene, opts: dict, ref, needs: list, bars: list, budget_s: float
         f"({cost['n_dofs']} P3 dofs, about {cost['seconds']:.0f} s)"
     )
     p3_opts = {**opts, "estimate": "p3"}
-    p3_ref = reference_result(scene, **p3_opts)
+    try:
+        p3_ref = reference_result(scene, **p3_opts)
+    except ReferenceSolveError as exc:  # the check failed where the truth it checks converged: keep the default
+        log(f"advise {scene.name}: the P3 check found no answer ({' '.join(str(exc).split())}); keeping its bar")
+        return opts, ref, bars, ""
     p3_bars = _bars(p3_ref.meta, needs)
     lower = all(
         b is not None and b <= a for (_, a, _, _), (_, b, _, _) in zip(bars, p3_bars, strict=True) if a is not None
