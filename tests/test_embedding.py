@@ -230,7 +230,7 @@ def test_a_cut_model_refuses_to_step_and_its_successor_steps():
 
 
 def test_the_readmes_haptic_loop_runs_and_the_device_feels_the_liver_push_back(capsys):
-    """The embedding example (docs/models.md), shortened to 0.3 s: it runs at 1 kHz on its recorded trajectory and prints
+    """The embedding example (docs/embedding.md), shortened to 0.3 s: it runs at 1 kHz on its recorded trajectory and prints
     the force the device renders, which at 0.25 s (the tool pressed 4 mm into the liver's top) points
     up, out of the liver. Nothing here is timed: the jitter it prints is the machine's."""
     import importlib.util
