@@ -1,4 +1,4 @@
-"""Region selectors (docs/architecture.md section 3): box, sphere, tag, all, and a cell field's range.
+"""Region selectors (docs/data-flow.md): box, sphere, tag, all, and a cell field's range.
 
 A region answers two questions: which vertices of a mesh it holds (``vertices``), and whether
 arbitrary points lie in it (``contains``), the second for the finer meshes and the P2 nodes of the

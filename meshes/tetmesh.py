@@ -245,7 +245,7 @@ class TetMesh:
             "min_altitude_m": float(min_altitudes(self.points, self.tets).min()),
         }
 
-    # ---- region selectors (docs/architecture.md section 3) ----
+    # ---- region selectors (docs/data-flow.md) ----
 
     def select_box(self, lo, hi) -> np.ndarray:
         """Vertices with lo <= x <= hi componentwise, (K,) int64."""

@@ -354,20 +354,10 @@ def solve_dynamic(
     # p3: P2 at R + 1 returned, P3 beside it and P2 at dt / 2 there; else u_R, u_R+1 and u_R at dt / 2
     first = refine + 1 if estimate == "p3" else refine
     times, vals, reac, info = run(first, dt)
-    meta = {
-        "solver": "reference",
-        "law": "+".join(sorted({m.law for m in _materials_of(material)})),
-        "degree": degree,
-        "refine": refine,
-        "mode": "dynamic",
-        "dt": dt,
-        "mpi_ranks": comm.size,
-        "petsc_options": info["petsc_options"],
-        "versions": {"dolfinx": dolfinx.__version__, "python": platform.python_version()},
-        "returned_level": refine,
-        "estimate": "none: reference unverified",
-        "solves": [info],
-    }
+    meta = dict(solver="reference", law="+".join(sorted({m.law for m in _materials_of(material)})), degree=degree)
+    meta.update(refine=refine, mode="dynamic", dt=dt, mpi_ranks=comm.size, petsc_options=info["petsc_options"])
+    meta["versions"] = {"dolfinx": dolfinx.__version__, "python": platform.python_version()}
+    meta.update(returned_level=refine, estimate="none: reference unverified", solves=[info])
     if estimate == "p3":
         _, p3, p3_reac, i3 = run(first, dt, 3)
         _, half, half_reac, i2 = run(first, dt / 2)

@@ -2,7 +2,7 @@
 
 A surgical simulator steps the engine from a haptic thread while a visual thread runs beside it, and the
 haptic device renders the force the tools feel. These tests hold the engine to what such a simulator
-relies on (docs/architecture.md, "Embedding the engine").
+relies on (docs/engine-internals.md, "Embedding the engine").
 """
 
 import threading

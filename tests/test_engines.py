@@ -1,4 +1,4 @@
-"""The engine seam (docs/architecture.md section 11): the built-in engine answers the protocol, and an
+"""The engine seam (docs/seam.md): the built-in engine answers the protocol, and an
 engine no study knows, registered beside it, is run and judged by the same calls."""
 
 import json

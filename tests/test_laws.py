@@ -46,7 +46,7 @@ def test_stvk_rigid_rotation_is_stress_free(angle):
 
 @pytest.mark.parametrize("s", [0.7, 1.2, 1.5])
 def test_stvk_uniaxial_stretch(s):
-    """P11 = E s (s^2 - 1) / 2 with lateral stretch t^2 = 1 - nu (s^2 - 1) (docs/architecture.md section 8)."""
+    """P11 = E s (s^2 - 1) / 2 with lateral stretch t^2 = 1 - nu (s^2 - 1) (docs/verification.md)."""
     E = MU * (3 * LAM + 2 * MU) / (LAM + MU)
     nu = LAM / (2 * (LAM + MU))
     t = math.sqrt(1 - nu * (s * s - 1))

@@ -1,4 +1,4 @@
-"""The house's layout holds (docs/architecture.md section 1): no import circle, no file over 600 lines
+"""The house's layout holds (docs/architecture.md): no import circle, no file over 600 lines
 but the numba kernel files, no function over 80 lines but the numba kernels. Read from the sources, so
 that a change that breaks one fails here, naming where."""
 
@@ -99,3 +99,35 @@ def test_files_and_functions_are_small():
             if lines > MAX_FUNCTION_LINES and not _is_kernel(f):
                 too_long.append(f"{path.relative_to(ROOT)}:{f.lineno} {f.name}: {lines} lines")
     assert not too_long, "; ".join(too_long)
+
+
+#: The docs pages the benchmarks and the effectivity command write, with the commit they ran at.
+GENERATED_DOCS = ("benchmarks.md", "effectivity.md")
+#: A page is one concept, read in one sitting.
+MAX_DOC_BYTES = 15 * 1024
+#: A commit hash: 7 to 40 hexadecimal digits with a letter and a digit among them, standing alone.
+COMMIT = r"(?<![\w.])(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}(?!\w|\.\d)"
+
+
+def test_the_docs_guide_and_do_not_log():
+    """docs/ is a page per concept, each under 15 KB, and holds no commit hash but in the pages the
+    commands write: the history of measurements lives in git and in those files (docs/models.md was a
+    diary of 35 commits and 29 KB). Every docs page the code and the docs cite exists."""
+    import re
+
+    docs = ROOT / "docs"
+    over = [f"{p.name}: {p.stat().st_size} bytes" for p in docs.glob("*.md") if p.stat().st_size > MAX_DOC_BYTES]
+    assert not over, "pages over 15 KB: " + "; ".join(over)
+    hashes = [
+        f"{p.name}: {m.group(0)}"
+        for p in docs.glob("*.md")
+        if p.name not in GENERATED_DOCS
+        for m in re.finditer(COMMIT, p.read_text())
+    ]
+    assert not hashes, "commit hashes in prose pages: " + "; ".join(hashes)
+    assert re.search(COMMIT, "measured at b1e5165.") and not re.search(COMMIT, "0.0999999 and 1e5 and decade")
+    sources = [*docs.glob("*.md"), ROOT / "README.md", *(ROOT / "tests").rglob("*.py")]
+    sources += [path for pkg in PACKAGES for path in (ROOT / pkg).rglob("*.py")]
+    cited = {c for path in sources for c in re.findall(r"docs/([\w-]+\.md)", path.read_text())}
+    missing = sorted(c for c in cited if not (docs / c).exists())
+    assert not missing, "cited docs pages that do not exist: " + ", ".join(missing)

@@ -1,4 +1,4 @@
-"""Contract tests every real-time model passes, and each model's own promise (docs/architecture.md section 7)."""
+"""Contract tests every real-time model passes, and each model's own promise (docs/promises.md)."""
 
 import dataclasses
 import math

@@ -1,5 +1,5 @@
 """The float32 path (build_model's ``precision``): what it computes in, how far it lies from float64, and
-what it refuses (docs/architecture.md section 7)."""
+what it refuses (docs/engine-internals.md)."""
 
 import re
 

@@ -32,7 +32,7 @@ def fitted(h, e):
 @pytest.mark.parametrize("law", ["linear", "stvk"])
 @pytest.mark.parametrize("degree, sizes", [(1, (4, 8, 16)), (2, (2, 4, 8))])
 def test_manufactured_solution_orders(law, degree, sizes):
-    """Observed orders within 0.1 of theory: P1 2 (L2) and 1 (H1); P2 3 and 2 (docs/architecture.md section 8)."""
+    """Observed orders within 0.1 of theory: P1 2 (L2) and 1 (H1); P2 3 and 2 (docs/verification.md)."""
     mat = Material(1e4, 0.3, 1.0, law=law)
     runs = [manufactured_errors(law, degree, n, mat) for n in sizes]
     h = [r["h"] for r in runs]

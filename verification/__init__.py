@@ -1,4 +1,4 @@
-"""The harness: scenes, runs, studies, reports and the command line (docs/architecture.md section 1)."""
+"""The harness: scenes, runs, studies, reports and the command line (docs/architecture.md)."""
 
 import logging
 import os

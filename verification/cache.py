@@ -1,6 +1,6 @@
 """What a cached result is keyed by and stamped with: the cache's folder, digests of fields and of the
 code, the commit, the machine and the library versions, and how an entry is read (a damaged one is
-absent) (docs/architecture.md section 4)."""
+absent) (docs/data-flow.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Cuts and sutures as scene events (docs/architecture.md section 3): a static scene in states.
+"""Cuts and sutures as scene events (docs/data-flow.md): a static scene in states.
 
 A scene's ``[[event]]`` tables cut the body along a plane, or suture what a cut opened, at a time. A
 static scene with events is a sequence of states: the body as meshed (time 0), then the body after the

@@ -1,4 +1,4 @@
-"""The metrics of docs/architecture.md section 6, on displacements at the scene mesh's vertices."""
+"""The metrics of docs/metrics.md, on displacements at the scene mesh's vertices."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A scene (docs/architecture.md section 3): its mesh, materials, constraints, loads and time mode, as
+"""A scene (docs/data-flow.md): its mesh, materials, constraints, loads and time mode, as
 read from its file (``verification.scene_file``), and what it answers: the mesh built and checked
 against its regions, each tetrahedron's material, its hash, the same scene refined, warnings for
 numbers no soft tissue has.
@@ -107,7 +107,7 @@ class Scene:
         each level, the coarser vertices come first), its regions carried by the rule the reference
         applies to its own refined meshes (``meshes.regions.spanned``: a refined vertex belongs to a
         region when the base vertices of its edge or face do), so that every level poses the base
-        scene's problem (docs/architecture.md section 3). The reference of a refined scene is the
+        scene's problem (docs/data-flow.md). The reference of a refined scene is the
         base's, evaluated at the refined vertices."""
         if levels == 0:
             return self

@@ -1,4 +1,4 @@
-"""Scene files (docs/architecture.md section 3): TOML -> a validated ``Scene``.
+"""Scene files (docs/data-flow.md): TOML -> a validated ``Scene``.
 
 Every unknown key, missing key and bad value is a ``SceneError`` whose one-line message names the
 file, the key (dotted, with table indices: ``load[1].kind``) and the allowed values; a file's errors

@@ -1,4 +1,4 @@
-"""The ``tissuebench`` command (docs/architecture.md section 5).
+"""The ``tissuebench`` command (docs/data-flow.md).
 
 Exit status: 0 on success; 1 when a model's run blows up (divergence: the step, dt and the critical
 one are named); 2 for input the tool cannot use (a scene file, a mesh, an option, a gates file, or a

@@ -1,4 +1,4 @@
-"""The seam between the harness and an engine (docs/architecture.md section 5).
+"""The seam between the harness and an engine (docs/data-flow.md).
 
 Every study builds, steps and reads a model through these two protocols and nothing else: the harness
 chooses the time step, samples the output instants, times the steps and compares; an engine turns a
@@ -39,7 +39,7 @@ class TimeMode:
 
 @dataclass(frozen=True)
 class SceneInputs:
-    """A scene as what an engine builds from: plain arrays in SI units (docs/architecture.md section 3).
+    """A scene as what an engine builds from: plain arrays in SI units (docs/data-flow.md).
 
     Attributes:
         name: the scene's name (for messages and file names).

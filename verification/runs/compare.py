@@ -1,5 +1,5 @@
 """A model's run against the scene's reference: the metrics, the error budget and the float32 twin
-(docs/architecture.md section 6)."""
+(docs/metrics.md)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from verification.scene import Scene
 
 
 def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integrator: str, max_steps: int) -> dict:
-    """Which part of a model's error is whose (docs/architecture.md section 6), each an L2 distance over
+    """Which part of a model's error is whose (docs/metrics.md), each an L2 distance over
     the scene's vertices and output times relative to the converged reference's norm, like ``rel_l2``:
 
     - ``mesh``: the P1 finite-element solution of the scene's law on the scene's mesh against the
@@ -118,7 +118,7 @@ def compare(
     options: dict | None = None,
     **ref_options,
 ) -> Row:
-    """Metrics of one model run against the scene's reference, as a Row (docs/architecture.md section 6).
+    """Metrics of one model run against the scene's reference, as a Row (docs/metrics.md).
 
     A diverging run gives a row of status "diverged" with the step, dt and dt_crit instead of errors.
     ``unrepresented`` lists what the material asks that the model does not represent (fibres, the

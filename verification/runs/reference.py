@@ -1,4 +1,4 @@
-"""The reference of a scene, from the cache or solved now (docs/architecture.md sections 4 and 6).
+"""The reference of a scene, from the cache or solved now (docs/data-flow.md and docs/metrics.md).
 
 Reference results are cached under ``$TISSUEBENCH_CACHE`` (default ``~/.cache/tissuebench``), keyed by
 a hash of everything they depend on: the scene's content and mesh hash, degree, refinement, the

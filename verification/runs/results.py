@@ -1,4 +1,4 @@
-"""Result files (docs/architecture.md section 4): one .npz per solver run, written atomically."""
+"""Result files (docs/data-flow.md): one .npz per solver run, written atomically."""
 
 from __future__ import annotations
 

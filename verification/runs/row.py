@@ -1,5 +1,5 @@
 """A run's row: one model run on one scene against its reference, as every study reads it
-(docs/architecture.md section 6). A frozen dataclass, so that a study reads a field by its name and a
+(docs/metrics.md). A frozen dataclass, so that a study reads a field by its name and a
 misspelt one fails where it is written; ``to_json`` is the row as ``compare --json`` prints it and the
 run cache keeps it, ``from_json`` reads it back.
 

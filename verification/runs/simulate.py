@@ -2,7 +2,7 @@
 
 The harness's side of every run: the time step (a fraction of the engine's critical one unless given),
 the output instants of a dynamic scene, the timing of the steps at the state the run reached, and the
-Result with its meta (docs/architecture.md section 4). The engine's side (its model, how it settles, how
+Result with its meta (docs/data-flow.md). The engine's side (its model, how it settles, how
 it samples between steps) is behind ``Engine.build``.
 """
 
@@ -180,7 +180,7 @@ def _plug_in(scene: Scene, engine, model_name, dt, dt_fraction, integrator, rtol
 
 
 def _meta(scene: Scene, sim: Simulation, solver: str, dt, dt_crit, build_s: float, timing: dict) -> dict:
-    """The meta every run carries (docs/architecture.md section 4); ``solver``: the engine's name."""
+    """The meta every run carries (docs/data-flow.md); ``solver``: the engine's name."""
     return {
         "solver": solver,
         "model": sim.model,

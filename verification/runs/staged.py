@@ -1,5 +1,5 @@
 """Runs and references of a scene with events (``verification.events``): one static solve per state,
-kept on the union of the states' vertices (docs/architecture.md sections 3 and 4).
+kept on the union of the states' vertices (docs/data-flow.md).
 
 Each state is a static scene of its own, so it is solved, cached and settled as any other: the
 reference by ``reference_result`` on the state's mesh, evaluated at its vertices nudged into their own

@@ -1,6 +1,6 @@
 """Runs through the cache: one JSON file per run under ``$TISSUEBENCH_CACHE/runs``.
 
-A run is keyed by everything that makes its row (docs/architecture.md section 5): the code, the
+A run is keyed by everything that makes its row (docs/data-flow.md): the code, the
 machine (a row holds timings), the scene's hash, the model, the integrator, the step (in seconds or as
 a fraction of the critical one), the reference's options and whether the row carries an error budget.
 A study killed half-way and started again recomputes only the runs it had not finished. The largest

@@ -1,4 +1,4 @@
-"""The advisor (docs/architecture.md section 9): the cheapest model, integrator and time step that meet
+"""The advisor (docs/verification.md): the cheapest model, integrator and time step that meet
 an error tolerance while a simulator holds a frame rate on this machine, on the scene's mesh or, when
 the mesh's own error is what stops every model, on the refinement of it that the observed convergence
 rate says is needed.

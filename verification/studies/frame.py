@@ -1,4 +1,4 @@
-"""A run's frame budget (docs/architecture.md section 9): whether a simulator stepping the run's model
+"""A run's frame budget (docs/verification.md): whether a simulator stepping the run's model
 holds a frame rate on this machine with a share of each frame, what a frame costs, and what a refined
 mesh would cost (``predict``); the verdict on a run against a tolerance at a rate; runs that agree
 merged into one candidate."""

@@ -1,4 +1,4 @@
-"""Reference solves ahead of a study, on all the machine's cores (docs/architecture.md section 6,
+"""Reference solves ahead of a study, on all the machine's cores (docs/metrics.md,
 "References ahead of a study").
 
 A study asks for its references one at a time, between model runs, and solves each on one core. When

@@ -1,4 +1,4 @@
-"""The advisor's mesh proposal (docs/architecture.md section 9, "Mesh"): when the mesh's own error stops
+"""The advisor's mesh proposal (docs/verification.md, "Mesh"): when the mesh's own error stops
 every model on the scene's mesh, the refinement the observed order of that error says is needed, and
 the candidates run there, cheapest predicted first, until one meets the tolerance and the rate."""
 

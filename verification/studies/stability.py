@@ -1,4 +1,4 @@
-"""Stability at the extremes (docs/architecture.md section 7): the largest stable step of every
+"""Stability at the extremes (docs/promises.md): the largest stable step of every
 explicit model, and what each model does as nu -> 0.5, over E, under a large twist or compression,
 and with a sliver element."""
 

@@ -1,4 +1,4 @@
-"""A truth sharp enough for the question (docs/architecture.md section 9): the advisor's reference, made
+"""A truth sharp enough for the question (docs/verification.md): the advisor's reference, made
 as sharp as its undecided candidates need (adapted where its error lives on a static scene, refined once
 more on a dynamic one) within a budget, or said to be too coarse, with how far it came and why."""
 

@@ -2,7 +2,7 @@
 
 The two documents the project started from (Xu's slides on Picinbono, Delingette and Ayache's
 tensor-mass models, and Liu's survey of deformable models) make claims with pictures and tables. Each
-module ``e1_...`` to ``e9_...`` reproduces one of them (docs/architecture.md section 10): it builds the scene the claim
+module ``e1_...`` to ``e9_...`` reproduces one of them (docs/verification.md): it builds the scene the claim
 is about, runs the real-time models and the dolfinx reference (or a closed form, where the truth has
 one), and returns a finding:
 
