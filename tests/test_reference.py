@@ -643,13 +643,14 @@ def test_the_p3_estimate_returns_the_same_solution_and_bars_it_by_its_difference
     assert p3.meta["ref_err_estimate"] < difference.meta["ref_err_estimate"]
 
 
-def test_the_p3_estimate_of_a_dynamic_scene_is_one_line(tmp_path):
+def test_the_adaptive_estimate_of_a_dynamic_scene_is_one_line(tmp_path):
+    """A dynamic reference is not adapted (its p3 estimate is: tests/test_effectivity.py)."""
     from verification.scene import SceneError
 
     p = tmp_path / "swing.toml"
     p.write_text(SWING + '[time]\nmode = "dynamic"\nend = 0.02\noutput_every = 0.01\n')
-    with pytest.raises(SceneError, match="p3 estimate checks a static P2 reference; this scene is dynamic"):
-        reference_result(load_scene(p), estimate="p3")
+    with pytest.raises(SceneError, match="adaptive estimate adapts a static P2 reference; this scene is dynamic"):
+        reference_result(load_scene(p), estimate="adaptive")
 
 
 def test_the_reference_command_takes_the_p3_estimate(tmp_path, capsys):
