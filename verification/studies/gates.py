@@ -3,7 +3,8 @@ model, integrator, time step, metric, bound) with the baseline each was measured
 mesh hash, solver options, date).
 
 ``tissuebench gate`` runs them, prints a table and exits 1 when a gate fails, saying why: the measured
-value exceeds its bound (the decision), or it moved from its baseline by more than ``drift`` (relative,
+value exceeds its bound (the decision), or is within it while the reference's bar lets the true value
+reach over it or is unknown (not decided: a pass the truth cannot confirm is no pass), or it moved from its baseline by more than ``drift`` (relative,
 default DEFAULT_DRIFT: a change nobody decided on, better or worse), or the baseline no longer
 describes what the gate measures (``stale``): the scene's mesh, the scene itself (its material,
 loads, regions, time and mesh tags: the scene's hash) or the reference's solver options differ from
@@ -94,6 +95,8 @@ def run_gates(
             why.append(f"no value ({r.status})")
         elif value > g["bound"]:
             why.append(f"{value:.4g} exceeds the bound {g['bound']:.4g}")
+        else:
+            why += _undecided(r, g["metric"], value, g["bound"])
         base = g.get("baseline") or {}
         if baselines and value is not None and base.get("value") is not None:
             drift = g.get("drift", DEFAULT_DRIFT)
@@ -126,6 +129,25 @@ def run_gates(
             }
         )
     return rows
+
+
+def _undecided(r: Row, metric: str, value: float, bound: float) -> list[str]:
+    """Why a value within its bound is still no pass: the true value lies within the value plus or minus
+    the reference's bar on the metric (``frame.reference_bar``), and that interval reaches over the
+    bound, or the bar is unknown (the reference unverified). A gate passes what the truth can decide."""
+    from verification.studies.frame import reference_bar
+
+    bar = reference_bar(r, metric)
+    if bar is None:
+        return [
+            f"{value:.4g} is within the bound, but the reference's bar on {metric} is unknown (unverified): not decided"
+        ]
+    if value + bar > bound:
+        return [
+            f"{value:.4g} is within the bound {bound:.4g}, but the reference's bar {bar:.3g} lets the true value reach "
+            f"{value + bar:.4g}: not decided (a sharper truth, or a bound it can decide)"
+        ]
+    return []
 
 
 def _models(g: dict, where: str, path: Path) -> tuple[str, ...]:
@@ -217,8 +239,9 @@ def update_baselines(path: Path, rows: list[dict]) -> None:
         }
     lines = [
         "# CI accuracy gates: tissuebench gate [--quick] [--update-baselines]. A gate fails when the measured",
-        "# metric exceeds its bound, when it moves from its baseline by more than drift (relative, default",
-        f"# {DEFAULT_DRIFT}), or when the scene's mesh is not the baseline's. Bounds and drifts are decisions (edit",
+        "# metric exceeds its bound or the reference's bar lets it reach over it, when it moves from its",
+        f"# baseline by more than drift (relative, default {DEFAULT_DRIFT}), or when the scene's mesh is not the",
+        "# baseline's. Bounds and drifts are decisions (edit",
         "# them by hand); baselines are measurements, with where they came from (--update-baselines).",
         "",
     ]

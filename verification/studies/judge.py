@@ -28,6 +28,8 @@ from verification.runs.simulate import output_times
 from verification.scene import Scene
 from verification.studies.consistency import COINCIDE, check_held_and_tools, check_units, flipped_force
 
+#: What a judgement says of its reference.
+REFERENCE_KEYS = ("law", "degree", "refine", "ref_err_estimate", "ref_reaction_err_estimate", "cache_key")
 #: How far outside the body (relative to its largest extent) a result's point may lie and be judged at
 #: the nearest point of the body's surface.
 OUTSIDE = 1e-3
@@ -206,7 +208,7 @@ def judge(
         **metrics,
         "engine_step_us": step_us,
         "warnings": [flipped] if flipped else [],
-        "reference": {k: ref.meta.get(k) for k in ("law", "degree", "refine", "ref_err_estimate", "cache_key")},
+        "reference": {k: ref.meta.get(k) for k in REFERENCE_KEYS},
     }
 
 
@@ -264,7 +266,7 @@ def _staged(scene: Scene, path: str, scale: float, step_us: float | None) -> dic
         **metrics,
         "engine_step_us": step_us,
         "warnings": [],
-        "reference": {k: ref.meta.get(k) for k in ("law", "degree", "refine", "ref_err_estimate", "cache_key")},
+        "reference": {k: ref.meta.get(k) for k in REFERENCE_KEYS},
     }
 
 
