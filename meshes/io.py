@@ -548,6 +548,11 @@ def atomic_write(path: str | os.PathLike, write) -> Path:
     return path
 
 
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` to ``path`` whole (``atomic_write``)."""
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
+
+
 def atomic_savez(path: str | os.PathLike, compressed: bool = False, **arrays) -> Path:
     """numpy's savez (or savez_compressed) of ``arrays`` to exactly ``path``, through atomic_write (given
     a name, numpy writes NAME.npz when NAME lacks the suffix: the data went to the temporary file's

@@ -1,4 +1,6 @@
-"""Progress of a long study on stderr: a one-line bar on a terminal, silent elsewhere (CI, pipes)."""
+"""Progress of a long study on stderr: a one-line bar on a terminal, silent elsewhere (CI, pipes), and
+the harness's lines (``log``) from the first MPI rank. The lines themselves, and the ticker of a long
+loop, are ``reference.progress``'s, which both sides use."""
 
 from __future__ import annotations
 
@@ -8,7 +10,7 @@ import time
 from reference.progress import line
 
 
-class Progress:
+class Bar:
     """A one-line progress bar on a terminal (stderr); silent when stderr is not a TTY (CI, pipes)."""
 
     def __init__(self, total: int, label: str):
@@ -31,7 +33,7 @@ class Progress:
         sys.stderr.flush()
 
 
-def _rank() -> int:
+def mpi_rank() -> int:
     """This process's MPI rank as mpirun set it (0 outside mpirun)."""
     from verification import _RANK
 
@@ -41,4 +43,4 @@ def _rank() -> int:
 def log(msg: str) -> None:
     """Progress to stderr (stdout is kept for --json), from the first MPI rank only (under mpirun every
     rank runs the same driver, and each line came once per rank), in one write (reference.progress)."""
-    line(msg, _rank())
+    line(msg, mpi_rank())

@@ -44,10 +44,10 @@ os.environ.setdefault("TRACY_NO_SYS_TRACE", "1")
 
 from meshes import stored_mesh  # noqa: E402
 from meshes.generators import structured_cube  # noqa: E402
+from meshes.io import atomic_write_text  # noqa: E402
 from realtime import Loading, Material, State, SymplecticEuler, build_model  # noqa: E402
 from verification.bench.suite import _step_case, _time_round_robin, machine  # noqa: E402
 from verification.progress import log  # noqa: E402
-from verification.runs.results import atomic_write_text  # noqa: E402
 
 MATERIAL = Material(2.8e4, 0.4, 1000.0, law="stvk")
 PEERS = {"newton": "1.8.0", "pbatoolkit": "0.0.11"}

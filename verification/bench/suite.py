@@ -597,7 +597,7 @@ def write_markdown(path, out: dict) -> None:
     heading) is replaced, the other machines' are kept, in order. Written through a temporary file."""
     from pathlib import Path
 
-    from verification.runs.results import atomic_write_text
+    from meshes.io import atomic_write_text
 
     section = markdown_section(out)
     heading = section.split("\n", 1)[0]

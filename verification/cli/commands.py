@@ -376,7 +376,7 @@ def cmd_sweep(args) -> int:
     if not _rank0(comm):
         return 0
     if args.csv:
-        from verification.runs.results import atomic_write_text
+        from meshes.io import atomic_write_text
 
         atomic_write_text(args.csv, sweep_csv(out))
     _emit(args, out, format_sweep)
@@ -428,7 +428,7 @@ def cmd_converge(args) -> int:
 def cmd_effectivity(args) -> int:
     import json
 
-    from verification.runs.results import atomic_write_text
+    from meshes.io import atomic_write_text
     from verification.studies.effectivity import effectivity_table, format_markdown
 
     out = effectivity_table(args.cases, args.returned, use_cache=not args.no_cache)
@@ -523,7 +523,7 @@ def cmd_bench(args) -> int:
 
             write_markdown(args.markdown, out)
     if args.out:
-        from verification.runs.results import atomic_write_text
+        from meshes.io import atomic_write_text
 
         atomic_write_text(args.out, json.dumps(out, indent=1, default=_default))
     _emit(args, out, format_table)

@@ -26,7 +26,7 @@ from realtime.statics import solve_static_implicit
 from reference.progress import Progress
 
 from ..cache import RUN_CODE, cache_dir, code_digest, digest, library_versions, machine_id, read_cached
-from ..progress import _rank
+from ..progress import mpi_rank
 from .protocol import SceneInputs, Settling
 
 #: omega_max^2 (1/s^2) of M^-1 K for each (scene hash, model, options, at) computed in this process, at
@@ -148,7 +148,7 @@ def settled(
         dt_crit = SymplecticEuler().critical_dt(model, omega2)
         if dt is None:
             dt = 2.0 / math.sqrt(min_eigenvalue(model)) if dt_fraction is None else dt_fraction * dt_crit
-        ticker = Progress(f"settling: {inputs.name} / {model.name}, implicit step", rank=_rank())
+        ticker = Progress(f"settling: {inputs.name} / {model.name}, implicit step", rank=mpi_rank())
         static = solve_static_implicit(
             model,
             dt,
@@ -185,7 +185,7 @@ def _settle_explicit(inputs, model, integ, omega2, dt, dt_fraction, rtol, max_st
     """Damped dynamics at dt (default a fraction of the critical step, a non-linear model's taken at
     equilibrium too; EQUILIBRIUM_MARGIN); returns the solve, dt, dt_crit and omega_max^2."""
     dt_crit = integ.critical_dt(model, omega2)
-    ticker = Progress(f"settling: {inputs.name} / {model.name}, step", rank=_rank())
+    ticker = Progress(f"settling: {inputs.name} / {model.name}, step", rank=mpi_rank())
 
     def progress(taken, residual):
         ticker.tick(taken, f": residual {residual:.2e} of the load (asked {rtol:.0e})")

@@ -20,7 +20,7 @@ from realtime.readapt import INDICATORS, adapted_sets, carried, indicator
 from realtime.spectra import max_eigenvalue
 from reference.progress import Progress
 
-from ..progress import _rank
+from ..progress import mpi_rank
 from .protocol import SceneInputs
 
 #: What a dynamic adaptive-tm run re-adapts by, unless its options say otherwise: the a-posteriori
@@ -87,7 +87,7 @@ class Readapting:
         self.adaptation = [self._record()]
         checks = int(round(self.sim.inputs.time.end / self.every))
         self.ticker = Progress(
-            f"run: adaptive-tm re-adapted by its {self.options['criterion']}, check", checks, _rank()
+            f"run: adaptive-tm re-adapted by its {self.options['criterion']}, check", checks, mpi_rank()
         )
 
     def _record(self) -> dict:

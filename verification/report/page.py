@@ -17,6 +17,7 @@ import json
 import time
 from pathlib import Path
 
+from meshes.io import atomic_write_text
 from verification.cache import git_commit, versions
 from verification.report.common import CSS, REPORTS, make_report_dir
 from verification.report.cutting import CUT_SCENE, cut_cells, cutting_section
@@ -31,7 +32,6 @@ from verification.report.sections import (
     section_fractions,
     stability_section,
 )
-from verification.runs.results import atomic_write_text
 from verification.runs.row import jsonable
 from verification.scene_file import load_scene
 from verification.studies.prefetch import advice_jobs, scene_jobs, settle_ahead, solve_references

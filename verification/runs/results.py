@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from meshes.io import atomic_savez, atomic_write
+from meshes.io import atomic_savez
 
 
 @dataclass
@@ -61,8 +61,3 @@ def _jsonable(x):
     if isinstance(x, Path):
         return str(x)
     raise TypeError(f"not JSON serialisable: {type(x).__name__}")
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write text through a temporary file and a rename."""
-    return atomic_write(path, lambda tmp: Path(tmp).write_text(text))

@@ -25,7 +25,7 @@ from ..engines import engine_for
 from ..engines.builtin import BUILTIN
 from ..engines.protocol import Simulation
 from ..inputs import scene_inputs
-from ..progress import _rank
+from ..progress import mpi_rank
 from ..scene import Scene
 from .results import Result
 from .worker import PlugInError, forks, in_worker
@@ -216,7 +216,7 @@ def trajectory(sim: Simulation, times: np.ndarray, label: str = "") -> tuple[np.
     """The simulation, started at rest (``Simulation.start``), sampled at ``times`` (T,) s: displacement
     (T, N, 3) m of the scene's vertices and the tools' force (T, 3) N."""
     out_u, out_r = [], []
-    ticker = Progress(f"run: {sim.model}{label}, output", len(times), _rank())
+    ticker = Progress(f"run: {sim.model}{label}, output", len(times), mpi_rank())
     for k, t_out in enumerate(times):
         ticker.tick(k, f", t = {t_out:.4g} s")
         sim.advance_to(float(t_out))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 
+from meshes.io import atomic_write_text
 from realtime.registry import QUASI_STATIC
 from verification.cache import (
     RUN_CODE,
@@ -26,7 +27,6 @@ from verification.engines import engine_for, plug_in
 from verification.engines.builtin import STABLE_STEPS
 from verification.runs.compare import compare
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
-from verification.runs.results import atomic_write_text
 from verification.runs.row import Row, jsonable
 from verification.scene import Scene
 

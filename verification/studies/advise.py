@@ -26,7 +26,7 @@ import math
 import numpy as np
 
 from verification.engines import engine_for, offered
-from verification.progress import Progress, log
+from verification.progress import Bar, log
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
 from verification.runs.simulate import step_time_ahead
@@ -143,7 +143,7 @@ def _candidates(
     rows = list(res["rows"])
     extra = [m for m in IMPLICIT_MODELS if m in (models or offered())]
     if not dynamic:
-        progress = Progress(len(extra), progress_label)
+        progress = Bar(len(extra), progress_label)
         for m in extra:
             rows.append(
                 compare_or_unsettled(scene, m, "implicit-euler", None, None, ref_opts=ref_opts, use_cache=use_cache)
@@ -152,7 +152,7 @@ def _candidates(
     else:
         # implicit Euler at a frame's step and finer: where a stiff body's explicit steps cannot keep up
         # with the clock (thousands a frame), its steps may, at the price of its numerical damping
-        progress = Progress(len(extra) * len(IMPLICIT_STEPS_PER_FRAME), progress_label)
+        progress = Bar(len(extra) * len(IMPLICIT_STEPS_PER_FRAME), progress_label)
         for m in extra:
             for k in IMPLICIT_STEPS_PER_FRAME:
                 dt = 1.0 / (k * stepping)

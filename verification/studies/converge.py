@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from verification.progress import Progress
+from verification.progress import Bar
 from verification.scene import Scene, SceneError
 
 
@@ -60,7 +60,7 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
     meshes = [s.mesh for s in scenes]
     h0 = scene.mesh.mean_edge()
     hs = [h0 / 2**k for k in range(levels)]
-    progress = Progress(1 + levels * (len(models) + 2), f"converge {scene.name}")
+    progress = Bar(1 + levels * (len(models) + 2), f"converge {scene.name}")
     base = dict(mesh=scene.mesh, material=scene.body_material(), problem=scene.problem, estimate=False)
     # the truth (P2 on the finest level, at its vertices) and P1 and P2 at each level but that one
     jobs = [dict(base, degree=2, refine=levels - 1, points=meshes[-1].points)]

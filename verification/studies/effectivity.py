@@ -298,8 +298,8 @@ def effectivity_table(names=None, returned: int = RETURNED, use_cache: bool = Tr
     Each row is kept as it is made (``row_path``): a table stopped half-way starts again from there."""
     import json
 
+    from meshes.io import atomic_write_text
     from verification.cache import git_commit, machine_id, read_cached
-    from verification.runs.results import atomic_write_text
 
     names = list(CASES) if not names else list(names)
     rows = []

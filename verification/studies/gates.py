@@ -21,12 +21,12 @@ import time
 import tomllib
 from pathlib import Path
 
+from meshes.io import atomic_write_text
 from realtime import INTEGRATORS, MODELS
 from realtime.errors import InputError
 from verification.cache import git_commit
 from verification.engines import load_engine
 from verification.metrics import METRICS
-from verification.runs.results import atomic_write_text
 from verification.runs.row import Row
 from verification.runs.store import cached_compare
 from verification.scene import SceneError

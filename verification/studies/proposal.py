@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from verification.progress import Progress
+from verification.progress import Bar
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
 from verification.runs.store import compare_or_unsettled
@@ -232,7 +232,7 @@ def run_plans(
             runs.append((p, fraction, dt))
     runs = runs[:MAX_TRIALS]
     tried = []
-    progress = Progress(len(runs), f"advise {scene.name} refined")
+    progress = Bar(len(runs), f"advise {scene.name} refined")
     for p, fraction, dt in runs:
         r0 = p["row"]
         level_scene = scene.refined(p["level"])

@@ -11,7 +11,7 @@ import numpy as np
 
 from realtime import MODELS
 from realtime.registry import QUASI_STATIC
-from verification.progress import Progress
+from verification.progress import Bar
 from verification.runs.store import cached_compare, largest_stable_fraction
 from verification.scene import Scene, SceneError
 from verification.studies.prefetch import settle_ahead, solve_references
@@ -210,7 +210,7 @@ def stability(scene: Scene, models=None, tol: float = 0.1, use_cache: bool = Tru
         jobs = [job for job in reference_jobs(scene) if job[0].sha256() not in FAILED_REFERENCES]
         FAILED_REFERENCES.update(solve_references(jobs))
         settle_ahead([], cells=settle_cells(scene, models, cases))
-    progress = Progress(len(explicit) + len(cases) * len(models), f"stability {scene.name}")
+    progress = Bar(len(explicit) + len(cases) * len(models), f"stability {scene.name}")
     limits = {}
     for m in explicit:
         limits[m] = largest_stable_fraction(scene, m, use_cache=use_cache)

@@ -12,7 +12,7 @@ from realtime.registry import QUASI_STATIC
 from reference.errors import ReferenceSolveError
 from verification.engines import offered, plug_in
 from verification.metrics import METRICS
-from verification.progress import Progress
+from verification.progress import Bar
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
 from verification.runs.store import compare_or_unsettled, largest_stable_fraction
@@ -83,7 +83,7 @@ def _run_plan(
     with its index in the plan; the largest stable step found first where the plan asks for it.
     ``screen(scene, model, integrator, dt, fraction)``: a row that decides a run without making it, or
     None to make it. ``ref``: the reference, solved with ``ref_opts`` (the run cache's key)."""
-    progress = Progress(len(plan), f"sweep {scene.name}") if rank == 0 else None
+    progress = Bar(len(plan), f"sweep {scene.name}") if rank == 0 else None
     rows = []
     for k, item in enumerate(plan):
         if k % size != rank:

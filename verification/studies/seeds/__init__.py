@@ -25,9 +25,9 @@ import json
 import time
 from pathlib import Path
 
+from meshes.io import atomic_write_text
 from verification.progress import log
 from verification.runs.reference import P1_OWN_MESH
-from verification.runs.results import atomic_write_text
 from verification.scene import Scene
 from verification.studies.seeds.common import FULL, Size
 from verification.studies.seeds.e1_global_rotation import global_rotation

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
+from meshes.io import atomic_savez
 from realtime import NotConvergedError
 from realtime.geometry import signed_volumes
 from verification.cache import cache_dir, read_cached
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
-from verification.runs.results import atomic_savez
 from verification.runs.simulate import run_model
 from verification.runs.store import run_key
 from verification.scene import SCENES_DIR, Scene
