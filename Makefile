@@ -30,7 +30,7 @@ apt:
 	fi
 
 # Every target that makes, installs into or runs a venv waits for the Debian packages (order-only: apt
-# is phony), or under -j2 pip runs before Debian's numpy exists; tests/test_makefile_order.py reads make's
+# is phony), or under -j2 pip runs before Debian's numpy exists; tests/house/test_makefile_order.py reads make's
 # own database to hold every target to it.
 $(VENV)/bin/python: | apt
 	/usr/bin/python3 -m venv --system-site-packages $(VENV)

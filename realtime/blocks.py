@@ -150,7 +150,7 @@ def block_scratch(dtype=np.float64) -> tuple:
 #: springs, symplectic Euler's update), which read flat views of their arrays with uint64 offsets made
 #: once per call: numba wraps a negative signed index around (a sign test and two more instructions per
 #: access), and indexes a 2-D or 3-D array by its run-time strides (a multiplication per access); in
-#: loops that only load and store, those instructions were a fifth of the time. tests/test_models.py
+#: loops that only load and store, those instructions were a fifth of the time. tests/realtime/test_model_contracts.py
 #: counts them in the compiled kernels.
 U1, U2, U3, U4, U5, U6, U7, U8, U9 = (np.uint64(k) for k in range(1, 10))
 

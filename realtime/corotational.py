@@ -155,7 +155,7 @@ _POLAR_DONE = 1e-12
 #: benchmark, and near the rotation its factor is 1 anyway. The first step is unscaled, unless an
 #: element is squashed below _POLAR_SQUASHED of its volume: an unscaled step adds F^-T, whose
 #: round-off (eps / smallest singular value) would land on the other directions of R (1.8e-12 of the
-#: force at a millionth, against 4e-15 scaled; tests/test_models.py).
+#: force at a millionth, against 4e-15 scaled; tests/realtime/test_model_contracts.py).
 _POLAR_SCALED = 1.0
 _POLAR_SQUASHED = 0.1
 

@@ -75,7 +75,7 @@ def pytest_sessionfinish(session, exitstatus):
     config = session.config
     if _xdist_worker(config):
         if config.workeroutput.get("package_check"):
-            from .debian_packages import loaded_files
+            from .house.debian_packages import loaded_files
 
             config.workeroutput["loaded_files"] = loaded_files()
     elif _WORKER_FILES:
@@ -91,9 +91,9 @@ def pytest_testnodedown(node, error):
 
 
 def _check_workers_packages(session) -> None:
-    """tests/test_debian_packages.py's run_last check on the union of what every worker loaded: a
+    """tests/house/test_debian_packages.py's run_last check on the union of what every worker loaded: a
     package missing from the Makefile fails the session with one line naming it."""
-    from .debian_packages import MAKEFILE, missing_packages
+    from .house.debian_packages import MAKEFILE, missing_packages
 
     union: dict[str, set[str]] = {}
     for files in _WORKER_FILES.values():

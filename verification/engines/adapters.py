@@ -99,7 +99,7 @@ ADAPTERS = {
                 r"^WARNING: flex '.*' is not rigid and has no equality constraints or passive forces",
                 "MuJoCo's compiler warns that the flex is 'not rigid and has no equality constraints or "
                 "passive forces': it does not count the flex's own <elasticity>, which is the passive force "
-                "that holds it (its answer is P1 StVK to 3e-8, tests/test_adapters.py); nothing is wrong",
+                "that holds it (its answer is P1 StVK to 3e-8, tests/verification/test_adapters_newton_mujoco.py); nothing is wrong",
             ),
             (
                 r"^WARNING: Nan, Inf or huge value in Q",

@@ -1,5 +1,5 @@
 """The Makefile's order, read from make's database: nothing makes, installs into or runs a venv before the
-Debian packages are installed (tests/makefile_order.py says why a machine that ran make once never
+Debian packages are installed (tests/house/makefile_order.py says why a machine that ran make once never
 sees the defect)."""
 
 from __future__ import annotations

@@ -236,7 +236,7 @@ def test_the_readmes_haptic_loop_runs_and_the_device_feels_the_liver_push_back(c
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).parent.parent / "examples" / "haptic_loop.py"
+    path = Path(__file__).parents[2] / "examples" / "haptic_loop.py"
     spec = importlib.util.spec_from_file_location("haptic_loop", path)
     example = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(example)

@@ -486,7 +486,7 @@ def test_a_settling_is_damped_critically_for_its_slowest_mode_where_that_mode_is
 
 
 STATIC_SCENES = sorted(
-    p.stem for p in (Path(__file__).parents[1] / "verification" / "scenes").glob("*.toml")
+    p.stem for p in (Path(__file__).parents[2] / "verification" / "scenes").glob("*.toml")
     if 'mode = "static"' in p.read_text()
 )  # fmt: skip
 

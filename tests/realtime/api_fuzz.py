@@ -1,7 +1,7 @@
-"""The engine's API under random wrong arguments, run as ``python -m tests.api_fuzz SEED COUNT`` in a
-child process (tests/test_input_errors.py): a crash kills only the child, whose exit status and last
+"""The engine's API under random wrong arguments, run as ``python -m tests.realtime.api_fuzz SEED COUNT`` in a
+child process (tests/verification/test_input_errors.py): a crash kills only the child, whose exit status and last
 printed call then say which call it was. Every model and VARIANTS by default; ``python -m
-tests.api_fuzz SEED COUNT MODEL,MODEL:OPTION=VALUE,...`` fuzzes those named. Each call is made with one argument spoiled (a wrong shape,
+tests.realtime.api_fuzz SEED COUNT MODEL,MODEL:OPTION=VALUE,...`` fuzzes those named. Each call is made with one argument spoiled (a wrong shape,
 float type, layout, a NaN, an index out of range, a fraction, a string, None); it must return or raise
 an InputError (or, for a NaN put in a state, the DivergenceError a NaN state is), nothing else. Prints
 one line per call before making it, and a summary at the end."""

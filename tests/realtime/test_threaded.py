@@ -16,8 +16,8 @@ from realtime import InputError, Loading, Material, Materials, State, Symplectic
 from realtime.threaded import balanced_chunks, check_threading, row_chunks
 from realtime.topology import slit, suture
 
-from .conftest import assert_same_model
-from .test_topology import block, slit_faces
+from ..conftest import assert_same_model
+from .test_slit_and_suture import block, slit_faces
 
 EPS = np.finfo(float).eps
 THREADED_MODELS = ("linear-tm", "stvk-tm", "corotational-tm")

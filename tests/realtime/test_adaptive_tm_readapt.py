@@ -12,7 +12,7 @@ from realtime.adaptive import adaptive_plan, expand, plan_of
 from realtime.hierarchy import balance, hierarchy
 from realtime.readapt import INDICATORS, MERGE_JUMP, adapted_sets, carried, indicator, merge_jumps
 
-from .test_adaptive import MATERIAL, pulled_cylinder
+from .test_adaptive_tm import MATERIAL, pulled_cylinder
 
 #: Sums of a few terms of the size of the values: a few ulps of them.
 ROUND_OFF = 1e-12

@@ -9,7 +9,7 @@ from realtime import InputError, Loading, Material, Materials, SymplecticEuler, 
 from realtime.model import State
 from realtime.topology import slit, suture
 
-from .conftest import assert_same_model
+from ..conftest import assert_same_model
 
 HOST = Material(5e3, 0.45, 1000.0)
 STIFF = Material(5e5, 0.3, 1200.0)

@@ -16,7 +16,7 @@ from verification.runs.compare import compare
 from verification.runs.simulate import run_model
 from verification.scene_file import load_scene
 
-ORGANS = Path(__file__).resolve().parents[1] / "verification" / "scenes" / "organs"
+ORGANS = Path(__file__).resolve().parents[2] / "verification" / "scenes" / "organs"
 SCENES = sorted(str(p) for p in ORGANS.glob("*.toml"))
 CUT = str(ORGANS / "liver-cut.toml")
 

@@ -301,7 +301,7 @@ def test_a_tetrahedron_whose_vertices_coincide_is_named_without_a_warning(recwar
 
 @pytest.mark.slow
 def test_the_engines_api_under_fuzzed_arguments_raises_only_input_errors():
-    """tests/api_fuzz.py in a child process: 400 calls of the engine's API on every model and on the
+    """tests/realtime/api_fuzz.py in a child process: 400 calls of the engine's API on every model and on the
     threaded and float32 kernels (the model's
     methods, the three integrators' step, set_forces and set_tool, cut, slit, suture, build_model),
     each with one argument spoilt. Every call returns or raises InputError (a NaN state or a 3 s step
@@ -317,10 +317,10 @@ def test_the_engines_api_under_fuzzed_arguments_raises_only_input_errors():
     import sys
 
     run = subprocess.run(
-        [sys.executable, "-m", "tests.api_fuzz", "20261124", "400"],
+        [sys.executable, "-m", "tests.realtime.api_fuzz", "20261124", "400"],
         capture_output=True,
         text=True,
-        cwd=Path(__file__).parent.parent,
+        cwd=Path(__file__).parents[2],
         timeout=600,
     )
     last = [line for line in run.stdout.splitlines() if line][-1:] or ["(no call made)"]

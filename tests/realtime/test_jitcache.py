@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 #: Builds the models named in argv on a small beam, steps each 50 times under a pull with symplectic
 #: Euler (one step loop, specialised per force kernel: several keys in one cache index), and prints

@@ -13,7 +13,7 @@ from realtime.registry import GEOMETRIC, QUASI_STATIC, cut
 from reference.fem import ElasticityProblem
 from reference.problem import Problem
 
-from .conftest import match_nodes
+from ..conftest import match_nodes
 
 ISO = Material(2.8e4, 0.4, 1000.0, law="stvk")
 FIBRE = Material(2.8e4, 0.4, 1000.0, law="stvk", fiber=(1.0, 0.5, 0.2), young_fiber=6e4, fiber_shear=3e3)
@@ -30,7 +30,7 @@ AROUND = Material(
     fiber_shear=3e3,
 )
 DYNAMIC = [m for m in MODELS if m not in QUASI_STATIC]
-#: The models with mechanics (ffd has none: tests/test_ffd.py holds its promises).
+#: The models with mechanics (ffd has none: tests/realtime/test_ffd.py holds its promises).
 PHYSICAL = [m for m in MODELS if m not in GEOMETRIC]
 
 

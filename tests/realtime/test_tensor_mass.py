@@ -10,7 +10,7 @@ from realtime.tensor_mass import element_stiffness
 from reference.fem import ElasticityProblem
 from reference.problem import Problem
 
-from .conftest import match_nodes
+from ..conftest import match_nodes
 
 ISO = Material(5e5, 0.45, 1000.0, law="linear")
 TRANSVERSE = Material(1e4, 0.4, 1000.0, law="linear", fiber=(1.0, 1.0, 0.0), young_fiber=4e4, fiber_shear=2e3)

@@ -21,7 +21,7 @@ from reference.problem import Displacement, Fixed, Gravity, Problem
 from verification.runs.results import Result
 from verification.scene_file import load_scene
 
-from .conftest import SWING
+from ..conftest import SWING
 
 
 def fitted(h, e):
@@ -95,7 +95,7 @@ def test_uniaxial_stretch_of_stvk(tmp_path, s):
 
 def test_rotation_energy_of_the_linear_reference(tmp_path):
     """A 90 degree rotation of a linear body stores 2 (lambda + mu)(cos theta - 1)^2 per unit volume;
-    the StVK body none (its reaction is round-off: tests/test_reference.py)."""
+    the StVK body none (its reaction is round-off: tests/reference/test_beam_theory_and_locking.py)."""
     mesh = box(size=[0.02, 0.02, 0.02], h=0.01)
     rot = Displacement(
         region=BoxRegion((-1, -1, -1), (1, 1, 1)), axis=(0.0, 0.0, 1.0), center=(0.01, 0.01, 0.0), angle=90.0

@@ -11,7 +11,7 @@ from verification.runs.compare import compare
 from verification.runs.reference import reference_result
 from verification.scene_file import load_scene
 
-from .conftest import SWING
+from ..conftest import SWING
 
 
 def slender_cantilever(tmp_path, poisson=0.3):
@@ -644,7 +644,7 @@ def test_the_p3_estimate_returns_the_same_solution_and_bars_it_by_its_difference
 
 
 def test_the_adaptive_estimate_of_a_dynamic_scene_is_one_line(tmp_path):
-    """A dynamic reference is not adapted (its p3 estimate is: tests/test_effectivity.py)."""
+    """A dynamic reference is not adapted (its p3 estimate is: tests/reference/test_effectivity.py)."""
     from verification.scene import SceneError
 
     p = tmp_path / "swing.toml"

@@ -16,7 +16,7 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-MAKEFILE = Path(__file__).resolve().parents[1] / "Makefile"
+MAKEFILE = Path(__file__).resolve().parents[2] / "Makefile"
 
 #: Debian packages whose modules a dependency imports only if they are there: package -> (the module,
 #: the importer that must still import without it, why). A test imports each importer with the module

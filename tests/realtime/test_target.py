@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from llvmlite import binding as llvm
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 #: Prints the features numba was given and what realtime.target computes for this host.
 CHILD = r"""

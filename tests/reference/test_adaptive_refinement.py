@@ -15,8 +15,8 @@ from verification.runs.reference import reference_at, reference_result
 from verification.runs.results import Result
 from verification.scene_file import load_scene
 
-from .conftest import SWING
-from .test_reference_verification import cli
+from ..conftest import SWING
+from .test_manufactured_and_analytic import cli
 
 
 def test_doerfler_marks_the_fewest_cells_that_hold_the_share():

@@ -107,7 +107,7 @@ def test_scenes_lists_builtins(capsys):
 
 @pytest.mark.slow
 def test_report_has_plots_and_data(tmp_path, monkeypatch):
-    from tests.test_engines import DirectP1
+    from tests.verification.test_engine_seam import DirectP1
     from verification import engines
     from verification.report.page import write_report
 

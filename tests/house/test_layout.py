@@ -5,7 +5,7 @@ that a change that breaks one fails here, naming where."""
 import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("meshes", "realtime", "reference", "verification")
 MAX_FILE_LINES, MAX_FUNCTION_LINES = 600, 80
 

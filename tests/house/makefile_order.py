@@ -21,7 +21,7 @@ import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
 
-MAKEFILE = Path(__file__).resolve().parents[1] / "Makefile"
+MAKEFILE = Path(__file__).resolve().parents[2] / "Makefile"
 
 _RULE = re.compile(r"^([^\s#:=][^:=]*?):(?!=)\s*(.*)$")
 _VARIABLE = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)\s*(?::{1,3}|\?|\+)?=\s?(.*)$")

@@ -172,7 +172,7 @@ def test_the_dynamic_reference_moves_a_tool_as_the_problem_says():
 
 
 def test_the_reference_imports_nothing_of_the_engine_but_material():
-    for path in sorted((Path(__file__).parents[1] / "reference").glob("*.py")):
+    for path in sorted((Path(__file__).parents[2] / "reference").glob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("realtime"):
                 # the pure-data module only: what a material is, never how the engine computes with it

@@ -76,7 +76,18 @@ def test_a_command_leaves_no_plug_in_behind():
     process (a test, a notebook), sees the built-in engine alone, and the default time bound."""
     from verification.runs import simulate
 
-    main(["run", "cantilever", "--engine", "tests.test_engines:DirectP1", "--engine-timeout", "5", "--model", "nope"])
+    main(
+        [
+            "run",
+            "cantilever",
+            "--engine",
+            "tests.verification.test_engine_seam:DirectP1",
+            "--engine-timeout",
+            "5",
+            "--model",
+            "nope",
+        ]
+    )
     assert set(engines.ENGINES) == {"realtime"} and simulate.PLUG_IN_TIMEOUT == 600.0
 
 
@@ -197,7 +208,7 @@ def test_a_plug_in_engine_named_on_the_command_line(monkeypatch, capsys):
     """--engine MODULE:CLASS makes its models runnable by every model command, judged as the built-in ones."""
     monkeypatch.setattr(engines, "ENGINES", dict(engines.ENGINES))
     args = ["compare", "cantilever", "--degree", "1", "--json"]  # gravity: the direct solve's load
-    assert main([*args, "--engine", "tests.test_engines:DirectP1", "--model", "direct-p1"]) == 0
+    assert main([*args, "--engine", "tests.verification.test_engine_seam:DirectP1", "--model", "direct-p1"]) == 0
     theirs = json.loads(capsys.readouterr().out)
     assert main([*args, "--model", "linear-tm"]) == 0
     ours = json.loads(capsys.readouterr().out)
@@ -209,15 +220,30 @@ def test_a_plug_in_engine_named_on_the_command_line(monkeypatch, capsys):
     "spec, needles",
     [
         ("nosuch.module:Engine", ("--engine nosuch.module:Engine: cannot import nosuch.module",)),
-        ("tests.test_engines:Nope", ("tests.test_engines has no Nope",)),
-        ("tests.test_engines:NotAnEngine", ("NotAnEngine is not an engine: it has no models, build",)),
-        ("tests.test_engines:Crashes", ("engine spoilt, model spoilt: ZeroDivisionError: the plug-in's own bug",)),
-        ("tests.test_engines:WritesNaN", ("engine spoilt, model spoilt: its displacement[0, 3, 1] is nan",)),
-        ("tests.test_engines:WrongShape", ("its displacement is (1, 553, 3), not (1, 554, 3)",)),
-        ("tests.test_engines:InMillimetres", ("over 10 times the body", "is it in metres?")),
-        ("tests.test_engines:Hangs", ("engine spoilt, model spoilt: still running after 1 s, stopped",)),
-        ("tests.test_engines:HangsInC", ("engine spoilt, model spoilt: still running after 1 s, stopped",)),
-        ("tests.test_engines:Segfaults", ("engine spoilt, model spoilt: its process died (signal SIGSEGV)",)),
+        ("tests.verification.test_engine_seam:Nope", ("tests.verification.test_engine_seam has no Nope",)),
+        ("tests.verification.test_engine_seam:NotAnEngine", ("NotAnEngine is not an engine: it has no models, build",)),
+        (
+            "tests.verification.test_engine_seam:Crashes",
+            ("engine spoilt, model spoilt: ZeroDivisionError: the plug-in's own bug",),
+        ),
+        (
+            "tests.verification.test_engine_seam:WritesNaN",
+            ("engine spoilt, model spoilt: its displacement[0, 3, 1] is nan",),
+        ),
+        ("tests.verification.test_engine_seam:WrongShape", ("its displacement is (1, 553, 3), not (1, 554, 3)",)),
+        ("tests.verification.test_engine_seam:InMillimetres", ("over 10 times the body", "is it in metres?")),
+        (
+            "tests.verification.test_engine_seam:Hangs",
+            ("engine spoilt, model spoilt: still running after 1 s, stopped",),
+        ),
+        (
+            "tests.verification.test_engine_seam:HangsInC",
+            ("engine spoilt, model spoilt: still running after 1 s, stopped",),
+        ),
+        (
+            "tests.verification.test_engine_seam:Segfaults",
+            ("engine spoilt, model spoilt: its process died (signal SIGSEGV)",),
+        ),
     ],
 )
 def test_a_faulty_plug_in_is_one_line_and_exit_2(monkeypatch, capsys, spec, needles):
@@ -241,7 +267,7 @@ def test_a_plug_in_that_diverges_is_a_diverged_row(monkeypatch):
     """A plug-in's DivergenceError comes back from its worker process with its step and steps: compare
     makes it a "diverged" row, as it does the built-in models' (the run, not the harness, failed)."""
     monkeypatch.setattr(engines, "ENGINES", dict(engines.ENGINES))
-    engines.load_engine("tests.test_engines:Diverges")
+    engines.load_engine("tests.verification.test_engine_seam:Diverges")
     row = compare(load_scene("cantilever"), "spoilt", budget=False)
     assert row.status == "diverged" and row.step == 12 and row.dt == 1e-4 and row.dt_crit == 2e-4
     assert "diverged at step 12" in row.message
@@ -319,7 +345,7 @@ def test_gates_hold_a_plug_in_engine_and_a_result_file(tmp_path, monkeypatch):
 [[gate]]
 scene = "cantilever"
 model = "direct-p1"
-engine = "tests.test_engines:DirectP1"
+engine = "tests.verification.test_engine_seam:DirectP1"
 metric = "rel_l2"
 bound = 1.0
 

@@ -4,7 +4,7 @@ A body's elastic energy, force, stiffness and masses are sums over its tetrahedr
 materials must equal, term by term, the sum of two one-material models, each built on its own
 tetrahedra. That is the test of every model here; it checks the per-block coefficients of the element
 kernels, the per-tetrahedron tensors of tensor-mass and the springs' calibration without trusting any of
-their formulas. The closed-form check (layers in series) is in tests/test_scene.py's layered slab.
+their formulas. The closed-form check (layers in series) is in tests/verification/test_scene_files.py's layered slab.
 """
 
 import numpy as np
@@ -14,7 +14,7 @@ from meshes import stored_mesh
 from realtime import Material, MaterialError, Materials, build_model
 from realtime.registry import cut
 
-from .conftest import assert_same_model
+from ..conftest import assert_same_model
 
 HOST = Material(3.0e3, 0.45, 1000.0, law="stvk")
 #: 100 times stiffer than HOST, another Poisson's ratio and density, fibres around an axis and the

@@ -149,7 +149,7 @@ def test_quadratic_tetrahedra_give_their_corners(tmp_path):
     assert any("quadratic" in n for n in back.notes)
 
 
-SOFA_LIVER = Path(__file__).parents[1] / "verification" / "scenes" / "data" / "sofa-liver2.msh"
+SOFA_LIVER = Path(__file__).parents[2] / "verification" / "scenes" / "data" / "sofa-liver2.msh"
 
 
 def test_gmsh_format_1_real_mesh():

@@ -10,7 +10,7 @@ from realtime import InputError, Loading, Material, build_model
 from realtime.adaptive import adaptive_plan
 from realtime.geometry import boundary_faces, red_refinement
 
-from .conftest import assert_same_model
+from ..conftest import assert_same_model
 
 MATERIAL = Material(5e3, 0.45, 1000.0, law="stvk")
 #: The same element sums in another order: a few hundred ulps of the largest force.
