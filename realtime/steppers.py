@@ -332,6 +332,42 @@ def _precondition(factored, fac, cm, mass, r, z):
 
 
 @nb.njit(**_JIT)
+def _implicit_cg(force, data, scratch, u, linear, cm, ck, cg, fac, mass, free, cgw):
+    """Preconditioned CG for implicit Euler's step: (cm M + ck K) x = r on the free components, K the
+    tangent at ``u`` (N, 3) m, from x = 0 (``cgw``'s r holds the right-hand side, its x the answer),
+    to ``cg.tol`` of the first preconditioned residual or ``cg.maxit`` iterations. Returns (the
+    iterations, the last preconditioned residual rr, the first one's square root r0)."""
+    f, kv, r, z, p, ap, x, t1, t2 = cgw
+    nv = u.shape[0]
+    rr = _precondition(cg.factored, fac, cm, mass, r, z)
+    for i in range(nv):
+        for c in range(3):
+            p[i, c] = z[i, c]
+    r0 = np.sqrt(rr)
+    it = 0
+    while it < cg.maxit and np.sqrt(rr) > cg.tol * r0 and rr > 0.0:
+        _tangent_product(force, data, scratch, u, p, linear, ap, t1, t2)
+        pap = 0.0
+        for i in range(nv):
+            for c in range(3):
+                ap[i, c] = (cm * mass[i] * p[i, c] + ck * ap[i, c]) * free[i, c]
+                pap += p[i, c] * ap[i, c]
+        a = rr / pap
+        for i in range(nv):
+            for c in range(3):
+                x[i, c] += a * p[i, c]
+                r[i, c] -= a * ap[i, c]
+        rr_new = _precondition(cg.factored, fac, cm, mass, r, z)
+        b = rr_new / rr
+        rr = rr_new
+        for i in range(nv):
+            for c in range(3):
+                p[i, c] = z[i, c] + b * p[i, c]
+        it += 1
+    return it, rr, r0
+
+
+@nb.njit(**_JIT)
 def _run_implicit_euler(n, dt, t0, force, work, linear, alpha, beta, cg, fac, u, v, cgw):
     """n steps of linearised implicit Euler (``work`` a StepWork, of which this loop uses neither f nor w:
     its force and CG's vectors are ``cgw``'s, a CGWork); returns (status, the step it stopped after or -1, total CG
@@ -353,7 +389,7 @@ def _run_implicit_euler(n, dt, t0, force, work, linear, alpha, beta, cg, fac, u,
     free, fext, tools, bound = work.free, work.fext, work.tools, work.bound
     vt, reaction = work.vt, work.reaction
     f, kv, r, z, p, ap, x, t1, t2 = cgw
-    tol, maxit, factored, budget = cg.tol, cg.maxit, cg.factored, cg.budget
+    tol, maxit, budget = cg.tol, cg.maxit, cg.budget
     tmp = np.empty(3)
     cm = 1.0 + dt * alpha
     ck = dt * beta + dt * dt
@@ -369,31 +405,7 @@ def _run_implicit_euler(n, dt, t0, force, work, linear, alpha, beta, cg, fac, u,
             for c in range(3):
                 r[i, c] = dt * (f[i, c] + fext[i, c] - alpha * mass[i] * v[i, c] - (beta + dt) * kv[i, c]) * free[i, c]
                 x[i, c] = 0.0
-        rr = _precondition(factored, fac, cm, mass, r, z)
-        for i in range(nv):
-            for c in range(3):
-                p[i, c] = z[i, c]
-        r0 = np.sqrt(rr)
-        it = 0
-        while it < maxit and np.sqrt(rr) > tol * r0 and rr > 0.0:
-            _tangent_product(force, data, scratch, u, p, linear, ap, t1, t2)
-            pap = 0.0
-            for i in range(nv):
-                for c in range(3):
-                    ap[i, c] = (cm * mass[i] * p[i, c] + ck * ap[i, c]) * free[i, c]
-                    pap += p[i, c] * ap[i, c]
-            a = rr / pap
-            for i in range(nv):
-                for c in range(3):
-                    x[i, c] += a * p[i, c]
-                    r[i, c] -= a * ap[i, c]
-            rr_new = _precondition(factored, fac, cm, mass, r, z)
-            b = rr_new / rr
-            rr = rr_new
-            for i in range(nv):
-                for c in range(3):
-                    p[i, c] = z[i, c] + b * p[i, c]
-            it += 1
+        it, rr, r0 = _implicit_cg(force, data, scratch, u, linear, cm, ck, cg, fac, mass, free, cgw)
         total += it
         worst = max(worst, it)
         unconverged = it >= maxit and np.sqrt(rr) > tol * r0

@@ -54,7 +54,8 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     mass-spring, scipy's product) carry their flops, bytes, bound and achieved fraction, and the table
     prints them beside the measured ceilings; the others carry none."""
     from realtime.registry import FLOAT32_MODELS
-    from verification.bench.suite import CALL_ROW, CALLS, CUTS, format_table, run
+    from verification.bench.suite import CALL_ROW, CALLS, CUTS, run
+    from verification.bench.table import format_table
 
     out = run(meshes=("beam",), repeats=1, steps=2)
     roof = out["machine"]["roofline"]
@@ -116,7 +117,7 @@ def _the_benchmarks_page_keeps_one_section_per_machine(out):
     import tempfile
     from pathlib import Path
 
-    from verification.bench.suite import write_markdown
+    from verification.bench.table import write_markdown
 
     other = copy.deepcopy(out)
     other["machine"]["cpu"] = "Another CPU"

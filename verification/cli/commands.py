@@ -515,11 +515,12 @@ def cmd_bench(args) -> int:
         if MPI.COMM_WORLD.rank:  # under mpirun every rank solved; the first reports
             return 0
     else:
-        from verification.bench.suite import format_table, run
+        from verification.bench.suite import run
+        from verification.bench.table import format_table
 
         out = run(meshes=args.meshes, repeats=args.repeats)
         if args.markdown:
-            from verification.bench.suite import write_markdown
+            from verification.bench.table import write_markdown
 
             write_markdown(args.markdown, out)
     if args.out:
