@@ -13,9 +13,9 @@ import pytest
 from verification.cache import cache_dir
 from verification.cli import main
 from verification.runs.reference import reference_result
-from verification.runs.store import largest_stable_fraction
 from verification.scene_file import load_scene
 from verification.studies.advise import LINEAR_MODELS, deformation_summary
+from verification.studies.stable_step import largest_stable_fraction
 from verification.studies.sweep import pareto_front
 
 
@@ -439,6 +439,7 @@ def test_cache_keys_change_with_every_input_they_cover(monkeypatch):
     from verification import cache
     from verification.runs import reference as runner
     from verification.runs import store as runs
+    from verification.studies import stable_step
 
     scene = load_scene("cantilever-pull")
     args = dict(scene=scene, model="linear-tm", integrator="symplectic-euler", dt=None, fraction=0.9, ref_opts={})
@@ -494,6 +495,7 @@ def test_cache_keys_change_with_the_libraries_the_engines_venv_and_the_machine(m
     from verification.inputs import scene_inputs
     from verification.runs import reference as runner
     from verification.runs import store as runs
+    from verification.studies import stable_step
 
     scene = load_scene("cantilever-pull")
     args = dict(scene=scene, model="linear-tm", integrator="symplectic-euler", dt=None, fraction=0.9, ref_opts={})
@@ -503,15 +505,15 @@ def test_cache_keys_change_with_the_libraries_the_engines_venv_and_the_machine(m
     before = (runs.run_key(**args), runs.run_key(**adapter), runner.reference_key(scene, 2, 0, True))
     before_settled = builtin.settled_path(inputs, *settled)
     stable = ("linear-tm", "symplectic-euler", 2000, 7)
-    before_stable = runs.stable_key(scene, *stable)
-    assert runs.stable_key(scene, "stvk-tm", *stable[1:]) != before_stable
+    before_stable = stable_step.stable_key(scene, *stable)
+    assert stable_step.stable_key(scene, "stvk-tm", *stable[1:]) != before_stable
     other = {**cache.library_versions(), "numba": "0.0.1"}
-    for module in (runs, runner, builtin):
+    for module in (runs, runner, builtin, stable_step):
         monkeypatch.setattr(module, "library_versions", lambda: other)
     assert runs.run_key(**args) != before[0] and runs.run_key(**adapter) != before[1]
     assert runner.reference_key(scene, 2, 0, True) != before[2]
     assert builtin.settled_path(inputs, *settled) != before_settled
-    assert runs.stable_key(scene, *stable) != before_stable
+    assert stable_step.stable_key(scene, *stable) != before_stable
     monkeypatch.undo()
     monkeypatch.setattr(runs, "installed_versions", lambda python: {"newton": "0.0.1"})
     assert runs.run_key(**adapter) != before[1] and runs.run_key(**args) == before[0]

@@ -24,7 +24,6 @@ from verification.cache import (
     read_cached,
 )
 from verification.engines import engine_for, plug_in
-from verification.engines.builtin import STABLE_STEPS
 from verification.runs.compare import compare
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row, jsonable
@@ -135,48 +134,7 @@ def compare_or_unsettled(scene: Scene, model: str, integrator: str, dt, fraction
         return Row(scene.name, model, stepper, "not applicable", dt=dt, fraction=fraction, message=str(exc))
 
 
-def stable_key(scene: Scene, model_name: str, integrator: str, steps: int, iterations: int) -> str:
-    """The cache key of a largest-stable-step bisection (``largest_stable_fraction``)."""
-    return digest(
-        {
-            "code": code_digest(RUN_CODE),
-            "libraries": library_versions(),  # where a run blows up depends on the arithmetic
-            "scene": scene.sha256(),
-            "model": model_name,
-            "integrator": integrator,
-            "steps": steps,
-            "iterations": iterations,
-        }
-    )
-
-
-def largest_stable_fraction(
-    scene: Scene,
-    model_name: str,
-    integrator: str = "symplectic-euler",
-    steps: int = STABLE_STEPS,
-    iterations: int = 7,
-    use_cache: bool = True,
-) -> dict:
-    """Bisection on dt / dt_crit in STABLE_SEARCH for the largest step that runs ``steps`` steps from a
-    small perturbation of rest (1e-6 of the mesh size) without blowing up, with the scene's loading and
-    damping. Returns the stable and unstable fractions bracketing the limit, dt_crit and the ratio
-    observed / predicted (1 when the prediction is exact)."""
-    from verification.engines.builtin import stable_fraction
-    from verification.inputs import scene_inputs
-
-    key = stable_key(scene, model_name, integrator, steps, iterations)
-    path = cache_dir() / "runs" / f"{scene.name}-stable-{key}.json"
-    kept = read_cached(path, _read_json) if use_cache else None
-    if kept is not None:
-        return kept
-    out = stable_fraction(scene_inputs(scene), model_name, integrator, steps, iterations)
-    if use_cache:
-        atomic_write_text(path, json.dumps(out))
-    return out
-
-
-def _read_json(path) -> dict:
+def read_json_object(path) -> dict:
     """A cached row: a JSON object (anything else is a damaged entry, read_cached's ValueError)."""
     row = json.loads(path.read_text())
     if not isinstance(row, dict):
@@ -186,4 +144,4 @@ def _read_json(path) -> dict:
 
 def _read_row(path) -> Row:
     """A cached row (``Row.from_json`` of a JSON object; anything else is a damaged entry, ValueError)."""
-    return Row.from_json(_read_json(path))
+    return Row.from_json(read_json_object(path))

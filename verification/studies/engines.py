@@ -29,13 +29,14 @@ from reference.errors import ReferenceSolveError
 from reference.progress import line
 from verification.engines import ENGINES, engine_for
 from verification.engines.adapters import AdapterEngine
-from verification.engines.builtin import BUILTIN, STABLE_STEPS
+from verification.engines.builtin import BUILTIN
 from verification.inputs import scene_inputs
 from verification.runs.compare import cancelling
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
 from verification.runs.store import cached_compare
 from verification.scene import Scene
+from verification.studies.stable_step import STABLE_STEPS
 
 #: Explicit solvers' steps, as fractions of the scene mesh's explicit critical step.
 EXPLICIT_FRACTIONS = (0.25, 0.5, 1.0, 2.0, 4.0)
@@ -107,7 +108,7 @@ def builtin_beside(scene: Scene, ref, use_cache: bool) -> list[dict]:
     (0.9 of its critical one, or its quasi-static update) with its error, its step time and its largest
     stable step (``largest_stable_fraction``, the same STABLE_STEPS probe from rest)."""
     from realtime.registry import QUASI_STATIC
-    from verification.runs.store import largest_stable_fraction
+    from verification.studies.stable_step import largest_stable_fraction
 
     out = []
     for model in BUILTIN.models:

@@ -163,7 +163,7 @@ SETTLED_AHEAD: set = set()
 
 def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...], runs: tuple = ()) -> int:
     """(In a worker process.) Settle ``scene`` with ``model_name`` through the engine seam
-    (``Simulation.settle``), into the caches its engine and ``runs.largest_stable_fraction`` read, as a sweep and its advice would: with symplectic Euler at
+    (``Simulation.settle``), into the caches its engine and ``stable_step.largest_stable_fraction`` read, as a sweep and its advice would: with symplectic Euler at
     each of ``fractions`` of its critical step and at its largest stable fraction, and with implicit Euler
     at its default step if the advisor tries it (``advise.IMPLICIT_MODELS``); none of these when
     ``fractions`` is empty. Then each of ``runs`` ((integrator, max_steps) at the default step: the
@@ -173,8 +173,8 @@ def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...], r
     from verification.engines import engine_for
     from verification.inputs import scene_inputs
     from verification.runs.simulate import SETTLE_MAX_STEPS, SETTLE_RTOL
-    from verification.runs.store import largest_stable_fraction
     from verification.studies.advise import IMPLICIT_MODELS
+    from verification.studies.stable_step import largest_stable_fraction
 
     inputs, engine = scene_inputs(scene), engine_for(model_name)
     todo = []

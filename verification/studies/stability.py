@@ -12,9 +12,10 @@ import numpy as np
 from realtime import MODELS
 from realtime.registry import QUASI_STATIC
 from verification.progress import Bar
-from verification.runs.store import cached_compare, largest_stable_fraction
+from verification.runs.store import cached_compare
 from verification.scene import Scene, SceneError
 from verification.studies.prefetch import settle_ahead, solve_references
+from verification.studies.stable_step import largest_stable_fraction
 
 EXTREME_POISSON = (0.3, 0.45, 0.49, 0.4999)
 #: Steps a static relaxation may take in the stability study before the cell is "not settled".

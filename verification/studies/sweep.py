@@ -15,9 +15,10 @@ from verification.metrics import METRICS
 from verification.progress import Bar
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
-from verification.runs.store import compare_or_unsettled, largest_stable_fraction
+from verification.runs.store import compare_or_unsettled
 from verification.scene import Scene, SceneError
 from verification.studies.frame import true_range
+from verification.studies.stable_step import largest_stable_fraction
 
 #: Time steps a sweep tries by default on a dynamic scene, as fractions of each model's critical step.
 DEFAULT_FRACTIONS = (0.25, 0.5, 0.9)

@@ -9,8 +9,8 @@ import numpy as np
 
 from verification.progress import log
 from verification.report.plots import png
-from verification.runs.store import largest_stable_fraction
 from verification.studies.seeds.common import Size, _finding, _slope, seed_scene
+from verification.studies.stable_step import largest_stable_fraction
 
 
 def formula_dt(model) -> tuple[float, float]:
