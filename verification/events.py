@@ -205,6 +205,14 @@ def union_points(parts: list[State]) -> np.ndarray:
     return points
 
 
+def union_tets(parts: list[State]) -> np.ndarray:
+    """(M, 4) int64: the tetrahedra of the state with the most vertices (the body cut open), numbered on
+    the union of ``parts``' vertices (``union_points``): the mesh every state's field is drawn and
+    measured on (before a cut its lips coincide)."""
+    cut = max(parts, key=lambda s: s.scene.mesh.n_vertices)
+    return cut.union[cut.scene.mesh.tets]
+
+
 def nudged(state: State) -> np.ndarray:
     """(N_s, 3) m: each vertex of the state's mesh moved NUDGE of the way toward the centroid of one of
     its tetrahedra, where a field solved on that mesh is evaluated for it (module docstring)."""

@@ -439,7 +439,6 @@ def test_cache_keys_change_with_every_input_they_cover(monkeypatch):
     from verification import cache
     from verification.runs import reference as runner
     from verification.runs import store as runs
-    from verification.studies import stable_step
 
     scene = load_scene("cantilever-pull")
     args = dict(scene=scene, model="linear-tm", integrator="symplectic-euler", dt=None, fraction=0.9, ref_opts={})

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..events import State, nudged, states, union_points
+from ..events import State, nudged, states, union_points, union_tets
 from ..progress import log
 from .results import Result
 
@@ -36,8 +36,7 @@ def stitched(scene, parts: list[tuple[State, Result]]) -> Result:
     ``states`` (each one's time, label, vertices and STATE_KEYS), the largest of the states' error bars
     and step times (the conservative ones), and the sum of their solves' wall times."""
     points = union_points([s for s, _ in parts])
-    cut = max(parts, key=lambda p: p[0].scene.mesh.n_vertices)[0]  # the most vertices: the cut open
-    tets = cut.union[cut.scene.mesh.tets]
+    tets = union_tets([s for s, _ in parts])
     times = np.array([s.time for s, _ in parts])
     u = np.stack([r.displacement[0][s.of_union] for s, r in parts])
     reaction = np.stack([r.reaction[0] for s, r in parts])

@@ -229,7 +229,7 @@ def _staged(scene: Scene, path: str, scale: float, step_us: float | None) -> dic
     (``runs.compare.run_metrics``). A field's values at union vertices its state does not have (a cut's
     lips before the cut) are taken from the vertex standing for each. Anything else: one line naming
     both ways to give it."""
-    from verification.events import states, union_points
+    from verification.events import states, union_points, union_tets
     from verification.runs.compare import run_metrics
     from verification.runs.reference import reference_result
     from verification.runs.results import Result
@@ -251,9 +251,8 @@ def _staged(scene: Scene, path: str, scale: float, step_us: float | None) -> dic
     ref = reference_result(scene, **REFERENCE_DEFAULTS)
     check_units(result.source, u, ref.displacement)
     check_held_and_tools(scene, result.source, points, u, ref.displacement, np.arange(len(every)))
-    tets = max(every, key=lambda s: s.scene.mesh.n_vertices)
     reaction = result.reaction if result.reaction is not None else np.full((len(every), 3), np.nan)
-    res = Result(points, tets.union[tets.scene.mesh.tets], ref.times, u, reaction, {})
+    res = Result(points, union_tets(every), ref.times, u, reaction, {})
     metrics = run_metrics(scene, res, ref)
     return {
         "scene": scene.name,
