@@ -1,6 +1,7 @@
 """A truth sharp enough for the question (docs/verification.md): the advisor's reference, made
-as sharp as its undecided candidates need (adapted where its error lives on a static scene, refined once
-more on a dynamic one) within a budget, or said to be too coarse, with how far it came and why."""
+as sharp as its undecided candidates need (adapted where its error lives on a static scene; on a dynamic
+one its bar read by P3 and dt / 2 on the mesh it returns, then refined once more) within a budget, or said
+to be too coarse, with how far it came and why."""
 
 from __future__ import annotations
 
@@ -36,8 +37,8 @@ MARGIN = 0.8
 
 def _dynamic_p3(scene, opts: dict, ref, needs: list, bars: list, budget_s: float) -> tuple:
     """A dynamic truth's bar read again by P3 and dt / 2 on the mesh it returns (``reference.driver``'s
-    ``p3``: the same trajectory, its bar within 1 to 3 times its error where the default's reached 4 to
-    6, docs/effectivity.md) when that is predicted within ``budget_s``. Kept where it lowers every bar
+    ``p3``: the same trajectory, its bar 2.3 to 2.6 times its error on the dynamic beam where the
+    default's was 4.4 to 5.7, docs/effectivity.md) when that is predicted within ``budget_s``. Kept where it lowers every bar
     that blocks; else, or where the P3 run finds no answer (Newton on an inverted element), the default
     stays. Returns (options, reference, bars, how)."""
     cost = p3_cost(ref.meta)
@@ -183,8 +184,9 @@ def sharp_reference(
     the bar on ``metric`` ``target`` (default SHARP ``tol``; the advisor asks for what its undecided
     candidates need, ``needed_bar``) and, with a haptic loop (``haptic``: {"rate", "force_tol"}), the bar
     on the tool force SHARP ``force_tol``: a force tolerance under an untightened force bar could never
-    be met. A static P2 truth is adapted where its error lives (``_adapted``); a dynamic one is refined
-    by up to TIGHTEN_LEVELS while the finer one is predicted within TIGHTEN_BUDGET_S (``reference_cost``).
+    be met. A static P2 truth is adapted where its error lives (``_adapted``); a dynamic one has its bar
+    read by P3 and dt / 2 (``_dynamic_p3``), then is refined by up to TIGHTEN_LEVELS, each while
+    predicted within TIGHTEN_BUDGET_S (``p3_cost``, ``reference_cost``).
     A scene held or pressed at points or along edges (``scene.point_held``) is never made sharper: its
     truth has no limit, and the advice says so instead of spending its budget on it.
     A bar the reference does not have is unknown, and refining does not make one: the truth is then not
