@@ -377,6 +377,24 @@ def test_advice_with_no_model_names_each_candidates_best_tolerance_and_the_cheap
     assert lines[3].endswith("; its tool force there is not predicted, only measured once run")
 
 
+def test_a_pick_on_a_refined_mesh_is_named_as_the_change_with_what_was_predicted_and_measured():
+    """SOFA's liver at 5% and 60 Hz: the pick is stvk-tm on the mesh refined twice. The advice names that
+    refinement as the change to make, with the proposal's prediction (error and frame, before the run)
+    beside the run's measurement; a pick on the scene's own mesh has no change line."""
+    from verification.studies.advise import _change_made
+
+    plan = {"model": "stvk-tm", "integrator": "symplectic-euler", "level": 2, "predicted_error": 0.0209,
+            "error_bound": 0.0209, "predicted_frame": "13 steps of 978 us per frame", "predicted_build_s": 21.9}  # fmt: skip
+    out = {"model": "stvk-tm", "integrator": "symplectic-euler", "refine": 2, "metric": "rel_l2", "value": 0.0201,
+           "mesh": {"n_vertices": 19535}, "frame": {"why": "11 steps of 1.17e+03 us per frame"},
+           "proposal": {"predicted": [{**plan, "level": 1}, plan]}}  # fmt: skip
+    assert _change_made(out) == [
+        "change: the scene's mesh refined twice (19535 vertices): predicted rel_l2 0.0209 (at most 0.0209), 13 steps "
+        "of 978 us per frame, its first answer in about 21.9 s; measured rel_l2 0.0201, 11 steps of 1.17e+03 us per frame"
+    ]
+    assert _change_made({**out, "refine": 0}) == []
+
+
 def test_the_sentence_of_no_model_names_the_part_of_the_question_that_fails():
     """SOFA's liver at 25%, 60 Hz and a 1 kHz haptic loop: the sentence said "no model meets rel_l2 <=
     0.25" beside a list of shapes within 0.16; the question's failing part was the tool force. It names

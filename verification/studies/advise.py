@@ -521,6 +521,28 @@ def _cheapest_change(out: dict) -> list[str]:
     ]
 
 
+def _change_made(out: dict) -> list[str]:
+    """Where the pick is on a refined mesh: that refinement as the change to make, with what the mesh
+    proposal predicted it would give and cost before it was run, beside what the run measured."""
+    if not out.get("refine"):
+        return []
+    key = (out["model"], out["integrator"], out["refine"])
+    plans = (out.get("proposal") or {}).get("predicted") or []
+    plan = next((p for p in plans if (p["model"], p["integrator"], p["level"]) == key), None)
+    said = f"change: the scene's mesh refined {refined_times(out['refine'])} ({out['mesh']['n_vertices']} vertices)"
+    if plan is not None:
+        wait = (
+            ""
+            if plan["predicted_build_s"] is None
+            else f", its first answer in about {plan['predicted_build_s']:.3g} s"
+        )
+        said += (
+            f": predicted {out['metric']} {plan['predicted_error']:.3g} (at most {plan['error_bound']:.3g}), "
+            f"{plan['predicted_frame']}{wait}"
+        )
+    return [f"{said}; measured {out['metric']} {out['value']:.3g}, {out['frame']['why']}"]
+
+
 def format_advice(out: dict) -> str:
     """The advisor's answer as text."""
     lines = []
@@ -549,7 +571,7 @@ def format_advice(out: dict) -> str:
             r = out["runner_up"]
             lines.append(f"runner-up: {r['model']} ({out['metric']} {r['value']:.3g}; {r['frame']['why']})")
         lines.append(f"check it: {out['command']}")
-        lines += _best_tolerances(out)
+        lines += _best_tolerances(out) + _change_made(out)
     if prop and prop.get("mesh_part"):
         lines.append(
             f"mesh: P1's error is {prop['mesh_part'][0]:.3g} on the scene's mesh and {prop['mesh_part'][1]:.3g} refined "
