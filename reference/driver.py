@@ -248,7 +248,7 @@ def evaluate_static(problems: list, meta: dict, points: np.ndarray) -> dict:
     return {"displacement": values[kept], "reaction": reactions[kept], "meta": meta}
 
 
-def _dynamic_bars(u: tuple, r: tuple, refine: int) -> dict:
+def dynamic_bars(u: tuple, r: tuple, refine: int) -> dict:
     """A dynamic reference's bars from its runs' displacements u = (u_R, u_R+1, u_R at dt / 2), each
     (T, N, 3) m, and tool forces r, the same three (T, 3) N: space + 2 time for each, relative."""
     space = float(np.linalg.norm(u[0] - u[1]) / max(np.linalg.norm(u[1]), 1e-300))
@@ -274,7 +274,7 @@ def _dynamic_bars(u: tuple, r: tuple, refine: int) -> dict:
 NEWMARK_RICHARDSON = 4.0 / 3.0
 
 
-def _dynamic_p3_bars(u: tuple, r: tuple, refine: int) -> dict:
+def dynamic_p3_bars(u: tuple, r: tuple, refine: int) -> dict:
     """A dynamic reference's ``p3`` bars, from its runs' displacements u = (u2, u3, u2 at dt / 2) at
     refinement R + 1, each (T, N, 3) m (P2 returned, P3 beside it at the same dt, P2 at half the step),
     and tool forces r, the same three (T, 3) N: space P3_SAFETY |u2 - u3| / |u3| (the static p3 bar: the
@@ -321,7 +321,7 @@ def solve_dynamic(
     refinement R + 1 (and dt), and ``ref_err_estimate`` = space + 2 time bounds its relative error when
     halving h or dt at least halves the error of each: space = |u_R - u_R+1| / |u_R+1| (same dt), time
     = |u_dt - u_dt/2| / |u_dt/2| (level R), norms over all vertices and output times. ``estimate =
-    "p3"``: the same trajectory, its bar from P3 and dt / 2 on its own mesh (``_dynamic_p3_bars``).
+    "p3"``: the same trajectory, its bar from P3 and dt / 2 on its own mesh (``dynamic_p3_bars``).
     Returns a dict: times (T,), displacement (T, N, 3), reaction (T, 3), meta.
     """
     import dolfinx
@@ -362,11 +362,11 @@ def solve_dynamic(
         _, p3, p3_reac, i3 = run(first, dt, 3)
         _, half, half_reac, i2 = run(first, dt / 2)
         meta["solves"] += [i3, i2]
-        meta.update(_dynamic_p3_bars((vals, p3, half), (reac, p3_reac, half_reac), refine))
+        meta.update(dynamic_p3_bars((vals, p3, half), (reac, p3_reac, half_reac), refine))
     elif estimate:
         _, fine_space, fine_reac, i2 = run(refine + 1, dt)
         _, fine_time, fine_time_reac, i3 = run(refine, dt / 2)
         meta["solves"] += [i2, i3]
-        meta.update(_dynamic_bars((vals, fine_space, fine_time), (reac, fine_reac, fine_time_reac), refine))
+        meta.update(dynamic_bars((vals, fine_space, fine_time), (reac, fine_reac, fine_time_reac), refine))
         vals, reac = fine_space, fine_reac
     return {"times": times, "displacement": vals, "reaction": reac, "meta": meta}

@@ -34,6 +34,7 @@ def _regions(scene) -> list[dict]:
     """Each fixed and load region to draw: its label, colour, marker, vertices (V,) and the direction
     of its motion or force (3,) (None: a held region)."""
     from reference.problem import Displacement
+    from verification.events import cut_faces
 
     mesh, out = scene.mesh, []
     for i, fx in enumerate(scene.problem.fixed):
@@ -71,10 +72,8 @@ def _regions(scene) -> list[dict]:
                 "direction": d,
             }
         )
-    for e in getattr(scene, "events", ()):
+    for e in scene.events:
         if e.kind == "cut":
-            from verification.events import cut_faces
-
             faces = cut_faces(mesh.points, mesh.tets, e)
             out.append(
                 {

@@ -184,14 +184,14 @@ def _dynamic_solutions(scene, returned: int) -> tuple[dict, dict]:
 def _dynamic_estimates(u: dict, r: int) -> dict:
     """Each estimator's relative bar on the trajectory returned at refinement ``r`` (P2 at dt), computed by
     the reference's own rules (``reference.driver``) from ``_dynamic_solutions``."""
-    from reference.driver import _dynamic_bars, _dynamic_p3_bars
+    from reference.driver import dynamic_bars, dynamic_p3_bars
 
     def bars(rule, keys, level):
         return rule(tuple(u[k][0] for k in keys), tuple(u[k][1] for k in keys), level)["ref_err_estimate"]
 
     return {
-        "difference": bars(_dynamic_bars, [(2, r - 1, 1), (2, r, 1), (2, r - 1, 2)], r - 1) if r >= 1 else None,
-        "p3": bars(_dynamic_p3_bars, [(2, r, 1), (3, r, 1), (2, r, 2)], r - 1),
+        "difference": bars(dynamic_bars, [(2, r - 1, 1), (2, r, 1), (2, r - 1, 2)], r - 1) if r >= 1 else None,
+        "p3": bars(dynamic_p3_bars, [(2, r, 1), (3, r, 1), (2, r, 2)], r - 1),
     }
 
 
