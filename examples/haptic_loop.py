@@ -23,6 +23,7 @@ import numpy as np
 
 from meshes import stored_mesh
 from realtime import Loading, Material, State, SymplecticEuler, build_model
+from realtime.models import linear_tm
 
 HERE = Path(__file__).parent
 
@@ -58,7 +59,7 @@ def liver_with_a_tool(model_name: str, material: Material):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trajectory", type=Path, default=HERE / "palpation.csv")
-    ap.add_argument("--model", default="linear-tm")
+    ap.add_argument("--model", default=linear_tm.NAME)
     ap.add_argument("--seconds", type=float, default=None, help="stop early (default: the whole trajectory)")
     ap.add_argument("--rate", type=float, default=1000.0, help="frames per second")
     args = ap.parse_args(argv)

@@ -29,7 +29,7 @@ from .integrators import (
 )
 from .material import Material, MaterialError, Materials
 from .model import TOOL_ROTATION, TOOL_TRANSLATION, Loading, Model, State
-from .registry import MODELS, build_model, renumber
+from .models import MODELS, SPECS, build_model, renumber
 from .spectra import element_critical_dt, max_eigenvalue
 from .statics import solve_static
 
@@ -38,6 +38,7 @@ _jitcache.guard()
 __all__ = [
     "INTEGRATORS",
     "MODELS",
+    "SPECS",
     "TOOL_ROTATION",
     "TOOL_TRANSLATION",
     "CentralDifference",

@@ -223,7 +223,8 @@ def adaptive_energy(data, u):
     return stvk_energy(inner, uf)
 
 
-def build_adaptive_tm(
+def adaptive_model(
+    name: str,
     points,
     tets,
     material: Material | Materials,
@@ -233,8 +234,8 @@ def build_adaptive_tm(
     mixed_loading: Loading | None = None,
     levels: int = 1,
 ) -> Model:
-    """StVK tensor-mass on the mesh refined where the predictor's strain reaches ``threshold`` times its
-    largest (module docstring). ``points``, ``tets``, ``material`` and ``loading`` describe the coarse
+    """The model ``name``: StVK tensor-mass on the mesh refined where the predictor's strain reaches
+    ``threshold`` times its largest (module docstring). ``points``, ``tets``, ``material`` and ``loading`` describe the coarse
     mesh; ``plan`` (from ``adaptive_plan``) and ``mixed_loading`` (a Loading on ``plan.points``, as
     exact a load vector as the caller has) may be given, else they are made here (``carried_loading``).
     The Model's vertices are the coarse ones first, then the midpoints that do not hang; its ``tets``
@@ -280,7 +281,7 @@ def build_adaptive_tm(
 
     whole = np.all(plan.tets < nm, axis=1)  # the tetrahedra with no hanging vertex
     return Model(
-        name="adaptive-tm",
+        name=name,
         points=plan.points[:nm],
         tets=plan.tets[whole],
         material=mats.subset(whole),

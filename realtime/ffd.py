@@ -105,8 +105,6 @@ class FreeFormDeformation:
             each tool dof, D the tools' prescribed dofs (``targets``).
     """
 
-    model_name = "ffd"
-
     def __init__(self, model: Model, degree: int = 3):
         from .quasistatic import _Targets
 

@@ -105,7 +105,7 @@ class _Prepared:
     # kernel (threaded.UNSUMMED) and se_sum_update_threads, which adds the threads' arrays and updates
     se_kernels: tuple
     # a linear tensor-mass model's shared tensors and their generation when it was built: a model whose
-    # tensors a cut (realtime.registry.cut) has changed since is refused (Model.check_current), without
+    # tensors a cut (realtime.models.linear_tm.cut) has changed since is refused (Model.check_current), without
     # looking the two up in Model.extra at every call
     tensors: object = None
     generation: int = 0

@@ -280,7 +280,7 @@ class Model:
     """A real-time model, ready to step.
 
     Attributes:
-        name: registry name ("linear-tm", ...).
+        name: the model's name (its ModelSpec's, realtime.models).
         points: (N, 3) float64 rest positions, m.
         tets: (M, 4) int64, positively oriented (may be given Deferred: made when first read).
         material: the Material, or the Materials of a body made of several (one per tetrahedron; may
@@ -297,7 +297,7 @@ class Model:
         rest_stiffness_of: the model's own ``rest_stiffness`` (a function of the model).
         eigenvalue_bound_of: the model's own ``element_eigenvalue_bound`` (a function of the model).
         precision: "float64", or "float32": the force kernel's data, the state and the force buffers
-            in single precision, the kernel computing in it (the models of FLOAT32_MODELS; the
+            in single precision, the kernel computing in it (the models whose ModelSpec says float32; the
             geometry, masses and loads stay float64, the updates compute in float64 and round).
     """
 
@@ -372,14 +372,14 @@ class Model:
         return self.eigenvalue_bound_of(self)
 
     def check_current(self) -> None:
-        """Raise InputError if this model's mesh was changed since it was built (``realtime.registry.cut``,
+        """Raise InputError if this model's mesh was changed since it was built (``realtime.models.linear_tm.cut``,
         ``realtime.topology.slit`` or ``suture`` returned its successor, which shares and has changed its
         stiffness tensors)."""
         tensors = self.extra.get("tensors")
         if tensors is not None and tensors.generation != self.extra.get("generation", tensors.generation):
             raise InputError(
                 f"{self.name}: this model's mesh was changed {tensors.generation - self.extra['generation']} time(s) "
-                "since it was built (cut, slit or sutured); step the model realtime.registry.cut or realtime.topology "
+                "since it was built (cut, slit or sutured); step the model realtime.models.linear_tm.cut or realtime.topology "
                 "returned"
             )
 

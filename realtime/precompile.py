@@ -29,28 +29,29 @@ import numpy as np
 
 from .jitcache import sources_digest, write_stamp
 
+#: The cost class (``ModelSpec.cost``) from which a model's kernels are the slow ones to compile.
+HEAVY = 2
 #: The file in numba's cache folder that says which version of the engine it holds, compiled.
 STAMP = "tissuebench-precompiled.sha256"
 
 
 def jobs() -> list[tuple[str, str, int]]:
     """What each job builds: (model, precision, threads), for every model and every precision it has, on
-    one thread; the most expensive to compile first, so that the pool's processes end together.
+    one thread; the most expensive to compile first (``ModelSpec.cost`` from HEAVY), so that the pool's processes end together.
 
     The threaded kernels (``threads`` > 1) are left to compile when a run first builds one: no study
     does (sweep, advise, report and the reference never ask for threads), only a simulator embedding the
     engine and ``make bench``. Compiled ahead with every integrator they took 151 of this step's 240
     CPU seconds on a 2-core AMD EPYC (corotational-tm's parallel force alone 28 s); a run compiles only
     the integrator it steps with."""
-    from .registry import FLOAT32_MODELS, MODELS
+    from .models import SPECS
 
     out = [
-        (name, precision, 1)
-        for name in MODELS
-        for precision in (("float64", "float32") if name in FLOAT32_MODELS else ("float64",))
+        (s.name, precision, 1)
+        for s in SPECS.values()
+        for precision in (("float64", "float32") if s.float32 else ("float64",))
     ]
-    heavy = ("corotational-tm", "stvk-tm", "hybrid-tm", "adaptive-tm")
-    return sorted(out, key=lambda j: (j[0] not in heavy, j[1] == "float32"))
+    return sorted(out, key=lambda j: (SPECS[j[0]].cost < HEAVY, j[1] == "float32"))
 
 
 def _two_cubes() -> tuple[np.ndarray, np.ndarray]:
@@ -82,8 +83,8 @@ def compile_job(job: tuple[str, str, int]) -> float:
     from .integrators import INTEGRATORS, ImplicitEuler
     from .material import Material
     from .model import TOOL_ROTATION, TOOL_TRANSLATION, Loading
+    from .models import SPECS, build_model
     from .quasistatic import QuasiStatic
-    from .registry import QUASI_STATIC, build_model
     from .spectra import element_critical_dt
     from .statics import solve_static
 
@@ -116,7 +117,7 @@ def compile_job(job: tuple[str, str, int]) -> float:
         options["threads"] = threads
     model = build_model(name, points, tets, Material(5e3, 0.45, 1000.0, volume_penalty=1e4), loading, **options)
     state = model.rest_state()
-    if name in QUASI_STATIC:
+    if SPECS[name].quasi_static:
         QuasiStatic().step(model, state, 1e-3, 2)
         return time.perf_counter() - t0
     model.elastic_energy(state.u)

@@ -81,8 +81,6 @@ class Precomputed:
         row: (3N,) int64, row of T of each dof (-1 if not free).
     """
 
-    model_name = "precomputed"
-
     def __init__(self, model: Model):
         lo = model.loading
         n = model.n_vertices
@@ -192,8 +190,6 @@ class Condensed:
             and f_star of those dofs, whose product with the retained displacements less f_tool is the
             force that holds them.
     """
-
-    model_name = "condensed"
 
     def __init__(self, model: Model):
         lo = model.loading

@@ -1,6 +1,6 @@
 """Topology changes of a linear tensor-mass model besides cutting: slitting and suturing.
 
-``realtime.registry.cut`` removes tetrahedra (Cotin et al. 2000). A scalpel that leaves no gap is a
+``realtime.models.linear_tm.cut`` removes tetrahedra (Cotin et al. 2000). A scalpel that leaves no gap is a
 *slit*: the mesh separates along interior triangles, each vertex on them split into one copy per side,
 so that the tetrahedra on either side no longer share it. *Suturing* is its inverse: joining two
 vertex sets that sit at the same place (the two lips of a slit) back into one. Both are local
@@ -33,8 +33,8 @@ COINCIDE = 1e-9
 
 def _tensors(model: Model, what: str):
     tm = model.extra.get("tensors")
-    if model.name != "linear-tm" or tm is None:
-        raise InputError(f"{what}: {model.name} does not support topology changes (linear-tm does)")
+    if not model.extra.get("cuttable") or tm is None:
+        raise InputError(f"{what}: {model.name} does not support topology changes (ModelSpec.cuttable)")
     model.check_current()
     check_float64(model, what)
     return tm

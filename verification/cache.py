@@ -57,6 +57,7 @@ REFERENCE_CODE = ("reference/*.py", "meshes/regions.py", "realtime/material.py")
 #: they pin, the runs, the inputs and metrics, and the reference it is compared with.
 RUN_CODE = (
     "realtime/*.py",
+    "realtime/models/*.py",
     "verification/inputs.py",
     "verification/metrics.py",
     "verification/engines/*.py",

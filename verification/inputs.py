@@ -18,6 +18,7 @@ from meshes import TetMesh
 from realtime.errors import InputError
 from realtime.geometry import face_areas
 from realtime.model import RAMP_SHAPES, TOOL_ROTATION, TOOL_TRANSLATION, Loading, lumped_masses
+from realtime.models import linear_tm
 from reference.problem import Displacement, Fixed, Force, Gravity, Problem, Traction, component_mask
 from verification.engines.protocol import SceneInputs, TimeMode
 
@@ -119,7 +120,7 @@ def check_held(scene) -> None:
     too_few = len(anchors) < 3 or (len(spread) < 2 or spread[1] <= 1e-9 * extent)
     if n_blocks == 1 and not too_few:
         return
-    model = build_model("linear-tm", mesh.points, mesh.tets, base.body_material(), loading)
+    model = build_model(linear_tm.NAME, mesh.points, mesh.tets, base.body_material(), loading)
     count, ratio = zero_energy_modes(model)
     if not count:
         return

@@ -79,7 +79,7 @@ def main(seed: int, count: int, names: tuple[str, ...] = ()) -> int:
         renumber,
     )
     from realtime.integrators import CentralDifference, ImplicitEuler, SymplecticEuler
-    from realtime.registry import cut
+    from realtime.models.linear_tm import cut
     from realtime.topology import slit, suture
 
     rng = np.random.default_rng(seed)

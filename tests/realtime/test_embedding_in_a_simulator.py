@@ -22,7 +22,7 @@ from realtime import (
     SymplecticEuler,
     build_model,
 )
-from realtime.registry import cut
+from realtime.models.linear_tm import cut
 from realtime.spectra import min_eigenvalue
 from verification.engines.builtin import scene_model
 from verification.scene_file import load_scene

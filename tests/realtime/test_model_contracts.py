@@ -9,7 +9,8 @@ import pytest
 
 from meshes import stored_mesh, structured_box
 from realtime import MODELS, InputError, Material, Materials, State, build_model
-from realtime.registry import GEOMETRIC, QUASI_STATIC, cut
+from realtime.models import SPECS
+from realtime.models.linear_tm import cut
 from reference.fem import ElasticityProblem
 from reference.problem import Problem
 
@@ -29,9 +30,9 @@ AROUND = Material(
     young_fiber=6e4,
     fiber_shear=3e3,
 )
-DYNAMIC = [m for m in MODELS if m not in QUASI_STATIC]
+DYNAMIC = [m for m in MODELS if not SPECS[m].quasi_static]
 #: The models with mechanics (ffd has none: tests/realtime/test_ffd.py holds its promises).
-PHYSICAL = [m for m in MODELS if m not in GEOMETRIC]
+PHYSICAL = [m for m in MODELS if SPECS[m].mechanics]
 
 
 def cylinder():
@@ -691,13 +692,13 @@ def test_a_model_on_the_renumbered_mesh_is_the_same_model(model_name, rng):
     assert np.allclose(new.mass, old.mass[order], rtol=1e-14, atol=0.0)  # the same lumped masses
 
 
-@pytest.mark.parametrize("name", [m for m in MODELS if m not in GEOMETRIC and m not in QUASI_STATIC])
+@pytest.mark.parametrize("name", [m for m in MODELS if SPECS[m].mechanics and not SPECS[m].quasi_static])
 def test_what_a_model_claims_to_represent_changes_its_force_and_nothing_else_does(name):
-    """realtime.registry.REPRESENTS is what every result says a model ran without: checked here by the
+    """A spec's ``represents`` (realtime.models) is what every result says a model ran without: checked here by the
     force itself. At a compressed, sheared state, adding the volume penalty (or fibres) to the material
     changes the force of a model that claims the term and leaves it bit for bit the same in one that
     does not (the quasi-static models are linear-tm's tensors). corotational-tm refuses fibres."""
-    from realtime.registry import REPRESENTS, unrepresented
+    from realtime.models import unrepresented
 
     mesh = structured_box((0.02, 0.01, 0.01), (2, 1, 1))
     x = mesh.points
@@ -714,6 +715,6 @@ def test_what_a_model_claims_to_represent_changes_its_force_and_nothing_else_doe
                 build_model(name, mesh.points, mesh.tets, material)
             continue
         f = build_model(name, mesh.points, mesh.tets, material).internal_force(u)
-        claimed = term in REPRESENTS[name]
+        claimed = term in SPECS[name].represents
         assert (not np.array_equal(f, f0)) == claimed, f"{name}: {term} claimed {claimed}"
         assert bool(unrepresented(name, material)) == (not claimed)

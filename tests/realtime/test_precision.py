@@ -11,7 +11,10 @@ from meshes import stored_mesh, structured_box
 from realtime import MODELS, InputError, Material, State, build_model, make_integrator
 from realtime.blocks import HOT
 from realtime.model import Loading
-from realtime.registry import FLOAT32_MODELS, cut
+from realtime.models import SPECS
+from realtime.models.linear_tm import cut
+
+FLOAT32_MODELS = [s.name for s in SPECS.values() if s.float32]
 
 #: float32's unit round-off, 2^-24 (numpy's eps is 2^-23, the spacing at 1).
 U32 = 2.0**-24

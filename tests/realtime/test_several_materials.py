@@ -12,7 +12,7 @@ import pytest
 
 from meshes import stored_mesh
 from realtime import Material, MaterialError, Materials, build_model
-from realtime.registry import cut
+from realtime.models.linear_tm import cut
 
 from ..conftest import assert_same_model
 

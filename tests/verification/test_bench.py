@@ -53,7 +53,7 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     """A short benchmark on the stored beam: the rows whose work is a fixed count (linear-tm, stvk-tm,
     mass-spring, scipy's product) carry their flops, bytes, bound and achieved fraction, and the table
     prints them beside the measured ceilings; the others carry none."""
-    from realtime.registry import FLOAT32_MODELS
+    from realtime.models import SPECS
     from verification.bench.suite import CALL_ROW, CALLS, CUTS, run
     from verification.bench.table import format_table
 
@@ -77,7 +77,9 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     call = rows[CALL_ROW]  # the haptic call's own cost, per call: no step's work, so no roofline
     assert call["n"] == CALLS and call["step_us"] > 0
     assert "roofline_us" not in call
-    for m in FLOAT32_MODELS:  # beside their float64 rows, with no roofline (the peak measured is float64's)
+    for m in (
+        s.name for s in SPECS.values() if s.float32
+    ):  # beside their float64 rows, with no roofline (the peak measured is float64's)
         r = rows[f"{m}, float32"]
         assert r["precision"] == "float32" and "roofline_us" not in r
         assert r["speedup"] == pytest.approx(rows[m]["step_us"] / r["step_us"])
@@ -104,7 +106,7 @@ def test_the_benchmark_places_every_fixed_work_row_on_the_roofline():
     assert len(re.findall(gains, table)) == len(ceilings)
     assert "FMA peak" in table and f"({roof['vector_bits']}-bit vectors" in table and "triad GB/s by data size" in table
     assert len(re.findall(r"roofline [\d.]+ us \((compute|memory)\): \d+% of it", table)) == len(placed)
-    assert len(re.findall(r"\d\.\d\dx its float64 row", table)) == len(FLOAT32_MODELS)
+    assert len(re.findall(r"\d\.\d\dx its float64 row", table)) == sum(s.float32 for s in SPECS.values())
     # what the hot loops compile to on this target: counted, printed, never asserted (verification.bench.codegen)
     assert "compiled code (numba target" in table and out["compiled_code"]["stvk"]["general_packed"] >= 0
     _the_benchmarks_page_keeps_one_section_per_machine(out)

@@ -48,13 +48,13 @@ def test_pareto_front_keeps_one_of_duplicates():
 @pytest.mark.slow
 def test_sweep_json_lists_every_model(capsys):
     from realtime import MODELS
-    from realtime.registry import QUASI_STATIC
+    from realtime.models import SPECS
 
     assert main(["sweep", "cantilever-pull", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert {r["model"] for r in out["rows"]} == set(MODELS)
     for r in out["rows"]:
-        assert r["integrator"] == ("quasi-static" if r["model"] in QUASI_STATIC else "symplectic-euler")
+        assert r["integrator"] == ("quasi-static" if SPECS[r["model"]].quasi_static else "symplectic-euler")
         if r["status"] == "ok":
             assert r["rel_l2"] >= 0 and r["step_us"] > 0
     ok = [r for r in out["rows"] if r["status"] == "ok"]
@@ -479,6 +479,7 @@ def test_cache_keys_change_with_every_input_they_cover(monkeypatch):
     assert {
         "reference/fem.py",
         "meshes/regions.py",
+        "realtime/models/stvk_tm.py",
         "verification/runs/store.py",
         "verification/engines/builtin.py",
     } <= {str(f.relative_to(cache.ROOT)) for p in cache.RUN_CODE for f in cache.ROOT.glob(p)}

@@ -21,6 +21,8 @@ import re
 import numba
 import numpy as np
 
+from realtime.models import linear_tm, mass_spring, stvk_tm
+
 #: A packed double-precision instruction on 256- or 512-bit registers (AT&T syntax: the register last).
 PACKED = r"\bv\w+pd\s+[^\n]*%[yz]mm"
 PACKED_FMA = r"\bvfmadd\w*pd\s+[^\n]*%[yz]mm"
@@ -100,9 +102,9 @@ def signed_indexing(dispatcher) -> list[str]:
 
 #: Each model's force kernel, module.function in realtime.
 FORCE_KERNELS = {
-    "linear-tm": "tensor_mass.linear_tm_force",
-    "stvk-tm": "stvk.stvk_force",
-    "mass-spring": "springs.spring_force",
+    linear_tm.NAME: "tensor_mass.linear_tm_force",
+    stvk_tm.NAME: "stvk.stvk_force",
+    mass_spring.NAME: "springs.spring_force",
 }
 
 
@@ -120,7 +122,7 @@ def stvk_loops() -> dict:
         return _count(PACKED, _asm(loop))
 
     return {
-        "force_packed_fma": _count(PACKED_FMA, _force_asm("stvk-tm")),
+        "force_packed_fma": _count(PACKED_FMA, _force_asm(stvk_tm.NAME)),
         "isotropic_packed": lanes(False),
         "general_packed": lanes(True),
     }

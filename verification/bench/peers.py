@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from realtime.models import corotational_tm, linear_tm, mass_spring, stvk_tm
+
 # before pbatoolkit is imported (see the module docstring): its Tracy profiler samples the process
 os.environ.setdefault("TRACY_NO_SAMPLING", "1")
 os.environ.setdefault("TRACY_NO_CONTEXT_SWITCH", "1")
@@ -51,7 +53,7 @@ from verification.progress import log  # noqa: E402
 
 MATERIAL = Material(2.8e4, 0.4, 1000.0, law="stvk")
 PEERS = {"newton": "1.8.0", "pbatoolkit": "0.0.11"}
-MODELS = ("linear-tm", "mass-spring", "stvk-tm", "corotational-tm")
+MODELS = (linear_tm.NAME, mass_spring.NAME, stvk_tm.NAME, corotational_tm.NAME)
 
 
 def _meshes() -> dict:
@@ -80,7 +82,7 @@ def _ours(mesh, u0: np.ndarray, steps: int) -> list[dict]:
                 "fn": _step_case(integ, model, state, dt, steps),
             }
         )
-        if name == "linear-tm":
+        if name == linear_tm.NAME:
             K = model.extra["tensors"].matrix().tobsr(blocksize=(3, 3))
             x = u0.ravel().copy()
 

@@ -33,7 +33,7 @@ import time
 import numba as nb
 import numpy as np
 
-from realtime.blocks import GEO_ROWS
+from realtime.models import SPECS, stvk_tm
 
 _FAST = dict(nogil=True, cache=True, fastmath=True)
 #: fma_peak's independent chains per SIMD lane (enough FMAs in flight for two pipes of latency 4) and
@@ -161,28 +161,18 @@ def vector_bits() -> int:
     return next((bits for bits, reg in ((512, "%zmm"), (256, "%ymm")) if reg in asm), 128)
 
 
-#: Per-element work of each force kernel, counted from its source: (flops, streamed bytes) per
-#: tetrahedron ("tet"), vertex ("vertex") or edge ("edge"). stvk-tm (isotropic, no penalty):
-#: gather 9, H 45, Green-Lagrange strain 45, the second Piola-Kirchhoff stress times the volume 14,
-#: P = (I + H) S 54, P g 45, scatter 18 flops = 230; bytes: the rows of geometry the isotropic loop
-#: reads (GEO_ROWS less the 3 fibre rows, which only the general loop reads) and 4 int64 indices.
-#: linear-tm (difference form): 8 bytes (row start) a vertex, and 39 flops (3 differences, two 3x3
-#: products) and 80 bytes (tensor, column) an edge. mass-spring: 30 flops and 32 bytes (two int64 ends, k, L) an edge.
-#: scipy's BSR product: 18 flops and 80 bytes (block, column index) a 3x3 block.
-KERNEL_WORK = {
-    "stvk-tm": {"tet": (230.0, 8.0 * (GEO_ROWS - 3) + 32.0)},
-    "linear-tm": {"vertex": (0.0, 8.0), "edge": (39.0, 80.0)},
-    "mass-spring": {"edge": (30.0, 32.0)},
-}
+#: Per-element work of a force kernel, counted from its source, is its ModelSpec's ``work``: (flops,
+#: streamed bytes) per tetrahedron ("tet"), vertex ("vertex") or edge ("edge"), each counted in the
+#: model's file. scipy's BSR product: 18 flops and 80 bytes (block, column index) a 3x3 block.
 #: stvk-tm's force in its two phases (the bench's rows "stvk-tm, element arithmetic alone" and
-#: "stvk-tm, gather and scatter alone"), per tetrahedron: the element arithmetic is KERNEL_WORK's
+#: "stvk-tm, gather and scatter alone"), per tetrahedron: the element arithmetic is its spec's work's
 #: flops less the gather's 9 and the scatter's 18, on the geometry rows the isotropic loop reads; the
 #: gather and the scatter are those 27 flops and the 4 int64 indices, and read u and write f once a
 #: vertex (VERTEX_STATE_BYTES, added per vertex). The indexed loads and stores of u and f (12 and 24
 #: a tetrahedron, from the caches) are in neither count: the second row's fraction shows what they cost.
 _STVK_INDEXED = (27.0, 32.0)  # the gather's and the scatter's flops, the 4 int64 indices
 STVK_PHASE_WORK = {
-    "arithmetic": tuple(w - i for w, i in zip(KERNEL_WORK["stvk-tm"]["tet"], _STVK_INDEXED, strict=True)),
+    "arithmetic": tuple(w - i for w, i in zip(SPECS[stvk_tm.NAME].work["tet"], _STVK_INDEXED, strict=True)),
     "gather and scatter": _STVK_INDEXED,
 }
 
@@ -204,8 +194,8 @@ VERTEX_STATE_BYTES = 48.0
 def step_work(model_name: str, n_vertices: int, n_tets: int, n_edges: int) -> tuple[float, float] | None:
     """(flops, bytes) of one symplectic Euler step of ``model_name``, or None where the work is not a
     fixed count (corotational-tm's polar iterations, hybrid-tm's non-linear share)."""
-    work = KERNEL_WORK.get(model_name)
-    if work is None:
+    work = SPECS[model_name].work if model_name in SPECS else None
+    if not work:
         return None
     counts = {"tet": n_tets, "vertex": n_vertices, "edge": n_edges}
     flops = sum(f * counts[k] for k, (f, _) in work.items()) + UPDATE_WORK[0] * n_vertices

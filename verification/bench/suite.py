@@ -41,8 +41,10 @@ from meshes.store import RENUMBERED, STORED
 from realtime import Loading, Material, State, SymplecticEuler, build_model
 from realtime.blocks import BLOCK, GEO_ROWS_U, HOT, gather, scatter_block
 from realtime.geometry import unique_edges
+from realtime.models import SPECS, condensed, corotational_tm, hybrid_tm, linear_tm, mass_spring, precomputed, stvk_tm
+from realtime.models.hybrid_tm import nonlinear_fraction
+from realtime.models.linear_tm import cut
 from realtime.quasistatic import QuasiStatic
-from realtime.registry import FLOAT32_MODELS, cut, nonlinear_fraction
 from realtime.stvk import stvk_block
 from verification.bench import codegen
 from verification.bench.roofline import Roofline, bsr_work, step_work, stvk_phase_work, thread_loops, thread_scaling
@@ -169,9 +171,9 @@ def _phase_cases(model, u, n, base) -> list[dict]:
     (W,), f = model.new_scratch(), np.zeros_like(u)
     data = model.data
     return [
-        {**base, "name": "stvk-tm, element arithmetic alone", "model": "stvk-tm", "phase": "arithmetic", "n": n,
+        {**base, "name": "stvk-tm, element arithmetic alone", "model": stvk_tm.NAME, "phase": "arithmetic", "n": n,
          "part_of": "stvk-tm, force alone", "fn": lambda: _stvk_arithmetic_loop(data, W, n)},
-        {**base, "name": "stvk-tm, gather and scatter alone", "model": "stvk-tm", "phase": "gather and scatter",
+        {**base, "name": "stvk-tm, gather and scatter alone", "model": stvk_tm.NAME, "phase": "gather and scatter",
          "n": n, "part_of": "stvk-tm, force alone", "fn": lambda: _gather_scatter_loop(data, W, u, f, n)},
     ]  # fmt: skip
 
@@ -221,11 +223,11 @@ def run(meshes=MESHES, repeats: int = 15, steps: int = 50) -> dict:
         cases += _float32_cases(name, mesh, loading, u0, n, cases)
         threads = min(os.cpu_count() or 1, THREADS)
         cases += _thread_cases(name, mesh, base, loading, u0, n, cases, built, threads)
-        cases += _phase_cases(built["stvk-tm"], u0, n, base)
+        cases += _phase_cases(built[stvk_tm.NAME], u0, n, base)
         # what the machine itself gains from the threads, in the same rounds: the roofline's loops on one
         # thread and on all, the triad on as many bytes as stvk-tm's step streams
         n_edges = len(unique_edges(mesh.tets))
-        footprint = step_work("stvk-tm", mesh.n_vertices, mesh.n_tets, n_edges)[1]
+        footprint = step_work(stvk_tm.NAME, mesh.n_vertices, mesh.n_tets, n_edges)[1]
         ceilings = thread_loops(threads, footprint) if threads > 1 else {}
         cases += [{"name": key, "ceiling": True, "n": units, "fn": fn} for key, (fn, units) in ceilings.items()]
         cases.append(_bsr_case(mesh, base, loading, u0))
@@ -262,13 +264,13 @@ def _model_cases(name: str, mesh, base: dict, loading, u0, n: int) -> tuple[list
     haptic = []
     built = {}  # label -> the one-thread model of its row
     for label, model_name, mat in (
-        ("linear-tm", "linear-tm", ISO),
-        ("linear-tm (transverse)", "linear-tm", FIBRE),
-        ("corotational-tm", "corotational-tm", ISO),
-        ("stvk-tm", "stvk-tm", ISO),
-        ("stvk-tm (transverse + penalty)", "stvk-tm", FIBRE),
-        ("hybrid-tm (10% of vertices past threshold)", "hybrid-tm", ISO),
-        ("mass-spring", "mass-spring", ISO),
+        (linear_tm.NAME, linear_tm.NAME, ISO),
+        ("linear-tm (transverse)", linear_tm.NAME, FIBRE),
+        (corotational_tm.NAME, corotational_tm.NAME, ISO),
+        (stvk_tm.NAME, stvk_tm.NAME, ISO),
+        ("stvk-tm (transverse + penalty)", stvk_tm.NAME, FIBRE),
+        ("hybrid-tm (10% of vertices past threshold)", hybrid_tm.NAME, ISO),
+        (mass_spring.NAME, mass_spring.NAME, ISO),
     ):
         log(f"bench: {name} {label}")
         model = build_model(model_name, mesh.points, mesh.tets, mat, loading)
@@ -276,7 +278,7 @@ def _model_cases(name: str, mesh, base: dict, loading, u0, n: int) -> tuple[list
         integ = SymplecticEuler()
         dt = 0.5 * integ.critical_dt(model)
         u = u0.copy()
-        if model_name == "hybrid-tm":
+        if model_name == hybrid_tm.NAME:
             # move a tenth of the vertices past the threshold: the non-linear part of a local tool.
             # At 0.5 dt_crit that jolt would spread over the mesh within the timed steps (88% of
             # the tetrahedra non-linear after 50); a step costs the same at any dt, so the hybrid
@@ -296,7 +298,7 @@ def _model_cases(name: str, mesh, base: dict, loading, u0, n: int) -> tuple[list
                 "fn": _step_case(integ, model, state, dt, n),
             }
         )
-        if label in ("linear-tm", "stvk-tm"):
+        if label in (linear_tm.NAME, stvk_tm.NAME):
             haptic.append(
                 {
                     **cases[-1],
@@ -305,7 +307,7 @@ def _model_cases(name: str, mesh, base: dict, loading, u0, n: int) -> tuple[list
                     "fn": _step_case(SymplecticEuler(), model, State(u=u.copy(), v=np.zeros_like(u)), dt, 1, n),
                 }
             )
-        if label == "linear-tm":
+        if label == linear_tm.NAME:
             # what a haptic loop's call costs before it steps (the checks, the entry into the compiled
             # loop, the returned force), apart from the noise of a difference of two step times
             haptic.append(
@@ -316,7 +318,7 @@ def _model_cases(name: str, mesh, base: dict, loading, u0, n: int) -> tuple[list
                     "fn": _step_case(SymplecticEuler(), model, State(u=u.copy(), v=np.zeros_like(u)), dt, 0, CALLS),
                 }
             )
-        if model_name == "hybrid-tm":
+        if model_name == hybrid_tm.NAME:
             cases[-1]["probe"] = lambda model=model, state=state: {
                 "nonlinear_fraction": nonlinear_fraction(model.tets, state.u, model.extra["threshold"])
             }
@@ -326,7 +328,7 @@ def _model_cases(name: str, mesh, base: dict, loading, u0, n: int) -> tuple[list
 def _float32_cases(name: str, mesh, loading, u0, n: int, cases: list) -> list:
     """The float32 kernels (build_model's precision), beside their float64 rows."""
     out = []
-    for model_name in FLOAT32_MODELS:
+    for model_name in (s.name for s in SPECS.values() if s.float32):
         log(f"bench: {name} {model_name}, float32")
         model = build_model(model_name, mesh.points, mesh.tets, ISO, loading, precision="float32")
         one = next(c for c in cases if c["name"] == model_name)
@@ -348,7 +350,7 @@ def _thread_cases(name: str, mesh, base: dict, loading, u0, n: int, cases: list,
     """The threaded kernels on every core (realtime.threaded), beside their one-thread rows: the step,
     and the force kernel alone (the update after it streams the state and does not gain as much)."""
     out = []
-    for model_name in ("linear-tm", "corotational-tm", "stvk-tm") if threads > 1 else ():
+    for model_name in (linear_tm.NAME, corotational_tm.NAME, stvk_tm.NAME) if threads > 1 else ():
         log(f"bench: {name} {model_name}, {threads} threads")
         model = build_model(model_name, mesh.points, mesh.tets, ISO, loading, threads=threads)
         one = next(c for c in cases if c["name"] == model_name)
@@ -378,7 +380,7 @@ def _thread_cases(name: str, mesh, base: dict, loading, u0, n: int, cases: list,
 
 def _bsr_case(mesh, base: dict, loading, u0) -> dict:
     """The baseline a user would otherwise write: scipy's BSR product with the same matrix."""
-    lin = build_model("linear-tm", mesh.points, mesh.tets, ISO, loading)
+    lin = build_model(linear_tm.NAME, mesh.points, mesh.tets, ISO, loading)
     K = lin.extra["tensors"].matrix().tobsr(blocksize=(3, 3))
     x = u0.ravel().copy()
     reps = 50 if mesh.n_tets < 20000 else 10
@@ -395,10 +397,10 @@ CUTS = 10
 
 
 def _cut_case(mesh, base: dict, loading) -> dict:
-    """Cutting one tetrahedron out of linear-tm (``realtime.registry.cut``), one after another in a
+    """Cutting one tetrahedron out of linear-tm (``realtime.models.linear_tm.cut``), one after another in a
     random order across the mesh: what a haptic frame pays for a scalpel's stroke. Microseconds per
     cut."""
-    state = {"model": build_model("linear-tm", mesh.points, mesh.tets, ISO, loading), "next": 0}
+    state = {"model": build_model(linear_tm.NAME, mesh.points, mesh.tets, ISO, loading), "next": 0}
     order = np.random.default_rng(0).permutation(mesh.n_tets)
 
     def cuts(state=state, order=order):
@@ -414,7 +416,7 @@ def _quasi_static_cases(name: str, mesh, base: dict, loading) -> tuple[list, lis
     update; rows that say why where the dense precomputation would not fit."""
     skipped, cases = [], []
     surface = len(mesh.surface_vertices) * 3
-    for model_name in ("precomputed", "condensed"):
+    for model_name in (precomputed.NAME, condensed.NAME):
         if surface > DENSE_LIMIT:
             skipped.append(
                 {
@@ -460,7 +462,7 @@ def _quasi_static_cases(name: str, mesh, base: dict, loading) -> tuple[list, lis
                 "fn": _step_case(QuasiStatic(), model, state, 1e-3, 1),
             }
         )
-        if model_name == "precomputed":
+        if model_name == precomputed.NAME:
             pc = model.extra["quasistatic"]
             d = np.array([0.0, 0.0, -0.005])
 

@@ -3,6 +3,7 @@ docs/benchmarks.md, one per machine, with the machine, the date and the commit i
 
 from __future__ import annotations
 
+from realtime.models import linear_tm
 from verification.bench import codegen
 
 
@@ -24,7 +25,7 @@ def format_table(out: dict) -> str:
                 f"triad on {ms['bytes'] / 1e6:.3g} MB {ms['triad']:.2f}x"
             )
         lines.append(head)
-        lin = next(r["step_us"] for r in rows if r["name"] == "linear-tm")
+        lin = next(r["step_us"] for r in rows if r["name"] == linear_tm.NAME)
         bsr = next(r["step_us"] for r in rows if r["name"] == "scipy-bsr-matvec")
         rows = sorted(rows, key=lambda r: r.get("step_us") is None)
         for r in rows:
@@ -64,7 +65,7 @@ def markdown_section(out: dict) -> str:
     ]
     for mesh in dict.fromkeys(r["mesh"] for r in out["results"]):
         rows = [r for r in out["results"] if r["mesh"] == mesh]
-        lin = next(r["step_us"] for r in rows if r["name"] == "linear-tm")
+        lin = next(r["step_us"] for r in rows if r["name"] == linear_tm.NAME)
         bsr = next(r["step_us"] for r in rows if r["name"] == "scipy-bsr-matvec")
         for r in rows:
             if r.get("step_us") is None:

@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from realtime.models import linear_tm, stvk_tm
 from verification.inputs import check_held
 from verification.metrics import METRICS
 from verification.scene import SceneError, implausible
@@ -418,9 +419,9 @@ def cmd_converge(args) -> int:
     if scene.manufactured:
         out = converge_manufactured(scene)
     elif args.in_ == "time":
-        out = converge_time(scene, models=args.models or ("linear-tm",))
+        out = converge_time(scene, models=args.models or (linear_tm.NAME,))
     else:
-        out = converge_space(scene, models=args.models or ("linear-tm", "stvk-tm"), levels=args.levels)
+        out = converge_space(scene, models=args.models or (linear_tm.NAME, stvk_tm.NAME), levels=args.levels)
     _emit(args, out, format_converge)
     return 0
 

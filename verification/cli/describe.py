@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from realtime.models import linear_tm
 from verification.scene import implausible
 
 
@@ -18,7 +19,7 @@ def describe(scene) -> dict:
     mesh = scene.mesh
     loading = build_loading(mesh, scene.densities(), scene.problem)
     lo, hi = mesh.bounding_box()
-    model = realtime.build_model("linear-tm", mesh.points, mesh.tets, scene.body_material(), loading)
+    model = realtime.build_model(linear_tm.NAME, mesh.points, mesh.tets, scene.body_material(), loading)
     m = scene.material
     return {
         "scene": scene.name,

@@ -1,13 +1,18 @@
 """Engines behind the seam (``protocol``): the built-in one, and where others join it.
 
-``engine_for(model)`` names the engine that offers a model; ``ENGINES`` lists them by name.
+``engine_for(model)`` names the engine that offers a model, ``spec_of(model)`` what the harness may know
+of it (its ``ModelSpec``); ``ENGINES`` lists them by name.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from realtime.errors import InputError, did_you_mean
+from realtime.models import ModelSpec
 
 from .builtin import BUILTIN
+from .protocol import foreign_spec
 
 #: Every engine the harness can run, by name.
 ENGINES = {BUILTIN.name: BUILTIN}
@@ -21,6 +26,17 @@ def offered() -> tuple[str, ...]:
 def plug_in(model: str) -> bool:
     """Whether ``model`` is a plug-in engine's (not the built-in engine's)."""
     return model not in BUILTIN.models
+
+
+def spec_of(model: str) -> ModelSpec:
+    """What the harness may know of ``model`` (quasi-static or time-stepping, linear, what it represents,
+    its costs), as its engine says it (``Engine.models`` maps each name to its ModelSpec). A plug-in that
+    lists its models by name only says nothing of them: a time-stepping model, non-linear, whose
+    represented terms are unknown."""
+    engine = engine_for(model)
+    if isinstance(engine.models, Mapping):
+        return engine.models[model]
+    return foreign_spec(model, f"{engine.name}'s own")
 
 
 def engine_for(model: str):

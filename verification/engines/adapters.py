@@ -28,7 +28,7 @@ from realtime import DivergenceError, NotConvergedError
 from realtime.errors import InputError, ModelRestriction
 
 from .command import TIMEOUT, CommandSimulation
-from .protocol import SceneInputs, Settling
+from .protocol import SceneInputs, Settling, foreign_spec
 
 ROOT = Path(__file__).resolve().parents[2]
 #: Where the adapters are, and the venv ``make engines`` builds for them.
@@ -55,10 +55,10 @@ class AdapterEngine:
     #: The engine's own warnings the harness knows: a regular expression of the line, and what it means
     #: here. Each is explained once a process, in place of the engine's line and the element line after it.
     known_warnings: tuple = ()
-    models: tuple = field(init=False)
+    models: dict = field(init=False)  # each model's name -> its ModelSpec
 
     def __post_init__(self):
-        self.models = tuple(self.solvers)
+        self.models = {m: foreign_spec(m, f"{self.name}'s {solver} solver") for m, solver in self.solvers.items()}
         self.spec = self.name
 
     def build(self, inputs: SceneInputs, model: str, integrator: str, options: dict):

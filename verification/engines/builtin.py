@@ -19,8 +19,8 @@ import numpy as np
 import realtime
 from meshes.io import atomic_savez
 from realtime import DivergenceError, ImplicitEuler, State, SymplecticEuler, build_model, make_integrator, solve_static
+from realtime.models import SPECS, adaptive_tm, linear_tm
 from realtime.quasistatic import QuasiStatic
-from realtime.registry import MODELS, QUASI_STATIC
 from realtime.spectra import max_eigenvalue, min_eigenvalue
 from realtime.statics import solve_static_implicit
 from reference.progress import Progress
@@ -42,7 +42,7 @@ IMPLICIT_MAX_STEPS = 20_000
 def model_for(inputs: SceneInputs, model: str, **options):
     """The real-time Model of a scene (its SceneInputs), with its loading. adaptive-tm's mixed mesh gets
     the scene's loads as exactly as the scene's mesh (``SceneInputs.loading_on``)."""
-    if model == "adaptive-tm" and inputs.loading_on is not None:
+    if model == adaptive_tm.NAME and inputs.loading_on is not None:
         from realtime.adaptive import adaptive_plan
 
         plan = adaptive_plan(inputs.points, inputs.tets, inputs.material, inputs.loading, **options)
@@ -253,7 +253,7 @@ def refuse_unbounded(inputs: SceneInputs, exc: DivergenceError) -> None:
     free = np.flatnonzero(loading.free.reshape(-1) != 0.0)
     if not len(free) or len(free) > FACTOR_LIMIT:
         return
-    linear = build_model("linear-tm", inputs.points, inputs.tets, inputs.material, loading)
+    linear = build_model(linear_tm.NAME, inputs.points, inputs.tets, inputs.material, loading)
     K = linear.rest_stiffness()[free][:, free].tocsc()
     u = spla.spsolve(K, loading.external_force.reshape(-1)[free])
     reach, bound = float(np.abs(u).max()), blowup_bound(linear)
@@ -279,7 +279,7 @@ class BuiltinSimulation:
         ts = inputs.time
         self.inputs, self.options, self.model_obj = inputs, options, model
         self.model = model.name
-        self.quasi_static = model.name in QUASI_STATIC
+        self.quasi_static = SPECS[model.name].quasi_static
         self.integ = (
             QuasiStatic() if self.quasi_static else make_integrator(integrator, ts.damping_mass, ts.damping_stiffness)
         )
@@ -405,11 +405,11 @@ class BuiltinEngine:
     """``realtime``'s models (docs/models.md) as an Engine."""
 
     name = "realtime"
-    models = tuple(MODELS)
+    models = SPECS
 
     def build(self, inputs: SceneInputs, model: str, integrator: str = "symplectic-euler", options: dict | None = None):
         options = dict(options or {})
-        if model == "adaptive-tm" and inputs.time.mode == "dynamic" and inputs.loading_on is not None:
+        if model == adaptive_tm.NAME and inputs.time.mode == "dynamic" and inputs.loading_on is not None:
             from .readapting import Readapting, initial_model, readapting_options
 
             options = readapting_options(options)

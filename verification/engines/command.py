@@ -25,7 +25,7 @@ from realtime.errors import InputError
 
 from .export import export, output_times, tool_motions
 from .foreign import GAP, SHAPE_MATCH, UNITS, EngineResultError, read_result
-from .protocol import SceneInputs, Settling
+from .protocol import SceneInputs, Settling, foreign_spec
 
 #: Seconds a command may run before it is stopped (a hang is a failure, named).
 TIMEOUT = 600.0
@@ -49,7 +49,8 @@ class CommandEngine:
         if not command.strip():
             raise InputError("--engine-cmd: give the command that runs the engine")
         self.command, self.timeout = command, timeout
-        self.name, self.models = f"command {shlex.split(command)[0]}", (model,)
+        self.name = f"command {shlex.split(command)[0]}"
+        self.models = {model: foreign_spec(model, f"what {shlex.split(command)[0]} runs")}
 
     def build(self, inputs: SceneInputs, model: str, integrator: str, options: dict):
         return CommandSimulation(self, inputs, model)

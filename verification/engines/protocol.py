@@ -14,7 +14,7 @@ after each; for a static one, ``settle``, then the same two reads. ``step`` is w
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -22,6 +22,7 @@ import numpy as np
 
 from realtime.material import Material, Materials
 from realtime.model import Loading
+from realtime.models import ModelSpec
 
 
 @dataclass(frozen=True)
@@ -139,11 +140,19 @@ class Simulation(Protocol):
 
 @runtime_checkable
 class Engine(Protocol):
-    """An engine: its name, the models it offers, and how one is built on a scene."""
+    """An engine: its name, the models it offers (each name with its ModelSpec: what the harness may know
+    of it; a plug-in may list bare names, and then says nothing of them), and how one is built on a
+    scene."""
 
     name: str
-    models: tuple[str, ...]
+    models: Mapping[str, ModelSpec] | tuple[str, ...]
 
     def build(self, inputs: SceneInputs, model: str, integrator: str, options: dict) -> Simulation:
         """The model ``model`` on the scene ``inputs``, advanced by ``integrator``, with the model's own
         ``options`` (for example a threshold); InputError for what it cannot build."""
+
+
+def foreign_spec(model: str, law: str, **facts) -> ModelSpec:
+    """The spec of a model another engine builds: no builder here, ``law`` its own words, and whatever of
+    ``facts`` (ModelSpec's fields) it declares; what it represents is unknown unless declared."""
+    return ModelSpec(**{"name": model, "build": None, "law": law, "represents": None, **facts})

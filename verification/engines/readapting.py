@@ -16,6 +16,7 @@ from realtime import build_model
 from realtime.adaptive import coarse_plan, expand, plan_of
 from realtime.integrators import ImplicitEuler, SymplecticEuler
 from realtime.model import State
+from realtime.models import adaptive_tm
 from realtime.readapt import INDICATORS, adapted_sets, carried, indicator
 from realtime.spectra import max_eigenvalue
 from reference.progress import Progress
@@ -60,7 +61,7 @@ def initial_model(inputs: SceneInputs, options: dict):
 def _model(inputs: SceneInputs, plan):
     mixed_loading = inputs.loading_on(plan.points, plan.tets, plan.parent)
     return build_model(
-        "adaptive-tm",
+        adaptive_tm.NAME,
         inputs.points,
         inputs.tets,
         inputs.material,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import html
 
+from realtime.models import corotational_tm, hybrid_tm, linear_tm, mass_spring, stvk_tm
 from verification.events import states
 from verification.progress import log
 from verification.runs.compare import compare
@@ -15,7 +16,7 @@ from verification.studies.frame import with_bar
 
 #: The scene the section cuts and sutures, and the models it runs there.
 CUT_SCENE = "cantilever-cut"
-CUT_MODELS = ("linear-tm", "corotational-tm", "stvk-tm", "hybrid-tm", "mass-spring")
+CUT_MODELS = (linear_tm.NAME, corotational_tm.NAME, stvk_tm.NAME, hybrid_tm.NAME, mass_spring.NAME)
 
 
 def cut_cells() -> list[tuple]:

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from meshes import TetMesh
+from realtime.models import linear_tm, mass_spring, precomputed, stvk_tm
 from verification.progress import log
 from verification.report.common import fmt
 from verification.report.plots import (
@@ -78,10 +79,10 @@ DEFAULT_QUESTION = Question()
 STABILITY_SCENE = "cantilever"
 
 
-STABILITY_MODELS = ("linear-tm", "stvk-tm")
+STABILITY_MODELS = (linear_tm.NAME, stvk_tm.NAME)
 
 
-PICTURE_MODELS = ("linear-tm", "stvk-tm", "mass-spring", "precomputed")
+PICTURE_MODELS = (linear_tm.NAME, stvk_tm.NAME, mass_spring.NAME, precomputed.NAME)
 
 
 def _solver(options: dict) -> str:
@@ -316,7 +317,7 @@ def _repairs(mesh) -> str:
 def convergence_section() -> tuple[str, dict]:
     log("report: convergence")
     man = converge_manufactured(load_scene("manufactured"))
-    tim = converge_time(load_scene("cantilever-dynamic"), models=("linear-tm",))
+    tim = converge_time(load_scene("cantilever-dynamic"), models=(linear_tm.NAME,))
     rows = "".join(
         f"<tr><td>{s['label']}</td><td>{s['order']:.2f}</td><td>{s['theory']}</td>"
         f"<td>{', '.join(f'{e:.3g}' for e in s['error'])}</td></tr>"

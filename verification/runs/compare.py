@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from realtime import DivergenceError
-from realtime.registry import FLOAT32_MODELS, QUASI_STATIC, unrepresented
+from verification.engines import spec_of
 from verification.engines.builtin import BUILTIN, UnboundedAnswerError
 from verification.inputs import scene_inputs
 from verification.metrics import compute, rel_l2
@@ -52,7 +52,7 @@ def error_budget(scene: Scene, model_name: str, res: Result, ref: Result, integr
     out["mesh"] = distance(p1.displacement, ref.displacement)
     model_u = res.displacement
     dt = res.meta.get("dt")
-    if scene.time.mode == "dynamic" and dt is not None and model_name not in QUASI_STATIC:
+    if scene.time.mode == "dynamic" and dt is not None and not spec_of(model_name).quasi_static:
         record = res.meta.get("adaptation")
         if record:  # a re-adapting run's step follows its mesh: an eighth of its fraction of each one's
             fraction = record[0]["dt"] / res.meta["dt_crit"] / 8.0
@@ -82,7 +82,7 @@ def cancelling(total: float | None, mesh: float | None, model: float | None) -> 
 
 
 def float32_twin(scene: Scene, res: Result) -> dict:
-    """The run of ``res`` (a float64 explicit run of a model in FLOAT32_MODELS) again with its model
+    """The run of ``res`` (a float64 explicit run of a model whose spec says float32) again with its model
     built in float32, at the same dt: on a dynamic scene the same trajectory, on a static one the same
     number of settling steps (``BuiltinSimulation.settle_steps``: a float32 residual cannot say when to
     stop). Returns the float32 run's displacement (T, N, 3) m and its meta: dt, settle_steps and the
@@ -122,21 +122,22 @@ def compare(
 
     A diverging run gives a row of status "diverged" with the step, dt and dt_crit instead of errors.
     ``unrepresented`` lists what the material asks that the model does not represent (fibres, the
-    volume penalty: realtime.registry.unrepresented): it ran without it, and its errors measure the cost.
+    volume penalty: ModelSpec.unrepresented): it ran without it, and its errors measure the cost.
     ``vtk`` (a directory or a .pvd path) also writes both displacements and the pointwise error at every
     output time as one ParaView series. ``budget`` adds ``error_budget`` (see ``error_budget``).
-    ``float32``: for a model of FLOAT32_MODELS under an explicit integrator, the row's ``float32`` holds
+    ``float32``: for a model whose spec says float32 under an explicit integrator, the row's ``float32`` holds
     its float32 twin (``float32_twin``): rel_l2_vs_float64, its distance from this run by the row's own
     metric, beside its rel_l2 against the reference, and its step times; None for the other models.
     ``options`` go to the engine's build (an adapter's knobs: iterations, substeps).
     """
     # a quasi-static model has its own update whatever integrator was asked for
+    spec = spec_of(model_name)
     base = {
         "scene": scene.name,
         "model": model_name,
-        "integrator": "quasi-static" if model_name in QUASI_STATIC else integrator,
+        "integrator": "quasi-static" if spec.quasi_static else integrator,
     }
-    base["unrepresented"] = tuple(unrepresented(model_name, scene.body_material()))
+    base["unrepresented"] = tuple(spec.unrepresented(scene.body_material()))
     ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
     try:
         res = run_model(
@@ -156,11 +157,7 @@ def compare(
         _write_vtk(vtk, scene, model_name, res, ref)
     m = res.meta
     parts = error_budget(scene, model_name, res, ref, integrator, max_steps) if budget else None
-    single = (
-        _float32_row(scene, res, ref)
-        if float32 and model_name in FLOAT32_MODELS and integrator != "implicit-euler"
-        else None
-    )
+    single = _float32_row(scene, res, ref) if float32 and spec.float32 and integrator != "implicit-euler" else None
     return Row(
         **{**base, "integrator": m["integrator"]},  # what stepped it: a plug-in's own solver
         status="ok",

@@ -65,7 +65,7 @@ class Row:
     build_s: float | None = None
     #: Whose error is it (runs.compare.error_budget): the mesh's, the model's and the time step's parts.
     error_budget: dict | None = None
-    #: The float32 twin of a FLOAT32_MODELS run (runs.compare.float32_twin).
+    #: The float32 twin of a float32-capable model's run (runs.compare.float32_twin).
     float32: dict | None = None
     #: The reference's summary: degree, refinement, law, cache key, its estimate and how it was solved.
     reference: dict | None = None

@@ -17,7 +17,6 @@ import numpy as np
 
 from realtime import DivergenceError, NotConvergedError
 from realtime.errors import InputError
-from realtime.registry import QUASI_STATIC
 from reference.progress import Progress
 
 from ..cache import git_commit, versions
@@ -252,7 +251,7 @@ def step_time_ahead(scene: Scene, model_name: str, dt=None, dt_fraction=None, in
     dt_crit (s) and the timing, or None where the step is not the harness's to time (another engine's,
     a quasi-static update) or the steps diverged (the run then says so itself)."""
     engine = engine_for(model_name)
-    if engine is not BUILTIN or scene.time.mode != "dynamic" or model_name in QUASI_STATIC:
+    if engine is not BUILTIN or scene.time.mode != "dynamic" or BUILTIN.models[model_name].quasi_static:
         return None
     sim = engine.build(scene_inputs(scene), model_name, integrator, {})
     dt, dt_crit = _dynamic_step(scene, sim, dt, dt_fraction)

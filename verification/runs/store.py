@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 
 from meshes.io import atomic_write_text
-from realtime.registry import QUASI_STATIC
 from verification.cache import (
     RUN_CODE,
     cache_dir,
@@ -23,7 +22,7 @@ from verification.cache import (
     machine_id,
     read_cached,
 )
-from verification.engines import engine_for, plug_in
+from verification.engines import engine_for, plug_in, spec_of
 from verification.runs.compare import compare
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row, jsonable
@@ -130,7 +129,7 @@ def compare_or_unsettled(scene: Scene, model: str, integrator: str, dt, fraction
     except NotConvergedError as exc:
         return Row(scene.name, model, integrator, "not settled", dt=dt, fraction=fraction, message=str(exc))
     except ModelRestriction as exc:
-        stepper = "quasi-static" if model in QUASI_STATIC else integrator  # as compare labels its rows
+        stepper = "quasi-static" if spec_of(model).quasi_static else integrator  # as compare labels its rows
         return Row(scene.name, model, stepper, "not applicable", dt=dt, fraction=fraction, message=str(exc))
 
 

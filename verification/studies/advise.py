@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-from verification.engines import engine_for, offered
+from verification.engines import engine_for, offered, spec_of
 from verification.progress import Bar, log
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
@@ -58,10 +58,6 @@ from verification.studies.proposal import (
 from verification.studies.sweep import sweep
 from verification.studies.truth import MARGIN, SHARP, sharp_reference
 
-LINEAR_MODELS = ("linear-tm", "precomputed", "condensed")
-#: Time-stepping models tried with implicit Euler on static scenes (it settles in tens of steps) and on
-#: dynamic ones.
-IMPLICIT_MODELS = ("linear-tm", "corotational-tm", "stvk-tm")
 #: On a dynamic scene, implicit Euler's steps per frame at the rate asked: one (the state changes once a
 #: frame), 4 and 16 (less numerical damping, more work: the runs too slow are screened out). On the
 #: stiff beam at 60 Hz, one step a frame was 16% off, four 1.4%, in 4.4 ms of a 16.7 ms frame.
@@ -141,7 +137,9 @@ def _candidates(
         # every rank goes on with the same rows: the reference solves below are collective
         res = comm.bcast(res, root=0)
     rows = list(res["rows"])
-    extra = [m for m in IMPLICIT_MODELS if m in (models or offered())]
+    # the time-stepping models whose spec lists implicit Euler, tried with it on static scenes (it settles
+    # in tens of steps) and on dynamic ones
+    extra = [m for m in (models or offered()) if "implicit-euler" in spec_of(m).integrators]
     if not dynamic:
         progress = Bar(len(extra), progress_label)
         for m in extra:
@@ -417,13 +415,13 @@ def _why_none(rows: list[Row], metric: str, tol: float, rate: float, proposal, t
 
 def _why_pick(choice: Row, rows: list[Row], metric: str, tol: float, dynamic: bool, level: int, physics: str) -> str:
     """Why the pick: linear is enough, or what the linear models lack (their error, or the rate)."""
-    if choice.model in LINEAR_MODELS:
+    if spec_of(choice.model).linear:
         why = (
             f"linear is enough: {physics}, and {choice.model} meets {metric} <= {tol:g} ({getattr(choice, metric):.3g})"
         )
     elif level:
         # on the scene's mesh the linear models' totals carry the mesh's part; their own part does not
-        own = [own_part(r) for r in rows if r.status == "ok" and r.model in LINEAR_MODELS]
+        own = [own_part(r) for r in rows if r.status == "ok" and spec_of(r.model).linear]
         own = [x for x in own if x is not None]
         why = f"{choice.model} is the first candidate that qualifies there: {physics}" + (
             f"; the linear models' own part of the error (against P1 on the same mesh) is at least {min(own):.3g}"
@@ -431,7 +429,7 @@ def _why_pick(choice: Row, rows: list[Row], metric: str, tol: float, dynamic: bo
             else ""
         )
     else:
-        linear = [r for r in rows if r.status == "ok" and r.model in LINEAR_MODELS]
+        linear = [r for r in rows if r.status == "ok" and spec_of(r.model).linear]
         accurate = [r for r in linear if getattr(r, metric) <= tol]
         if not linear:
             why = f"{choice.model} is the cheapest that qualifies: {physics}"

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from realtime.models import linear_tm, stvk_tm
 from verification.progress import Bar
 from verification.scene import Scene, SceneError
 
@@ -34,7 +35,7 @@ def converge_manufactured(scene: Scene) -> dict:
     return out
 
 
-def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 3) -> dict:
+def converge_space(scene: Scene, models=(linear_tm.NAME, stvk_tm.NAME), levels: int = 3) -> dict:
     """Nested mesh refinement: the scene's mesh and its uniform refinements (h, h/2, h/4, ...; the coarse
     vertices are vertices of every finer level), each model's error at each level's vertices against
     one P2 reference on the finest level, solved once, and the reference's own self-convergence (P1
@@ -98,7 +99,9 @@ def converge_space(scene: Scene, models=("linear-tm", "stvk-tm"), levels: int = 
     return out
 
 
-def converge_time(scene: Scene, models=("linear-tm",), integrators=("symplectic-euler", "central-difference")) -> dict:
+def converge_time(
+    scene: Scene, models=(linear_tm.NAME,), integrators=("symplectic-euler", "central-difference")
+) -> dict:
     """dt halving on a dynamic scene: each (model, integrator)'s trajectory at 0.4, 0.2, 0.1 x dt_crit
     against its own run at 0.025 x dt_crit; the observed order of the integrator."""
     from verification.runs.simulate import run_model

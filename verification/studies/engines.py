@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from realtime.models import linear_tm
 from reference.errors import ReferenceSolveError
 from reference.progress import line
 from verification.engines import ENGINES, engine_for
@@ -58,7 +59,7 @@ def adapter_models(models=None) -> list[tuple[AdapterEngine, str]]:
 
 def engines_plan(scene: Scene, pairs) -> list[dict]:
     """Every run of the study: model, dt (s), options, and the knob it varies ("dt" or "iterations")."""
-    dt_crit = BUILTIN.build(scene_inputs(scene), "linear-tm", "symplectic-euler", {}).critical_dt()
+    dt_crit = BUILTIN.build(scene_inputs(scene), linear_tm.NAME, "symplectic-euler", {}).critical_dt()
     plan = []
     for engine, model in pairs:
         steps = [f * dt_crit for f in EXPLICIT_FRACTIONS] if model in engine.explicit else list(IMPLICIT_STEPS)
@@ -107,13 +108,14 @@ def builtin_beside(scene: Scene, ref, use_cache: bool) -> list[dict]:
     """The built-in models in the same run, for the table beside the adapters: each at its default step
     (0.9 of its critical one, or its quasi-static update) with its error, its step time and its largest
     stable step (``largest_stable_fraction``, the same STABLE_STEPS probe from rest)."""
-    from realtime.registry import QUASI_STATIC
     from verification.studies.stable_step import largest_stable_fraction
 
     out = []
     for model in BUILTIN.models:
         row = cached_compare(scene, model, reference=ref, use_cache=use_cache, budget=scene.time.mode == "static")
-        stable = None if model in QUASI_STATIC else largest_stable_fraction(scene, model, use_cache=use_cache)
+        stable = (
+            None if BUILTIN.models[model].quasi_static else largest_stable_fraction(scene, model, use_cache=use_cache)
+        )
         out.append(
             {
                 "model": model,

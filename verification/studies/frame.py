@@ -260,15 +260,13 @@ def verdict(r: Row, metric: str, tol: float) -> tuple[bool, str]:
 
 
 def memory_bytes(model: str, n_vertices: int, n_surface: int) -> float:
-    """What a model's dense precomputation takes, in bytes: precomputed's responses (free dofs x
-    surface dofs) and condensed's Schur complement with its Cholesky factor (retained squared, twice);
-    both solve their right-hand sides a block at a time. Time-stepping models: sparse, negligible."""
-    n, s = 3.0 * n_vertices, 3.0 * n_surface  # dofs, surface dofs
-    if model == "precomputed":
-        return 8 * n * s
-    if model == "condensed":
-        return 8 * 2 * s * s
-    return 0.0
+    """What a model's dense precomputation takes, in bytes: its spec's ``memory`` (precomputed's responses,
+    dofs x surface dofs; condensed's Schur complement with its Cholesky factor), 0 where that is
+    negligible (the time-stepping models: sparse)."""
+    from verification.engines import spec_of
+
+    memory = spec_of(model).memory
+    return 0.0 if memory is None else memory(3.0 * n_vertices, 3.0 * n_surface)
 
 
 def available_memory() -> float:

@@ -152,10 +152,6 @@ def solve_references(jobs: list[tuple[Scene, dict]], workers: int | None = None)
     return failed
 
 
-#: The time-stepping models in the order their settling takes longest (adaptive-tm's mixed mesh first),
-#: so that the last job to finish is a short one.
-_SETTLE_ORDER = ("adaptive-tm", "corotational-tm", "hybrid-tm", "stvk-tm", "linear-tm", "mass-spring")
-
 #: Settlings tried ahead in this process, by cache path, whatever came of them: one that diverged or did
 #: not settle is not cached, and a study that asks for it again runs it itself (and reports it).
 SETTLED_AHEAD: set = set()
@@ -165,15 +161,14 @@ def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...], r
     """(In a worker process.) Settle ``scene`` with ``model_name`` through the engine seam
     (``Simulation.settle``), into the caches its engine and ``stable_step.largest_stable_fraction`` read, as a sweep and its advice would: with symplectic Euler at
     each of ``fractions`` of its critical step and at its largest stable fraction, and with implicit Euler
-    at its default step if the advisor tries it (``advise.IMPLICIT_MODELS``); none of these when
+    at its default step if the advisor tries it (its spec lists implicit Euler); none of these when
     ``fractions`` is empty. Then each of ``runs`` ((integrator, max_steps) at the default step: the
     stability study's cells, ``stability.settle_cells``). Returns how many settled (a run that diverges
     or does not settle is left to the study, which reports it)."""
     from realtime import DivergenceError, NotConvergedError
-    from verification.engines import engine_for
+    from verification.engines import engine_for, spec_of
     from verification.inputs import scene_inputs
     from verification.runs.simulate import SETTLE_MAX_STEPS, SETTLE_RTOL
-    from verification.studies.advise import IMPLICIT_MODELS
     from verification.studies.stable_step import largest_stable_fraction
 
     inputs, engine = scene_inputs(scene), engine_for(model_name)
@@ -181,7 +176,7 @@ def _settle_model(scene: Scene, model_name: str, fractions: tuple[float, ...], r
     if fractions:
         stable = largest_stable_fraction(scene, model_name)["stable"]
         todo += [("symplectic-euler", f, None) for f in (*fractions, *([stable] if stable else []))]
-        todo += [("implicit-euler", None, None)] if model_name in IMPLICIT_MODELS else []
+        todo += [("implicit-euler", None, None)] if "implicit-euler" in spec_of(model_name).integrators else []
     todo += [(integrator, None, max_steps) for integrator, max_steps in runs]
     done = 0
     for integrator, fraction, max_steps in todo:
@@ -204,13 +199,16 @@ def settle_ahead(
     study would one after the other (``_settle_model``). They then find each equilibrium cached and
     only time its steps, on a quiet machine: nothing is timed here. With one worker, one job or under
     mpirun nothing is settled here and each settles as it goes."""
-    from realtime import MODELS
-    from realtime.registry import QUASI_STATIC
+    from realtime import SPECS
     from verification.engines.builtin import settled_path
     from verification.inputs import scene_inputs
 
-    order = _SETTLE_ORDER + tuple(sorted(MODELS))
-    models = sorted((m for m in models or MODELS if m not in QUASI_STATIC), key=order.index)
+    def order(m: str) -> tuple:
+        """The costliest settling first (``ModelSpec.cost``: adaptive-tm's mixed mesh), so that the last
+        job to finish is a short one."""
+        return (-SPECS[m].cost, m)
+
+    models = sorted((m for m in models or SPECS if not SPECS[m].quasi_static), key=order)
     todo = [
         (scene, m, tuple(fractions))
         for m in models
@@ -221,11 +219,11 @@ def settle_ahead(
     paths = []
     for scene, m, integrator, max_steps in cells:
         path = settled_path(scene_inputs(scene), m, integrator, None, None, 1e-10, max_steps, None)
-        if m not in QUASI_STATIC and path not in SETTLED_AHEAD and not path.exists():
+        if not SPECS[m].quasi_static and path not in SETTLED_AHEAD and not path.exists():
             paths.append(path)
             runs.setdefault((scene.sha256(), m), [scene, m, ()])[2] += ((integrator, max_steps),)
     # after the sweeps' (longer) jobs, the costliest models first: the last to finish is a short one
-    todo += [(scene, m, (), r) for scene, m, r in sorted(runs.values(), key=lambda job: order.index(job[1]))]
+    todo += [(scene, m, (), r) for scene, m, r in sorted(runs.values(), key=lambda job: order(job[1]))]
     workers = _workers(workers, len(todo))
     if not workers:
         return

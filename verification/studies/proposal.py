@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 
+from verification.engines import spec_of
 from verification.progress import Bar
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row
@@ -24,10 +25,6 @@ from verification.studies.frame import (
     predict,
 )
 
-#: Models that refine the scene's mesh themselves: their error's mesh part is not P1's on the scene's
-#: mesh, so no finer scene mesh is proposed for them (adaptive-tm refined twice more would be a third
-#: level, at 64 times the cost, for a part the model already cut).
-OWN_MESH = ("adaptive-tm",)
 #: The longest wait for a candidate's first answer that a proposal may ask a user for, s, and that the
 #: advisor itself makes to try it: a quasi-static model's precomputation, or a time-stepping model's
 #: settling on a static scene (predicted, ``frame.predict``'s time to answer). stvk-tm on SOFA's liver
@@ -135,7 +132,9 @@ def _plans(scene: Scene, rows: list[Row], e1: float, order: float, tol: float, r
     n, surface = scene.mesh.n_vertices, len(scene.mesh.surface_vertices)
     plans = []
     for r in rows:
-        if r.status != "ok" or r.model in OWN_MESH:
+        # a model on a mesh of its own: its error's mesh part is not P1's on the scene's mesh (adaptive-tm
+        # refined twice more would be a third level, at 64 times the cost, for a part the model already cut)
+        if r.status != "ok" or spec_of(r.model).own_mesh:
             continue
         own = own_part(r)
         if own is None:  # its own part unknown: no prediction of its total, so no level to plan for it

@@ -10,7 +10,8 @@ import json
 import numpy as np
 
 from realtime import MODELS
-from realtime.registry import QUASI_STATIC
+from realtime.models import linear_tm, stvk_tm
+from verification.engines import spec_of
 from verification.progress import Bar
 from verification.runs.store import cached_compare
 from verification.scene import Scene, SceneError
@@ -175,7 +176,7 @@ def _cases(scene: Scene) -> list[tuple[str, float, Scene]]:
 def _integrators(what: str, value: float, model: str) -> tuple[str, ...]:
     """The integrators a case's cell runs ``model`` with: implicit Euler too for linear-tm and stvk-tm
     at nu >= 0.49, where the explicit step shrinks with the stiffening volume."""
-    implicit = what == "poisson" and value >= 0.49 and model in ("linear-tm", "stvk-tm")
+    implicit = what == "poisson" and value >= 0.49 and model in (linear_tm.NAME, stvk_tm.NAME)
     return ("symplectic-euler", "implicit-euler") if implicit else ("symplectic-euler",)
 
 
@@ -183,7 +184,7 @@ def settle_cells(scene: Scene, models, cases=None) -> list[tuple[Scene, str, str
     """The settlings the stability study of ``scene`` makes (for ``prefetch.settle_ahead``): (scene or
     variant, model, integrator, STABILITY_BUDGET) for its baselines and each case's cells; the
     quasi-static models do not settle."""
-    explicit = [m for m in models if m not in QUASI_STATIC]
+    explicit = [m for m in models if not spec_of(m).quasi_static]
     cells = [(scene, m, "symplectic-euler", STABILITY_BUDGET) for m in explicit]
     for what, value, variant in _cases(scene) if cases is None else cases:
         cells += [(variant, m, i, STABILITY_BUDGET) for m in explicit for i in _integrators(what, value, m)]
@@ -205,7 +206,7 @@ def stability(scene: Scene, models=None, tol: float = 0.1, use_cache: bool = Tru
     if scene.time.mode != "static":
         raise SceneError(f"{scene.path}: stability studies a static scene (time.mode = static)")
     models = list(models or MODELS)
-    explicit = [m for m in models if m not in QUASI_STATIC]
+    explicit = [m for m in models if not spec_of(m).quasi_static]
     cases = _cases(scene)
     if use_cache:
         jobs = [job for job in reference_jobs(scene) if job[0].sha256() not in FAILED_REFERENCES]
@@ -257,7 +258,7 @@ def _stability_summary(limits, baselines, table) -> list[str]:
             f"nu = {nearly['value']}: error more than doubles (locking) for {', '.join(locks) or 'none'}; "
             f"within tolerance: {', '.join(fine) or 'none'}"
         )
-        for m in ("linear-tm", "stvk-tm"):
+        for m in (linear_tm.NAME, stvk_tm.NAME):
             ex, im = nearly["models"].get(m, {}), nearly["models"].get(m + " (implicit)", {})
             if ex.get("settle_ms") and im.get("settle_ms"):
                 lines.append(

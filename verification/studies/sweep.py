@@ -8,9 +8,8 @@ from __future__ import annotations
 import math
 
 from realtime.errors import did_you_mean
-from realtime.registry import QUASI_STATIC
 from reference.errors import ReferenceSolveError
-from verification.engines import offered, plug_in
+from verification.engines import offered, plug_in, spec_of
 from verification.metrics import METRICS
 from verification.progress import Bar
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
@@ -55,7 +54,7 @@ def sweep_plan(models, fractions, dts, integrator: str) -> list[dict]:
     """The runs of a sweep: each model at each fraction (or each dt in seconds); quasi-static once."""
     plan = []
     for m in models:
-        if m in QUASI_STATIC:
+        if spec_of(m).quasi_static:
             plan.append({"model": m, "integrator": "quasi-static", "dt": None, "fraction": None})
             continue
         if plug_in(m):  # its steps are its own: one run
@@ -148,7 +147,7 @@ def sweep(
     plan = sweep_plan(models, fractions, dts, integrator)
     if largest_stable:
         for m in models:
-            if m not in QUASI_STATIC and integrator != "implicit-euler" and not plug_in(m):
+            if not spec_of(m).quasi_static and integrator != "implicit-euler" and not plug_in(m):
                 plan.append({"model": m, "integrator": integrator, "dt": None, "fraction": "largest-stable"})
     rows = _run_plan(scene, plan, ref, ref_opts, integrator, use_cache, float32, rank, size, screen)
     if comm is not None and size > 1:

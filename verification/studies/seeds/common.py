@@ -14,6 +14,7 @@ import numpy as np
 from meshes.io import atomic_savez
 from realtime import NotConvergedError
 from realtime.geometry import signed_volumes
+from realtime.models import corotational_tm, linear_tm, stvk_tm
 from verification.cache import cache_dir, read_cached
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.simulate import run_model
@@ -100,7 +101,7 @@ SMALL = Size(
     speedup_h=0.01,
 )
 
-TENSOR_MASS = ("linear-tm", "corotational-tm", "stvk-tm")
+TENSOR_MASS = (linear_tm.NAME, corotational_tm.NAME, stvk_tm.NAME)
 
 
 def seed_scene(stem: str, suffix: str = "", edit=None, refine: int = 0) -> Scene:

@@ -11,6 +11,7 @@ import numpy as np
 from meshes.store import get_mesh
 from realtime import Loading, Material, NotConvergedError, State, SymplecticEuler, build_model
 from realtime.geometry import signed_volumes
+from realtime.models import linear_tm
 from verification.progress import log
 from verification.report.plots import png
 from verification.studies.seeds.common import TENSOR_MASS, Size, _finding, _volume_change
@@ -93,12 +94,12 @@ def global_rotation(size: Size) -> dict:
     material = Material(young=5.0e4, poisson=0.45, density=1000.0, law="stvk")
     free = Loading.free_body(mesh.n_vertices)
     models = {m: build_model(m, mesh.points, mesh.tets, material, free) for m in TENSOR_MASS}
-    mass = models["linear-tm"].mass
+    mass = models[linear_tm.NAME].mass
     centre = mass @ mesh.points / mass.sum()
     x = mesh.points - centre
     volume = float(signed_volumes(mesh.points, mesh.tets).sum())
     # the slowest elastic mode sets the damping and the settling clock
-    k = models["linear-tm"].rest_stiffness().toarray()
+    k = models[linear_tm.NAME].rest_stiffness().toarray()
     minv = 1.0 / np.sqrt(np.repeat(mass, 3))
     eig = np.linalg.eigvalsh(minv[:, None] * k * minv[None, :])
     omega1 = math.sqrt(eig[eig > 1e-8 * eig[-1]][0])
@@ -151,7 +152,7 @@ def decide(data: dict) -> str:
 def _turned(deg: float, models: dict, material, mesh, x: np.ndarray, volume: float, omega1: float) -> dict:
     """One angle's row: the closed forms, and each model's energy when turned and volume change when
     released (``x`` (N, 3) m the vertices about the centre of mass, ``omega1`` 1/s the slowest mode)."""
-    mass = models["linear-tm"].mass
+    mass = models[linear_tm.NAME].mass
     axis = np.array([0.0, 0.0, 1.0])
     t = math.radians(deg)
     g = rotation_matrix(axis, t) - np.eye(3)

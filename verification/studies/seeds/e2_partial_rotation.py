@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import matplotlib.pyplot as plt
 
+from realtime.models import linear_tm, stvk_tm
 from verification.metrics import rel_l2
 from verification.progress import log
 from verification.report.plots import png, projected_shapes
@@ -75,7 +76,7 @@ def partial_rotation(size: Size) -> dict:
             answers[m] = u
             row[f"{m}_rel_l2"] = rel_l2(u, ref)
             row[f"{m}_volume_change"] = _volume_change(mesh.points, mesh.tets, u)
-        row["linear_vs_stvk"] = rel_l2(answers["linear-tm"], answers["stvk-tm"])
+        row["linear_vs_stvk"] = rel_l2(answers[linear_tm.NAME], answers[stvk_tm.NAME])
         rows.append(row)
         shapes = (mesh, ref, answers, deg)
         log(f"seeds 2: {deg} degrees: linear {row['linear-tm_rel_l2']:.3f}, stvk {row['stvk-tm_rel_l2']:.3f}")
@@ -104,8 +105,8 @@ def partial_rotation(size: Size) -> dict:
             mesh.points,
             mesh.boundary,
             [
-                (answers["stvk-tm"], "stvk-tm (solid)", "solid", "#9ecae1"),
-                (answers["linear-tm"], "linear-tm (wireframe)", "wire", "#d62728"),
+                (answers[stvk_tm.NAME], "stvk-tm (solid)", "solid", "#9ecae1"),
+                (answers[linear_tm.NAME], "linear-tm (wireframe)", "wire", "#d62728"),
             ],
             axes,
         )

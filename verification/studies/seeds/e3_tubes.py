@@ -7,6 +7,7 @@ import copy
 import matplotlib.pyplot as plt
 import numpy as np
 
+from realtime.models import linear_tm, stvk_tm
 from verification.metrics import rel_l2
 from verification.progress import log
 from verification.report.plots import png
@@ -69,7 +70,7 @@ def tubes(size: Size) -> dict:
         estimates.append(est)
         top = scene.problem.loads[0].region.vertices(scene.mesh)
         row = {"fibres": label, "ref_tip_mm": 1e3 * float(ref[top, 0].mean())}
-        for m in ("linear-tm", "stvk-tm"):
+        for m in (linear_tm.NAME, stvk_tm.NAME):
             u, _ = _settled(scene, m, size.reference)
             row[f"{m}_tip_mm"] = 1e3 * float(u[top, 0].mean())
             row[f"{m}_rel_l2"] = rel_l2(u, ref)
@@ -77,7 +78,7 @@ def tubes(size: Size) -> dict:
         log(f"seeds 3: {label}: reference tip {row['ref_tip_mm']:.3f} mm, stvk-tm {row['stvk-tm_tip_mm']:.3f} mm")
     iso = rows[0]
     for r in rows:
-        for k in ("ref", "linear-tm", "stvk-tm"):
+        for k in ("ref", linear_tm.NAME, stvk_tm.NAME):
             r[f"{k}_ratio"] = r[f"{k}_tip_mm"] / iso[f"{k}_tip_mm"]
     out["table"] = rows
     est = max((e for e in estimates if e is not None), default=None)
@@ -102,7 +103,7 @@ def tubes(size: Size) -> dict:
     out["reference"] = _reference_info(estimates)
     fig, ax = plt.subplots(figsize=(6.4, 3.2))
     xs = np.arange(len(rows))
-    for j, (k, c) in enumerate((("ref", "k"), ("linear-tm", "#d62728"), ("stvk-tm", "#1f77b4"))):
+    for j, (k, c) in enumerate((("ref", "k"), (linear_tm.NAME, "#d62728"), (stvk_tm.NAME, "#1f77b4"))):
         ax.bar(
             xs + (j - 1) * 0.27, [r[f"{k}_tip_mm"] for r in rows], 0.27, color=c, label="reference" if k == "ref" else k
         )

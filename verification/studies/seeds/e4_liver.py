@@ -5,6 +5,7 @@ from __future__ import annotations
 import matplotlib.pyplot as plt
 import numpy as np
 
+from realtime.models import linear_tm, stvk_tm
 from verification.metrics import rel_l2
 from verification.progress import log
 from verification.report.plots import png, projected_shapes
@@ -80,7 +81,7 @@ def liver(size: Size) -> dict:
             u, _ = _settled(scene, m, size.reference)
             answers[m] = u
             row[f"{m}_rel_l2"] = rel_l2(u, ref)
-        row["linear_vs_stvk"] = rel_l2(answers["linear-tm"], answers["stvk-tm"])
+        row["linear_vs_stvk"] = rel_l2(answers[linear_tm.NAME], answers[stvk_tm.NAME])
         rows.append(row)
         pictures.append((scene.name, mesh, answers))
         log(
@@ -109,15 +110,15 @@ def liver(size: Size) -> dict:
     out["reference"] = _reference_info(estimates)
     fig, axs = plt.subplots(1, len(pictures), figsize=(5.2 * len(pictures), 3.8), squeeze=False)
     for ax, (name, mesh, answers) in zip(axs[0], pictures, strict=True):
-        zero = np.zeros_like(answers["linear-tm"])
+        zero = np.zeros_like(answers[linear_tm.NAME])
         projected_shapes(
             ax,
             mesh.points,
             mesh.boundary,
             [
                 (zero, "rest shape", "wire", "#bbbbbb"),
-                (answers["stvk-tm"], "non-linear (stvk-tm, solid)", "solid", "#fdae6b"),
-                (answers["linear-tm"], "linear (wireframe)", "wire", "#3182bd"),
+                (answers[stvk_tm.NAME], "non-linear (stvk-tm, solid)", "solid", "#fdae6b"),
+                (answers[linear_tm.NAME], "linear (wireframe)", "wire", "#3182bd"),
             ],
             (0, 2),
         )

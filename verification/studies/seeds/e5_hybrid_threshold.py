@@ -5,7 +5,8 @@ from __future__ import annotations
 import matplotlib.pyplot as plt
 import numpy as np
 
-from realtime.registry import nonlinear_fraction
+from realtime.models import hybrid_tm, linear_tm, stvk_tm
+from realtime.models.hybrid_tm import nonlinear_fraction
 from verification.metrics import rel_l2
 from verification.progress import log
 from verification.report.plots import png
@@ -46,12 +47,12 @@ def hybrid_rates(size: Size) -> dict:
     pairs = [_threshold_row(scene, frac * umax, frac, ref, size) for frac in size.hybrid_fractions]
     rows, hybrid_answers = [row for row, _ in pairs], [u for _, u in pairs]
     bounds, answers = {}, {}
-    for m in ("stvk-tm", "linear-tm"):
+    for m in (stvk_tm.NAME, linear_tm.NAME):
         answers[m], meta = _settled(scene, m, size.reference)
         bounds[m] = {"step_us": meta["step_us"], "rate_hz": 1e6 / meta["step_us"], "rel_l2": rel_l2(answers[m], ref)}
-    linear_departure = rel_l2(answers["linear-tm"], answers["stvk-tm"])
+    linear_departure = rel_l2(answers[linear_tm.NAME], answers[stvk_tm.NAME])
     for r, u in zip(rows, hybrid_answers, strict=True):
-        r["departure_from_stvk"] = None if u is None else rel_l2(u, answers["stvk-tm"])
+        r["departure_from_stvk"] = None if u is None else rel_l2(u, answers[stvk_tm.NAME])
     out["table"] = rows
     rates = [r["rate_hz"] for r in rows]
     gain = rates[-1] / rates[0]
@@ -70,8 +71,8 @@ def hybrid_rates(size: Size) -> dict:
         "monotone": monotone,
         "fastest_keeping_nonlinear": best,
         "linear_departure_from_stvk": linear_departure,
-        "stvk-tm": bounds["stvk-tm"],
-        "linear-tm": bounds["linear-tm"],
+        stvk_tm.NAME: bounds[stvk_tm.NAME],
+        linear_tm.NAME: bounds[linear_tm.NAME],
     }
     out["verdict"] = decide(out["data"])
     out["decides"] = (
@@ -106,8 +107,8 @@ def _plot(rows: list[dict], rates: list[float], bounds: dict, scene: Scene) -> s
     fig, ax = plt.subplots(figsize=(6.4, 3.4))
     xs = [r["threshold_of_max"] for r in rows]
     ax.plot(xs, rates, "o-", color="#1f77b4", label="hybrid-tm rate")
-    ax.axhline(bounds["stvk-tm"]["rate_hz"], color="#1f77b4", ls=":", lw=0.8, label="stvk-tm rate")
-    ax.axhline(bounds["linear-tm"]["rate_hz"], color="#1f77b4", ls="--", lw=0.8, label="linear-tm rate")
+    ax.axhline(bounds[stvk_tm.NAME]["rate_hz"], color="#1f77b4", ls=":", lw=0.8, label="stvk-tm rate")
+    ax.axhline(bounds[linear_tm.NAME]["rate_hz"], color="#1f77b4", ls="--", lw=0.8, label="linear-tm rate")
     ax.set_xlabel("threshold / largest displacement")
     ax.set_ylabel("updates per second (Hz)", color="#1f77b4")
     ax2 = ax.twinx()
@@ -124,7 +125,7 @@ def _threshold_row(scene: Scene, threshold: float, frac: float, ref, size: Size)
     """hybrid-tm at ``threshold`` (m, ``frac`` of the largest reference displacement): its row (step time,
     rate, error, the share of tetrahedra non-linear at the reference's answer) and its settled answer
     (N, 3) m, None where it did not settle. ``ref``: the reference displacement (N, 3) m."""
-    u, meta = _settled(scene, "hybrid-tm", size.reference, {"threshold": threshold}, allow_unsettled=True)
+    u, meta = _settled(scene, hybrid_tm.NAME, size.reference, {"threshold": threshold}, allow_unsettled=True)
     row = {
         "threshold_mm": 1e3 * threshold,
         "threshold_of_max": frac,

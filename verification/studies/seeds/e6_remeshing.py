@@ -5,6 +5,7 @@ from __future__ import annotations
 import matplotlib.pyplot as plt
 import numpy as np
 
+from realtime.models import linear_tm, mass_spring
 from verification.metrics import rel_l2
 from verification.progress import log
 from verification.report.plots import png
@@ -36,7 +37,7 @@ def decide(data: dict) -> str:
         data["mass_spring_over_linear_tm_step"] >= 1.0,
         data["linear_tm_error_ratio_on_refinement"] <= 2 / 3,
         data["mass_spring_error_ratio_on_refinement"] > 0.8,
-        topo["mass-spring"] > TOPOLOGY_FACTOR * topo["linear-tm"],
+        topo[mass_spring.NAME] > TOPOLOGY_FACTOR * topo[linear_tm.NAME],
     ]
     return "confirmed" if all(checks) else ("refuted" if not any(checks) else "nuanced")
 
@@ -66,7 +67,7 @@ def remeshing(size: Size) -> dict:
             "mean_edge_mm": 1e3 * scene.mesh.mean_edge(),
             "ref_tip_mm": 1e3 * float(ref[tip, 2].mean()),
         }
-        for m in ("linear-tm", "mass-spring"):
+        for m in (linear_tm.NAME, mass_spring.NAME):
             u, meta = _settled(scene, m, size.reference)
             row[f"{m}_rel_l2"] = rel_l2(u, ref)
             row[f"{m}_tip_mm"] = 1e3 * float(u[tip, 2].mean())
@@ -84,7 +85,7 @@ def remeshing(size: Size) -> dict:
         "mass_spring_over_linear_tm_step": speed,
         "linear_tm_error_ratio_on_refinement": tm_drop,
         "mass_spring_error_ratio_on_refinement": ms_drop,
-        "tip_change_on_remeshing": {"linear-tm": topo_tm, "mass-spring": topo_ms},
+        "tip_change_on_remeshing": {linear_tm.NAME: topo_tm, mass_spring.NAME: topo_ms},
     }
     out["verdict"] = decide(out["data"])
     out["decides"] = (
@@ -98,7 +99,7 @@ def remeshing(size: Size) -> dict:
     )
     out["reference"] = _reference_info(estimates)
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(9.5, 3.4))
-    for m, c in (("linear-tm", "#1f77b4"), ("mass-spring", "#d62728")):
+    for m, c in ((linear_tm.NAME, "#1f77b4"), (mass_spring.NAME, "#d62728")):
         a1.loglog([r["mean_edge_mm"] for r in rows[:2]], [r[f"{m}_rel_l2"] for r in rows[:2]], "o-", color=c, label=m)
         a1.loglog([b["mean_edge_mm"]], [b[f"{m}_rel_l2"]], "x", color=c, ms=8, label=f"{m}, remeshed")
     a1.set_xlabel("mean edge (mm)")
@@ -106,7 +107,7 @@ def remeshing(size: Size) -> dict:
     a1.legend(fontsize=7)
     a1.set_title("error under refinement and remeshing", fontsize=9)
     xs = np.arange(len(rows))
-    for j, (m, c) in enumerate((("linear-tm", "#1f77b4"), ("mass-spring", "#d62728"))):
+    for j, (m, c) in enumerate(((linear_tm.NAME, "#1f77b4"), (mass_spring.NAME, "#d62728"))):
         a2.bar(xs + (j - 0.5) * 0.4, [r[f"{m}_step_us"] for r in rows], 0.4, color=c, label=m)
     a2.set_xticks(xs, [f"{r['mesh']}\n{r['n_vertices']} v" for r in rows], fontsize=7)
     a2.set_ylabel("us per step")

@@ -7,6 +7,7 @@ import math
 import matplotlib.pyplot as plt
 import numpy as np
 
+from realtime.models import mass_spring
 from verification.progress import log
 from verification.report.plots import png
 from verification.studies.seeds.common import Size, _finding, _slope, seed_scene
@@ -114,8 +115,8 @@ def _measured(level: int, young: float) -> dict:
         data["material"]["young"] = float(young)
 
     scene = seed_scene("spring-block", f"-E{young:g}", edit, refine=level)
-    model = scene_model(scene, "mass-spring")
-    stable = largest_stable_fraction(scene, "mass-spring")
+    model = scene_model(scene, mass_spring.NAME)
+    stable = largest_stable_fraction(scene, mass_spring.NAME)
     dt_f, valence = formula_dt(model)
     measured = stable["stable"] * stable["dt_crit"]
     log(f"seeds 7: E {young:g} Pa, level {level}: stable {measured:.3g} s, formula {dt_f:.3g} s")

@@ -6,7 +6,7 @@ import math
 
 import matplotlib.pyplot as plt
 
-from realtime.registry import QUASI_STATIC
+from realtime.models import SPECS, condensed, corotational_tm, hybrid_tm, linear_tm, mass_spring, precomputed, stvk_tm
 from verification.metrics import rel_l2
 from verification.progress import log
 from verification.report.plots import png
@@ -39,7 +39,15 @@ def _predicted_build(measured: list, n_vertices: int) -> float | None:
     return t1 * (n_vertices / n1) ** p
 
 
-RATE_MODELS = ("linear-tm", "corotational-tm", "stvk-tm", "hybrid-tm", "mass-spring", "precomputed", "condensed")
+RATE_MODELS = (
+    linear_tm.NAME,
+    corotational_tm.NAME,
+    stvk_tm.NAME,
+    hybrid_tm.NAME,
+    mass_spring.NAME,
+    precomputed.NAME,
+    condensed.NAME,
+)
 
 RATES = (("visual", 10.0), ("haptic", 1000.0))
 
@@ -60,7 +68,7 @@ def rates_cells(size: Size) -> list[tuple[Scene, str, str, int]]:
         (scene, m, "symplectic-euler", SETTLE_STEPS)
         for scene in rates_scenes(size)
         for m in RATE_MODELS
-        if m not in QUASI_STATIC
+        if not SPECS[m].quasi_static
         and memory_bytes(m, scene.mesh.n_vertices, len(scene.mesh.surface_vertices)) <= available_memory()
     ]
 
@@ -179,7 +187,7 @@ def _rate_row(scene: Scene, m: str, ref, size: Size, built: dict) -> dict:
     log(f"seeds 8: {m} on {mesh.n_tets} tetrahedra")
     u, meta = _settled(scene, m, size.reference, allow_unsettled=True)
     settled = u is not None
-    if settled and m in QUASI_STATIC:
+    if settled and SPECS[m].quasi_static:
         built.setdefault(m, []).append((mesh.n_vertices, meta["build_s"]))
     settle_steps = meta["static"]["steps"] if settled else 1
     run = Row(

@@ -6,7 +6,7 @@ import time
 
 import matplotlib.pyplot as plt
 
-from realtime.registry import QUASI_STATIC
+from realtime.models import SPECS, condensed, hybrid_tm, linear_tm, precomputed, stvk_tm
 from verification.metrics import rel_l2
 from verification.progress import log
 from verification.report.plots import png
@@ -15,7 +15,7 @@ from verification.scene import Scene
 from verification.studies.seeds.common import FULL, Size, _finding, _ref, _reference_info, _settled, seed_scene
 from verification.studies.seeds.e2_partial_rotation import _h_edit
 
-SPEEDUP_MODELS = ("condensed", "precomputed", "hybrid-tm", "linear-tm", "stvk-tm")
+SPEEDUP_MODELS = (condensed.NAME, precomputed.NAME, hybrid_tm.NAME, linear_tm.NAME, stvk_tm.NAME)
 
 
 def speedup_scene(size: Size) -> Scene:
@@ -58,7 +58,7 @@ def speedups(size: Size) -> dict:
     for m in SPEEDUP_MODELS:
         u, meta = _settled(scene, m, size.reference, allow_unsettled=True)
         step_s = meta["step_us"] * 1e-6
-        answer_s = None if u is None else (step_s if m in QUASI_STATIC else meta["static"]["steps"] * step_s)
+        answer_s = None if u is None else (step_s if SPECS[m].quasi_static else meta["static"]["steps"] * step_s)
         rows.append(
             {
                 "model": m,
@@ -73,7 +73,7 @@ def speedups(size: Size) -> dict:
         log(f"seeds 9: {m}: {fem_s / step_s:.3g}x per update, settled: {rows[-1]['settled']}")
     out["table"] = rows
     by = {r["model"]: r for r in rows[1:]}
-    quasi = min(by["condensed"]["speedup_update"], by["precomputed"]["speedup_update"])
+    quasi = min(by[condensed.NAME]["speedup_update"], by[precomputed.NAME]["speedup_update"])
     slowest_answer = min(rows[1:], key=lambda r: r["speedup_answer"])
     out["data"] = {
         "fem_s": fem_s,
@@ -101,7 +101,7 @@ def speedups(size: Size) -> dict:
         if r["rel_l2"] is None:  # never settled: no error to place it at
             continue
         ax.loglog(r["speedup_update"], max(r["rel_l2"], 1e-6), "o", label=f"{r['model']}, one update")
-        if r["model"] not in QUASI_STATIC:
+        if not SPECS[r["model"]].quasi_static:
             ax.loglog(r["speedup_answer"], max(r["rel_l2"], 1e-6), "x", color=ax.lines[-1].get_color())
     ax.axvline(1.0, color="k", ls=":", lw=0.8)
     ax.set_xlabel("speed-up against the full dolfinx solve (x: settled answer)")
