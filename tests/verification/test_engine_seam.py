@@ -21,6 +21,9 @@ from verification.runs.compare import compare
 from verification.runs.simulate import run_model
 from verification.scene_file import load_scene
 
+#: The examples, an engine of a user's among them (direct_p1.py).
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+
 
 class DirectP1:
     """A plug-in engine: the P1 linear-elastic equilibrium by one sparse solve (what a settled
@@ -273,11 +276,11 @@ def test_a_plug_in_that_diverges_is_a_diverged_row(monkeypatch):
     assert "diverged at step 12" in row.message
 
 
-DIRECT_P1 = f"{sys.executable} {Path(__file__).parent / 'engines' / 'direct_p1.py'} {{scene}} {{result}}"
+DIRECT_P1 = f"{sys.executable} {EXAMPLES / 'direct_p1.py'} {{scene}} {{result}}"
 
 
 def test_an_engine_in_another_process_is_judged_through_the_seam(capsys):
-    """A command that reads the exported scene and writes its answer (tests/engines/direct_p1.py: P1
+    """A command that reads the exported scene and writes its answer (examples/direct_p1.py: P1
     assembled and solved with numpy and scipy, nothing of the project imported): on cantilever-pull, a
     tool-driven static scene, its error against the reference is linear-tm's settled one (one linear
     system, to the settling's 1e-10 of the load), and its own step time is reported as the engine's."""
@@ -406,7 +409,7 @@ def test_an_engine_commands_answer_is_checked_against_the_scene_before_it_is_sco
     exit 2 (the same engine unspoilt scores linear-tm's error, test above)."""
     spoil = tmp_path / "spoil.py"
     spoil.write_text(SPOIL)
-    direct = Path(__file__).parent / "engines" / "direct_p1.py"
+    direct = EXAMPLES / "direct_p1.py"
     command = f"{sys.executable} {spoil} {{scene}} {{result}} {how} {direct}"
     code = main(["compare", "cantilever-pull", "--degree", "1", "--engine-cmd", command, "--model", "numpy-p1"])
     _one_line_exit_2(code, capsys.readouterr().err, needles)
