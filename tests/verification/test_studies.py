@@ -229,7 +229,8 @@ def test_settlings_made_ahead_on_two_processes_are_the_ones_a_run_makes(tmp_path
     for bit (one code, one machine; only the process differs), and a diverging fraction is left to the
     run, which reports it."""
     from realtime import DivergenceError
-    from verification.engines.builtin import scene_model, settled, settled_path
+    from verification.engines.builtin import scene_model
+    from verification.engines.settling import settled, settled_path
     from verification.inputs import scene_inputs
     from verification.runs.simulate import run_model
     from verification.studies.prefetch import settle_ahead
@@ -266,7 +267,7 @@ def test_the_stability_studys_settlings_made_ahead_are_the_ones_its_cells_read(t
     finds its equilibrium cached: the step count it reports is the one settled ahead, the explicit and
     the implicit cell alike (a mark put in the cached file comes out in the cell). A cell tried ahead is
     not queued again, whatever came of it."""
-    from verification.engines.builtin import settled_path
+    from verification.engines.settling import settled_path
     from verification.inputs import scene_inputs
     from verification.studies import prefetch
     from verification.studies.stability import STABILITY_BUDGET, _cell, _far_face_tool, settle_cells
@@ -482,6 +483,7 @@ def test_cache_keys_change_with_every_input_they_cover(monkeypatch):
         "realtime/models/stvk_tm.py",
         "verification/runs/store.py",
         "verification/engines/builtin.py",
+        "verification/engines/settling.py",
     } <= {str(f.relative_to(cache.ROOT)) for p in cache.RUN_CODE for f in cache.ROOT.glob(p)}
 
 
@@ -491,7 +493,7 @@ def test_cache_keys_change_with_the_libraries_the_engines_venv_and_the_machine(m
     versions in an adapter's run key (not a built-in model's); the machine in the settlings' key (a
     settling holds its wall time)."""
     from verification import cache
-    from verification.engines import builtin
+    from verification.engines import settling
     from verification.inputs import scene_inputs
     from verification.runs import reference as runner
     from verification.runs import store as runs
@@ -503,23 +505,23 @@ def test_cache_keys_change_with_the_libraries_the_engines_venv_and_the_machine(m
     inputs = scene_inputs(scene)
     settled = ("linear-tm", "symplectic-euler", None, 0.9, 1e-10, 2_000_000, None)
     before = (runs.run_key(**args), runs.run_key(**adapter), runner.reference_key(scene, 2, 0, True))
-    before_settled = builtin.settled_path(inputs, *settled)
+    before_settled = settling.settled_path(inputs, *settled)
     stable = ("linear-tm", "symplectic-euler", 2000, 7)
     before_stable = stable_step.stable_key(scene, *stable)
     assert stable_step.stable_key(scene, "stvk-tm", *stable[1:]) != before_stable
     other = {**cache.library_versions(), "numba": "0.0.1"}
-    for module in (runs, runner, builtin, stable_step):
+    for module in (runs, runner, settling, stable_step):
         monkeypatch.setattr(module, "library_versions", lambda: other)
     assert runs.run_key(**args) != before[0] and runs.run_key(**adapter) != before[1]
     assert runner.reference_key(scene, 2, 0, True) != before[2]
-    assert builtin.settled_path(inputs, *settled) != before_settled
+    assert settling.settled_path(inputs, *settled) != before_settled
     assert stable_step.stable_key(scene, *stable) != before_stable
     monkeypatch.undo()
     monkeypatch.setattr(runs, "installed_versions", lambda python: {"newton": "0.0.1"})
     assert runs.run_key(**adapter) != before[1] and runs.run_key(**args) == before[0]
     monkeypatch.undo()
-    monkeypatch.setattr(builtin, "machine_id", lambda: {"cpu": "another machine"})
-    assert builtin.settled_path(inputs, *settled) != before_settled
+    monkeypatch.setattr(settling, "machine_id", lambda: {"cpu": "another machine"})
+    assert settling.settled_path(inputs, *settled) != before_settled
     # the versions are this installation's, read from it
     versions = cache.library_versions()
     assert versions["numpy"] == np.__version__ and versions["fenics-dolfinx"] and versions["PETSc"]

@@ -14,7 +14,7 @@ from reference.errors import ReferenceSolveError
 from verification.cli.commands import _fail, _one_line
 from verification.cli.parser import build_parser
 from verification.engines import ENGINES, engine_for, load_engine
-from verification.engines.builtin import UnboundedAnswerError
+from verification.engines.settling import UnboundedAnswerError
 
 
 def main(argv=None) -> int:

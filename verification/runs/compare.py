@@ -9,7 +9,8 @@ import numpy as np
 
 from realtime import DivergenceError
 from verification.engines import spec_of
-from verification.engines.builtin import BUILTIN, UnboundedAnswerError
+from verification.engines.builtin import BUILTIN
+from verification.engines.settling import UnboundedAnswerError
 from verification.inputs import scene_inputs
 from verification.metrics import compute, rel_l2
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result

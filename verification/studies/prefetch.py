@@ -200,7 +200,7 @@ def settle_ahead(
     only time its steps, on a quiet machine: nothing is timed here. With one worker, one job or under
     mpirun nothing is settled here and each settles as it goes."""
     from realtime import SPECS
-    from verification.engines.builtin import settled_path
+    from verification.engines.settling import settled_path
     from verification.inputs import scene_inputs
 
     def order(m: str) -> tuple:
