@@ -12,8 +12,8 @@ from meshes.io import atomic_write_text
 from realtime import DivergenceError, State, make_integrator
 from verification.cache import RUN_CODE, cache_dir, code_digest, digest, library_versions, read_cached
 from verification.engines.builtin import model_for
-from verification.engines.settling import omega2_rest
 from verification.engines.protocol import SceneInputs
+from verification.engines.settling import omega2_rest
 from verification.runs.store import read_json_object
 from verification.scene import Scene
 
