@@ -12,9 +12,10 @@ import pytest
 
 from verification.cache import cache_dir
 from verification.cli import main
+from verification.engines import spec_of
 from verification.runs.reference import reference_result
 from verification.scene_file import load_scene
-from verification.studies.advise import LINEAR_MODELS, deformation_summary
+from verification.studies.advise import deformation_summary
 from verification.studies.stable_step import largest_stable_fraction
 from verification.studies.sweep import pareto_front
 
@@ -329,7 +330,7 @@ def test_advise_small_displacement_recommends_a_linear_model(capsys):
     # holds on every machine: the choice is made by the error and the cost, not by this machine's speed)
     assert main(["advise", "block-press", "--tol", "0.08", "--rate", "10", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["model"] in LINEAR_MODELS
+    assert spec_of(out["model"]).linear
     assert out["why"].startswith("linear is enough")
     assert out["runner_up"] is not None and out["deformation"]["max_rotation_deg"] < 5
 
@@ -338,7 +339,7 @@ def test_advise_small_displacement_recommends_a_linear_model(capsys):
 def test_advise_large_rotation_recommends_a_rotation_invariant_model(capsys):
     assert main(["advise", "block-twist", "--tol", "0.05", "--rate", "10", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["model"] not in LINEAR_MODELS and out["model"] is not None
+    assert out["model"] is not None and not spec_of(out["model"]).linear
     assert out["why"].startswith("needs a rotation-invariant model")
     # the linear models fail on their error, whatever they cost
     assert "the linear models' rel_l2 is at least" in out["why"]
