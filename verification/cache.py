@@ -1,6 +1,7 @@
-"""What a cached result is keyed by and stamped with: the cache's folder, digests of fields and of the
-code, the commit, the machine and the library versions, and how an entry is read (a damaged one is
-absent) (docs/data-flow.md)."""
+"""The one home of the harness's caches: where every entry lives (``entry``, one folder a kind,
+``KINDS``), what it is keyed by and stamped with (digests of fields and of the code, the commit, the
+machine and the library versions), and how an entry is read (a damaged one is absent)
+(docs/data-flow.md). numba's compiled kernels are realtime's own (``realtime.jitcache``)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,27 @@ from .progress import log
 
 
 def cache_dir() -> Path:
+    """The cache's folder: $TISSUEBENCH_CACHE, else ~/.cache/tissuebench."""
     return Path(os.environ.get("TISSUEBENCH_CACHE", Path.home() / ".cache" / "tissuebench"))
+
+
+#: Every kind of entry, its folder under ``cache_dir()``, and what one holds.
+KINDS = {
+    "reference": "a scene's ground truth (runs.reference): its displacements, reactions and bar, and an "
+    "adaptive truth's levels; the truth evaluated at another engine's points",
+    "runs": "a compare row (runs.store); a largest stable step (studies.stable_step); a seeds experiment's "
+    "settled answer (studies.seeds.common)",
+    "settled": "the built-in engine's static equilibria (engines.settling), the state a timed run starts from",
+    "effectivity": "one case of the effectivity table (studies.effectivity)",
+}
+
+
+def entry(kind: str, stem: str, key: str, suffix: str) -> Path:
+    """The path of the cache entry ``stem``-``key`` + ``suffix`` of ``kind`` (a key of KINDS), ``key`` the
+    digest of everything its content depends on. ValueError for a kind KINDS does not list."""
+    if kind not in KINDS:
+        raise ValueError(f"cache: kind {kind!r} is not one of {', '.join(KINDS)}")
+    return cache_dir() / kind / f"{stem}-{key}{suffix}"
 
 
 def git_commit(root: Path | None = None) -> str:

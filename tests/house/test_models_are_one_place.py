@@ -12,6 +12,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
+
 from realtime.models import SPECS
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -121,3 +123,26 @@ def test_a_model_added_as_one_file_is_built_listed_and_read_by_the_harness(tmp_p
     probe = f"COPY = {str(copy)!r}\n" + PROBE
     out = subprocess.run([sys.executable, "-c", probe], env=env, cwd=tmp_path, capture_output=True, text=True)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-3000:]
+
+
+def test_every_cache_entry_is_named_by_the_caches_one_home():
+    """The harness's caches have one home (verification/cache.py: ``entry`` and its KINDS): no other
+    module builds a path under the cache's folder itself, so that every kind of entry is listed there
+    with what it holds. An unknown kind is refused."""
+    from verification.cache import KINDS, entry
+
+    outside = [
+        f"{path.relative_to(ROOT)}:{node.lineno}"
+        for pkg in ("verification", "reference", "realtime", "meshes")
+        for path in sorted((ROOT / pkg).rglob("*.py"))
+        if path != ROOT / "verification" / "cache.py"
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.BinOp)
+        and isinstance(node.op, ast.Div)
+        and isinstance(node.left, ast.Call)
+        and getattr(node.left.func, "id", getattr(node.left.func, "attr", None)) == "cache_dir"
+    ]
+    assert not outside, "a cache path built outside verification.cache.entry: " + ", ".join(outside)
+    assert entry("runs", "s", "k", ".json").parent.name == "runs" and set(KINDS) >= {"reference", "settled"}
+    with pytest.raises(ValueError, match="'scratch'"):
+        entry("scratch", "s", "k", ".json")

@@ -109,11 +109,11 @@ def cmd_check(args) -> int:
 def _write_levels(target: str, name: str, res) -> None:
     """An adaptive reference's meshes, one step of a ParaView series a level, each with its P2 displacement
     at the vertices and its cells' indicator (--vtk)."""
-    from verification.cache import cache_dir
+    from verification.cache import entry
     from verification.report.vtk import write_levels
     from verification.runs.reference import levels_path, read_levels
 
-    path = levels_path(cache_dir() / "reference" / f"{res.meta['scene']}-{res.meta['cache_key']}.npz")
+    path = levels_path(entry("reference", res.meta["scene"], res.meta["cache_key"], ".npz"))
     if not path.exists():
         raise SceneError(f"--vtk: the adaptive reference's levels are not kept (solved with --no-cache?): {path}")
     written = write_levels(target, name, read_levels(path))

@@ -23,7 +23,7 @@ from realtime.spectra import max_eigenvalue, min_eigenvalue
 from realtime.statics import solve_static_implicit
 from reference.progress import Progress
 
-from ..cache import RUN_CODE, cache_dir, code_digest, digest, library_versions, machine_id, read_cached
+from ..cache import RUN_CODE, code_digest, digest, entry, library_versions, machine_id, read_cached
 from ..progress import mpi_rank
 from .protocol import SceneInputs
 
@@ -94,7 +94,7 @@ def settled_path(
         "max_steps": max_steps,
         "options": json.dumps(options or {}, sort_keys=True, default=str),
     }
-    return cache_dir() / "settled" / f"{inputs.name}-{digest(fields)}.npz"
+    return entry("settled", inputs.name, digest(fields), ".npz")
 
 
 #: Settled's fields after the state, as the cache file stores them.

@@ -17,7 +17,7 @@ import numpy as np
 
 from meshes.io import atomic_savez
 
-from ..cache import REFERENCE_CODE, cache_dir, code_digest, digest, git_commit, library_versions, read_cached
+from ..cache import REFERENCE_CODE, code_digest, digest, entry, git_commit, library_versions, read_cached
 from ..progress import log
 from ..scene import Scene, SceneError
 from .results import Result
@@ -144,7 +144,7 @@ def reference_path(
     """Where ``reference_result`` with these arguments keeps its answer."""
     newton = (newton_steps, min_increment)
     key = reference_key(scene, degree, refine, estimate, newton, own_mesh, petsc_options, adapt)
-    return cache_dir() / "reference" / f"{scene.name}-{key}.npz"
+    return entry("reference", scene.name, key, ".npz")
 
 
 def _save_solved(path: Path, problems: list, meta: dict) -> None:
@@ -352,7 +352,7 @@ def reference_at(scene: Scene, points: np.ndarray, **options) -> Result:
     empty = np.zeros((0, 4), dtype=np.int64)
     if scene.time.mode == "dynamic":
         key = digest({"reference": base.meta["cache_key"], "points": hashlib.sha256(points.tobytes()).hexdigest()})
-        path = cache_dir() / "reference" / f"{scene.name}-at-{key}.npz"
+        path = entry("reference", f"{scene.name}-at", key, ".npz")
         cached = read_cached(path, Result.load)
         if cached is not None:
             return cached

@@ -14,9 +14,9 @@ import json
 from meshes.io import atomic_write_text
 from verification.cache import (
     RUN_CODE,
-    cache_dir,
     code_digest,
     digest,
+    entry,
     installed_versions,
     library_versions,
     machine_id,
@@ -93,7 +93,7 @@ def cached_compare(
     use_cache = use_cache and (not plug_in(model) or getattr(engine_for(model), "cacheable", False))
     extra = {**({"float32": True} if float32 else {}), **({"engine": options} if options else {})}
     key = run_key(scene, model, integrator, dt, fraction, ref_opts, budget, extra or None)
-    path = cache_dir() / "runs" / f"{scene.name}-{key}.json"
+    path = entry("runs", scene.name, key, ".json")
     row = read_cached(path, _read_row) if use_cache else None
     if row is not None:
         return row.replace(cached=True)

@@ -278,7 +278,7 @@ def measure(name: str, returned: int = RETURNED) -> dict:
 def row_path(name: str, returned: int):
     """Where a case's row is kept: keyed by the case, the returned level, the reference's code and this
     module's, and the libraries' versions, so that a killed table resumes from its finished cases."""
-    from verification.cache import REFERENCE_CODE, cache_dir, code_digest, digest, library_versions
+    from verification.cache import REFERENCE_CODE, code_digest, digest, entry, library_versions
 
     case = CASES[name]
     key = digest(
@@ -290,7 +290,7 @@ def row_path(name: str, returned: int):
             "libraries": library_versions(),
         }
     )
-    return cache_dir() / "effectivity" / f"{case.scene}-{key}.json"
+    return entry("effectivity", case.scene, key, ".json")
 
 
 def effectivity_table(names=None, returned: int = RETURNED, use_cache: bool = True) -> dict:

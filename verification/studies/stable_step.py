@@ -10,7 +10,7 @@ import numpy as np
 
 from meshes.io import atomic_write_text
 from realtime import DivergenceError, State, make_integrator
-from verification.cache import RUN_CODE, cache_dir, code_digest, digest, library_versions, read_cached
+from verification.cache import RUN_CODE, code_digest, digest, entry, library_versions, read_cached
 from verification.engines.builtin import model_for
 from verification.engines.protocol import SceneInputs
 from verification.engines.settling import omega2_rest
@@ -85,7 +85,7 @@ def largest_stable_fraction(
     from verification.inputs import scene_inputs
 
     key = stable_key(scene, model_name, integrator, steps, iterations)
-    path = cache_dir() / "runs" / f"{scene.name}-stable-{key}.json"
+    path = entry("runs", f"{scene.name}-stable", key, ".json")
     kept = read_cached(path, read_json_object) if use_cache else None
     if kept is not None:
         return kept

@@ -15,7 +15,7 @@ from meshes.io import atomic_savez
 from realtime import NotConvergedError
 from realtime.geometry import signed_volumes
 from realtime.models import corotational_tm, linear_tm, stvk_tm
-from verification.cache import cache_dir, read_cached
+from verification.cache import entry, read_cached
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.simulate import run_model
 from verification.runs.store import run_key
@@ -130,7 +130,7 @@ def _settled(
     NotConvergedError."""
     opts = {"settled": True, "max_steps": SETTLE_STEPS, **(options or {})}
     key = run_key(scene, model, "symplectic-euler", None, None, ref_opts, False, opts)
-    path = cache_dir() / "runs" / f"{scene.name}-{model}-settled-{key}.npz"
+    path = entry("runs", f"{scene.name}-{model}-settled", key, ".npz")
     kept = read_cached(path, _read_settled)
     if kept is None:
         try:
