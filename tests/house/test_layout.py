@@ -126,3 +126,56 @@ def test_the_docs_guide_and_do_not_log():
     cited = {c for path in sources for c in re.findall(r"docs/([\w-]+\.md)", path.read_text())}
     missing = sorted(c for c in cited if not (docs / c).exists())
     assert not missing, "cited docs pages that do not exist: " + ", ".join(missing)
+
+
+#: The floors of the house (docs/architecture.md), lowest first: a module imports its own floor and those
+#: below, never one above. Between the packages: realtime imports none of the others; meshes reads the
+#: engine's geometry helpers and errors alone; reference reads the engine's pure material data alone.
+PACKAGE_FLOORS = ("realtime", "meshes", "reference", "verification")
+#: What a lower package may read of ``realtime``, by package.
+FROM_REALTIME = {
+    "meshes": ("realtime.errors", "realtime.geometry"),
+    "reference": ("realtime.material",),
+}
+#: Inside verification: the shared modules (scene, cache, metrics, figures ...) at 0, then its wings;
+#: ``inputs`` makes the seam's SceneInputs and stands on the engines' floor.
+VERIFICATION_FLOORS = (("engines", "inputs"), ("runs",), ("studies",), ("bench",), ("report",), ("cli",))
+
+
+def _floor(name: str) -> tuple[int, int]:
+    """(the package's floor, the floor inside verification) of module ``name``."""
+    parts = name.split(".")
+    inner = 0
+    if parts[0] == "verification" and len(parts) > 1:
+        inner = next((k + 1 for k, wing in enumerate(VERIFICATION_FLOORS) if parts[1] in wing), 0)
+    return PACKAGE_FLOORS.index(parts[0]), inner
+
+
+def _upward(graph: dict[str, set[str]]) -> list[str]:
+    """Every import of ``graph`` that goes up a floor, or reads more of realtime than its package may."""
+    up = []
+    for name, deps in sorted(graph.items()):
+        for dep in sorted(deps):
+            if _floor(dep) > _floor(name):
+                up.append(f"{name} -> {dep}")
+            allowed = FROM_REALTIME.get(name.split(".")[0])
+            if allowed is not None and dep.startswith("realtime") and dep not in allowed:
+                up.append(f"{name} -> {dep} (only {', '.join(allowed)})")
+    return up
+
+
+def test_the_floor_check_finds_a_planted_upward_import():
+    assert _upward({"verification.runs.x": {"verification.studies.y"}}) == [
+        "verification.runs.x -> verification.studies.y"
+    ]
+    assert _upward({"reference.a": {"realtime.models"}}) == ["reference.a -> realtime.models (only realtime.material)"]
+    assert (
+        _upward({"verification.cli.a": {"verification.runs.b", "meshes.io"}, "meshes.io": {"realtime.geometry"}}) == []
+    )
+
+
+def test_no_import_goes_up_a_floor():
+    modules = _modules()
+    graph = {name: _imports(name, path, modules) for name, path in modules.items()}
+    up = _upward(graph)
+    assert not up, "imports up a floor: " + "; ".join(up)

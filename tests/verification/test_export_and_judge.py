@@ -10,11 +10,11 @@ import pytest
 from meshes.io import read_mesh
 from verification.cli import main
 from verification.inputs import build_loading
-from verification.report.vtk import write_series
 from verification.runs.compare import compare
 from verification.runs.reference import P1_OWN_MESH, reference_result
 from verification.runs.simulate import run_model
 from verification.scene_file import load_scene
+from verification.vtk import write_series
 
 
 def _judge(capsys, *args) -> tuple[int, dict | str]:

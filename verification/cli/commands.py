@@ -82,7 +82,7 @@ def _scene(args, warn: bool = True, solves: bool = True):
 
 def _write_vtk(target: str, name: str, res) -> None:
     """A result's displacements at every output time as a ParaView series (--vtk)."""
-    from verification.report.vtk import write_series
+    from verification.vtk import write_series
 
     write_series(target, name, res.points, res.tets, res.times, {"displacement": res.displacement})
 
@@ -110,8 +110,8 @@ def _write_levels(target: str, name: str, res) -> None:
     """An adaptive reference's meshes, one step of a ParaView series a level, each with its P2 displacement
     at the vertices and its cells' indicator (--vtk)."""
     from verification.cache import entry
-    from verification.report.vtk import write_levels
     from verification.runs.reference import levels_path, read_levels
+    from verification.vtk import write_levels
 
     path = levels_path(entry("reference", res.meta["scene"], res.meta["cache_key"], ".npz"))
     if not path.exists():

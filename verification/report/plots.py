@@ -1,12 +1,7 @@
-"""The report's figures as embedded PNG: error against speed with the Pareto front, the error budget,
-deformed shapes, the tool's force over time and convergence plots; and the helpers the seeds page
-shares. Every axis names its quantity and unit; legends sit beside the axes, never over the data."""
+"""The report's figures as embedded PNG (``verification.figures``): error against speed with the Pareto
+front, the error budget, deformed shapes, the tool's force over time and convergence plots. Every axis names its quantity and unit; legends sit beside the axes, never over the data."""
 
 from __future__ import annotations
-
-import base64
-import html
-import io
 
 import matplotlib
 
@@ -14,56 +9,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.collections import LineCollection, PolyCollection  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
+from verification.figures import legend_beside, png  # noqa: E402
 from verification.runs.row import Row  # noqa: E402
 
 #: The markers of the error-against-speed plot's series, in turn.
 MARKERS = "os^Dv<>pPXh*"
-
-
-def png(fig) -> str:
-    """The figure as base64 PNG text; the figure is closed."""
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return base64.b64encode(buf.getvalue()).decode()
-
-
-def img(data: str, alt: str, wide: bool = False) -> str:
-    """An <img> element holding base64 PNG ``data``."""
-    return f'<img{" class=wide" if wide else ""} alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
-
-
-def projected_shapes(ax, points: np.ndarray, triangles: np.ndarray, shapes: list[tuple], axes=(0, 2)) -> None:
-    """Draw deformed surfaces projected on the plane of two coordinate ``axes`` (0 x, 1 y, 2 z).
-
-    points (N, 3) float64 m, rest positions; triangles (B, 3) int, the boundary. Each shape is
-    (u (N, 3) m, label, style, colour), style "solid" (faces painted back to front along the dropped
-    axis) or "wire" (the triangles' edges). Coordinates are plotted in mm.
-    """
-    depth_axis = ({0, 1, 2} - set(axes)).pop()
-    for u, label, style, colour in shapes:
-        x = (points + u) * 1e3
-        tri = x[triangles][:, :, list(axes)]
-        if style == "solid":
-            order = np.argsort(x[triangles][:, :, depth_axis].mean(axis=1))
-            ax.add_collection(
-                PolyCollection(tri[order], facecolors=colour, edgecolors="k", linewidths=0.1, alpha=0.9, label=label)
-            )
-        else:
-            segs = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
-            ax.add_collection(LineCollection(segs, colors=colour, linewidths=0.3, label=label))
-    ax.autoscale()
-    ax.set_aspect("equal")
-    ax.set_xlabel(f"{'xyz'[axes[0]]} (mm)")
-    ax.set_ylabel(f"{'xyz'[axes[1]]} (mm)")
-
-
-def _legend_beside(ax) -> None:
-    """The legend to the right of the axes, where it hides no data."""
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
 
 
 def plot_error_vs_speed(rows: list[Row], ref_est: float | None, title: str, notes=()) -> str:
@@ -104,7 +56,7 @@ def plot_error_vs_speed(rows: list[Row], ref_est: float | None, title: str, note
     ax.grid(True, which="both", alpha=0.3)
     for note in notes:
         ax.plot([], [], " ", label=note)
-    _legend_beside(ax)
+    legend_beside(ax)
     return png(fig)
 
 
@@ -174,7 +126,7 @@ def plot_budget(rows: list[Row], title: str) -> str:
     ax.plot([r.rel_l2 for r in rows], range(len(rows)), "k|", markersize=22, mew=2, label="total error")
     ax.set_xlabel("relative L2 displacement error, by part (fraction)")
     ax.set_title(title, fontsize=9)
-    _legend_beside(ax)
+    legend_beside(ax)
     ax.grid(True, axis="x", alpha=0.3)
     return png(fig)
 
@@ -251,7 +203,7 @@ def plot_reaction(times, ref_reaction, runs: dict, title: str) -> str:
     ax.set_ylabel("tool force, z (N)")
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
-    _legend_beside(ax)
+    legend_beside(ax)
     return png(fig)
 
 
@@ -267,5 +219,5 @@ def plot_convergence(res: dict, title: str, xlabel: str, ylabel: str) -> str:
     ax.set_ylabel(ylabel)
     ax.set_title(title + " (dashed: theoretical slopes)", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
-    _legend_beside(ax)
+    legend_beside(ax)
     return png(fig)

@@ -13,6 +13,7 @@ import numpy as np
 
 from meshes import TetMesh
 from realtime.models import linear_tm, mass_spring, precomputed, stvk_tm
+from verification.figures import img as _img
 from verification.progress import log
 from verification.report.common import fmt
 from verification.report.plots import (
@@ -24,7 +25,6 @@ from verification.report.plots import (
     plot_error_vs_speed,
     plot_reaction,
 )
-from verification.report.plots import img as _img
 from verification.report.scene_picture import scene_picture
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row

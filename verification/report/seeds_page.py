@@ -10,8 +10,8 @@ from pathlib import Path
 
 from meshes.io import atomic_write_text
 from verification.cache import git_commit, versions
+from verification.figures import img as _img
 from verification.report.common import CSS, REPORTS, fmt, make_report_dir
-from verification.report.plots import img as _img
 
 
 def rows_html(rows: list[dict]) -> str:

@@ -201,7 +201,7 @@ def _adaptation(record: list | None) -> dict | None:
 
 def _write_vtk(vtk: str, scene: Scene, model_name: str, res: Result, ref: Result) -> None:
     """Both displacements and the pointwise error at every output time as one ParaView series."""
-    from verification.report.vtk import write_series
+    from verification.vtk import write_series
 
     write_series(
         vtk,

@@ -12,8 +12,8 @@ from meshes.store import get_mesh
 from realtime import Loading, Material, NotConvergedError, State, SymplecticEuler, build_model
 from realtime.geometry import signed_volumes
 from realtime.models import linear_tm
+from verification.figures import png
 from verification.progress import log
-from verification.report.plots import png
 from verification.studies.seeds.common import TENSOR_MASS, Size, _finding, _volume_change
 
 

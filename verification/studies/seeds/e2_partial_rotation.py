@@ -5,9 +5,9 @@ from __future__ import annotations
 import matplotlib.pyplot as plt
 
 from realtime.models import linear_tm, stvk_tm
+from verification.figures import png, projected_shapes
 from verification.metrics import rel_l2
 from verification.progress import log
-from verification.report.plots import png, projected_shapes
 from verification.scene import Scene
 from verification.studies.seeds.common import (
     TENSOR_MASS,

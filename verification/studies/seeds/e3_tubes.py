@@ -8,9 +8,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from realtime.models import linear_tm, stvk_tm
+from verification.figures import png
 from verification.metrics import rel_l2
 from verification.progress import log
-from verification.report.plots import png
 from verification.scene import Scene
 from verification.studies.seeds.common import MEASURABLE, Size, _finding, _ref, _reference_info, _settled, seed_scene
 

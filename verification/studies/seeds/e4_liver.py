@@ -6,9 +6,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from realtime.models import linear_tm, stvk_tm
+from verification.figures import png, projected_shapes
 from verification.metrics import rel_l2
 from verification.progress import log
-from verification.report.plots import png, projected_shapes
 from verification.runs.reference import P1_OWN_MESH, reference_result
 from verification.scene import Scene
 from verification.studies.seeds.common import (

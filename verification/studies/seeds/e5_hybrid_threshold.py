@@ -7,9 +7,9 @@ import numpy as np
 
 from realtime.models import hybrid_tm, linear_tm, stvk_tm
 from realtime.models.hybrid_tm import nonlinear_fraction
+from verification.figures import png
 from verification.metrics import rel_l2
 from verification.progress import log
-from verification.report.plots import png
 from verification.scene import Scene
 from verification.studies.seeds.common import KEEPS_NONLINEAR, Size, _finding, _ref, _reference_info, _settled
 from verification.studies.seeds.e4_liver import liver_scene

@@ -8,8 +8,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from realtime.models import mass_spring
+from verification.figures import png
 from verification.progress import log
-from verification.report.plots import png
 from verification.studies.seeds.common import Size, _finding, _slope, seed_scene
 from verification.studies.stable_step import largest_stable_fraction
 

@@ -7,9 +7,9 @@ import math
 import matplotlib.pyplot as plt
 
 from realtime.models import SPECS, condensed, corotational_tm, hybrid_tm, linear_tm, mass_spring, precomputed, stvk_tm
+from verification.figures import png
 from verification.metrics import rel_l2
 from verification.progress import log
-from verification.report.plots import png
 from verification.runs.row import Row
 from verification.scene import Scene
 from verification.studies.frame import FRAME_SHARE, available_memory, frame_budget, memory_bytes

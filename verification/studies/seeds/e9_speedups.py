@@ -7,9 +7,9 @@ import time
 import matplotlib.pyplot as plt
 
 from realtime.models import SPECS, condensed, hybrid_tm, linear_tm, precomputed, stvk_tm
+from verification.figures import png
 from verification.metrics import rel_l2
 from verification.progress import log
-from verification.report.plots import png
 from verification.runs.reference import P1_OWN_MESH, reference_result
 from verification.scene import Scene
 from verification.studies.seeds.common import FULL, Size, _finding, _ref, _reference_info, _settled, seed_scene
