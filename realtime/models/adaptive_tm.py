@@ -2,29 +2,18 @@
 
 from __future__ import annotations
 
-from ..adaptive import DEFAULT_THRESHOLD, AdaptivePlan, adaptive_model
-from ..material import Material, Materials
-from ..model import Loading, Model
+from functools import partial
+
+from ..adaptive import adaptive_model
 from .base import ModelSpec
 
 NAME = "adaptive-tm"
 
-
-def build(
-    points,
-    tets,
-    material: Material | Materials,
-    loading: Loading | None = None,
-    threshold: float = DEFAULT_THRESHOLD,
-    plan: AdaptivePlan | None = None,
-    mixed_loading: Loading | None = None,
-    levels: int = 1,
-) -> Model:
-    """StVK tensor-mass on the mesh refined where the predictor's strain reaches ``threshold`` times its
-    largest, ``levels`` times (``realtime.adaptive.adaptive_model``, where ``plan`` and
-    ``mixed_loading`` are explained)."""
-    return adaptive_model(NAME, points, tets, material, loading, threshold, plan, mixed_loading, levels)
-
+#: ``build(points, tets, material, loading=None, threshold, plan, mixed_loading, levels)``: StVK
+#: tensor-mass on the mesh refined where the predictor's strain reaches ``threshold`` times its largest,
+#: ``levels`` times (``realtime.adaptive.adaptive_model``, where ``plan`` and ``mixed_loading`` are
+#: explained).
+build = partial(adaptive_model, NAME)
 
 SPEC = ModelSpec(
     name=NAME,
