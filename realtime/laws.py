@@ -4,8 +4,8 @@ One law per function, each a pure function of the deformation gradient F (3, 3) 
 (dimensionless) and named coefficients in Pa, returning J/m^3 (energy) or Pa (stress). They are numba
 functions so that kernels can call them per element; numpy callers get the same code.
 
-The fibre terms of Picinbono, Delingette & Ayache (2003, eq. 9) are part of each law: for an isotropic
-material pass a = 0 or dlam = dmu = 0.
+The fibre terms of Picinbono, Delingette & Ayache (2003, eq. 9) are part of the linear and StVK laws: for
+an isotropic material pass a = 0 or dlam = dmu = 0. The neo-Hookean law is isotropic.
 """
 
 from __future__ import annotations
@@ -68,6 +68,31 @@ def stvk_pk1(F, lam, mu, a, dlam, dmu):
     S = 2.0 * mu * E + lam * tr * np.eye(3)
     S += dlam * aea * np.outer(a, a) + dmu * (np.outer(a, ea) + np.outer(ea, a))
     return F @ S
+
+
+@nb.njit(**_JIT)
+def neo_hookean_energy(F, lam, mu):
+    """Compressible neo-Hookean energy (Bonet & Wood, Nonlinear Continuum Mechanics for Finite Element
+    Analysis, 2nd ed., eq. 6.27; Ogden 1984), isotropic:
+
+    W = mu/2 (tr(F^T F) - 3) - mu ln J + lam/2 (ln J)^2,   J = det F
+
+    It linearises to linear elasticity with the same Lame constants lam and mu (Pa). W = +inf where J <= 0:
+    an inverted element has no energy, and the force of one is NaN (the integrators stop on it).
+    """
+    J = det3(F)
+    if not J > 0.0:
+        return np.inf
+    lnj = np.log(J)
+    return 0.5 * mu * (np.sum(F * F) - 3.0) - mu * lnj + 0.5 * lam * lnj * lnj
+
+
+@nb.njit(**_JIT)
+def neo_hookean_pk1(F, lam, mu):
+    """P = dW/dF of neo_hookean_energy: P = mu (F - F^-T) + lam ln(J) F^-T (Bonet & Wood eq. 6.28)."""
+    J = det3(F)
+    FinvT = np.linalg.inv(F).T
+    return mu * (F - FinvT) + lam * np.log(J) * FinvT
 
 
 @nb.njit(**_JIT)

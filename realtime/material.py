@@ -50,7 +50,9 @@ import numpy as np
 
 from .errors import InputError, is_real
 
-LAWS = ("linear", "stvk")
+#: The laws of the ground truth; the fibre terms are the linear and StVK laws' (Picinbono et al. 2003).
+LAWS = ("linear", "stvk", "neo-hookean")
+FIBRE_LAWS = ("linear", "stvk")
 
 
 class MaterialError(InputError):
@@ -117,7 +119,8 @@ class Material:
         young: Young's modulus E, Pa.
         poisson: Poisson's ratio nu, dimensionless, in (-1, 0.5).
         density: mass density rho, kg/m^3.
-        law: continuum model of the ground truth, "linear" or "stvk".
+        law: continuum model of the ground truth, one of LAWS: "linear", "stvk" or "neo-hookean"
+            (compressible, isotropic: no fibres).
         fiber: unit fibre direction a (3,) for a transversely isotropic material, or None.
         fiber_axis: instead of ``fiber``, fibres around this axis (3,) (circumferential), or None.
         fiber_point: a point (3,) m of that axis (default the origin).
@@ -163,6 +166,11 @@ class Material:
             raise MaterialError(f"fiber_point = {self.fiber_point!r}: must be a finite 3-vector, m")
         object.__setattr__(self, "fiber_point", tuple(float(x) for x in point))
         if self.transverse:
+            if self.law not in FIBRE_LAWS:
+                raise MaterialError(
+                    f"law = {self.law!r} with fibres: the fibre terms are those of {' and '.join(FIBRE_LAWS)}; "
+                    "give an isotropic material or one of those laws"
+                )
             if not (math.isfinite(self.young_fiber) and self.young_fiber > 0.0):
                 raise MaterialError(f"young_fiber = {self.young_fiber!r}: must be a positive number of Pa")
             if not (math.isfinite(self.fiber_shear) and self.mu + 0.5 * self.fiber_shear > 0.0):

@@ -31,6 +31,7 @@ from .blocks import BLOCK, HOT
 from .corotational import corotational_blocks
 from .errors import InputError
 from .model import no_scratch
+from .neohookean import neohookean_blocks
 from .stvk import stvk_blocks
 from .tensor_mass import linear_rows, linear_tm_energy, linear_tm_force
 
@@ -267,6 +268,12 @@ def _stvk_chunk(tets, geo, prm, everywhere, W, b0, b1, u, f, span):
 
 
 @nb.njit(**HOT)
+def _neohookean_chunk(tets, geo, prm, everywhere, W, b0, b1, u, f, span):
+    f[span[0] : span[1], :] = 0.0
+    neohookean_blocks(tets, geo, prm, everywhere, W, b0, b1, u, f)
+
+
+@nb.njit(**HOT)
 def _corotational_chunk(tets, geo, prm, everywhere, W, R, Fb, b0, b1, u, f, span):
     f[span[0] : span[1], :] = 0.0
     corotational_blocks(tets, geo, prm, everywhere, W, R, Fb, b0, b1, u, f)
@@ -288,6 +295,14 @@ def stvk_unsummed(data, scratch, u, f):
     W, spans, F = scratch
     for t in nb.prange(chunks.shape[0] - 1):
         _stvk_chunk(tets, geo, prm, everywhere, W[t], chunks[t], chunks[t + 1], u, F[t], spans[t])
+
+
+@nb.njit(**PAR)
+def neohookean_unsummed(data, scratch, u, f):
+    (tets, geo, prm, everywhere), chunks = data
+    W, spans, F = scratch
+    for t in nb.prange(chunks.shape[0] - 1):
+        _neohookean_chunk(tets, geo, prm, everywhere, W[t], chunks[t], chunks[t + 1], u, F[t], spans[t])
 
 
 @nb.njit(**PAR)
@@ -314,6 +329,17 @@ def stvk_force_threaded(data, scratch, u, f):
     u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
     """
     stvk_unsummed(data, scratch, u, f)
+    sum_threads(scratch[-2], scratch[-1], f)
+
+
+@nb.njit(**PAR)
+def neohookean_force_threaded(data, scratch, u, f):
+    """neohookean.neohookean_force on the chunks' threads.
+
+    data: Threaded(BlockData, chunks over blocks).   scratch: threaded_scratch(block_scratch, T, N, float64, spans).
+    u: (N, 3) float64 displacement, m.   f: (N, 3) float64 force, N (overwritten).
+    """
+    neohookean_unsummed(data, scratch, u, f)
     sum_threads(scratch[-2], scratch[-1], f)
 
 
@@ -394,6 +420,7 @@ def block_kernel(force, energy, scratch, data, n_vertices: int, threads: int) ->
 #: The threaded version of each serial force kernel, by the serial kernel's name.
 THREADED = {
     "stvk_force": stvk_force_threaded,
+    "neohookean_force": neohookean_force_threaded,
     "corotational_force": corotational_force_threaded,
     "linear_tm_force": linear_tm_force_threaded,
 }
@@ -401,6 +428,7 @@ THREADED = {
 #: Euler's loop calls, summing the threads' forces in its update (steppers.se_sum_update_threads).
 UNSUMMED = {
     stvk_force_threaded.__name__: stvk_unsummed,
+    neohookean_force_threaded.__name__: neohookean_unsummed,
     corotational_force_threaded.__name__: corotational_unsummed,
     linear_tm_force_threaded.__name__: linear_tm_unsummed,
 }

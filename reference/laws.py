@@ -37,4 +37,13 @@ def volume_penalty_energy(F, kappa):
     return kappa / 2 * (ufl.det(F) - 1) ** 2
 
 
-LAWS = {"linear": linear_energy, "stvk": stvk_energy}
+def neo_hookean_energy(F, lam, mu, a, dlam, dmu):
+    """Compressible neo-Hookean: W = mu/2 (tr(F^T F) - 3) - mu ln J + lam/2 (ln J)^2, J = det F (Bonet &
+    Wood, Nonlinear Continuum Mechanics for Finite Element Analysis, 2nd ed., eq. 6.27). Isotropic: the
+    fibre coefficients ``a``, ``dlam``, ``dmu`` are taken for the common signature and not used (a
+    material with fibres and this law is refused where it is made)."""
+    J = ufl.det(F)
+    return mu / 2 * (ufl.tr(F.T * F) - 3) - mu * ufl.ln(J) + lam / 2 * ufl.ln(J) ** 2
+
+
+LAWS = {"linear": linear_energy, "stvk": stvk_energy, "neo-hookean": neo_hookean_energy}

@@ -504,6 +504,12 @@ class Newton:
             self._factorise()  # the tangent at the same u, factorised with the larger workspace
             self._linear_solve()
         if self.ksp.getConvergedReason() < 0:
+            # the factor is unusable, and so is the analysis behind it (a tangent taken where the law has
+            # no value, NaN from ln J at an inverted point, leaves MUMPS a pivot order drawn from NaNs,
+            # which PETSc keeps for every later factorisation of the same pattern): the next solve, from
+            # a state that was fine, analyses and factorises afresh there
+            self.at = None
+            self.ksp.getPC().reset()
             return int(self.ksp.getConvergedReason())
         self.linear_iterations += self.ksp.getIterationNumber()
         if self.iterative and self.pc_first_its is None:

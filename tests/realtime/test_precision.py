@@ -1,6 +1,7 @@
 """The float32 path (build_model's ``precision``): what it computes in, how far it lies from float64, and
 what it refuses (docs/engine-internals.md)."""
 
+import dataclasses
 import re
 
 import numba as nb
@@ -48,9 +49,14 @@ def test_a_float32_force_lies_within_a_few_round_offs_of_float64(name, strain, r
     mesh = stored_mesh("cylinder")
     size = float(np.ptp(mesh.points, axis=0).max())
     smooth = mesh.points @ np.array([[0.3, -0.2, 0.1], [0.2, 0.4, -0.3], [-0.1, 0.3, 0.5]])
-    u = strain * (smooth + 0.05 * size * rng.standard_normal(mesh.points.shape))
-    u = u.astype(np.float32).astype(np.float64)
-    f64 = build_model(name, mesh.points, mesh.tets, MATERIAL).internal_force(u)
+    noise = 0.05 * size * rng.standard_normal(mesh.points.shape)
+    model = build_model(name, mesh.points, mesh.tets, MATERIAL)
+    # at a strain of 0.1 the noise inverts two tetrahedra, where a law with no value there (neo-Hookean)
+    # has no force: for it, the noise is halved until none inverts
+    while not np.isfinite(model.elastic_energy(strain * (smooth + noise))):
+        noise *= 0.5
+    u = (strain * (smooth + noise)).astype(np.float32).astype(np.float64)
+    f64 = model.internal_force(u)
     f32 = build_model(name, mesh.points, mesh.tets, MATERIAL, precision="float32").internal_force(u)
     assert f32.dtype == np.float32
     assert np.linalg.norm(f32 - f64) <= 16 * U32 * np.linalg.norm(f64)
@@ -68,6 +74,8 @@ def test_a_float32_models_energy_is_its_float64_energy_to_round_off(name, rng):
     mesh = stored_mesh("cylinder")
     fibred = Material(3.0e3, 0.45, 1000.0, law="stvk", fiber=(0.0, 0.0, 1.0), young_fiber=9e3, volume_penalty=1e3)
     u = (1e-3 * float(np.ptp(mesh.points)) * rng.standard_normal(mesh.points.shape)).astype(np.float32)
+    if "fibres" not in SPECS[name].represents:  # neohookean-tm refuses them; mass-spring has no use for them
+        fibred = dataclasses.replace(fibred, fiber=None, young_fiber=None)
     for material in (MATERIAL, fibred):
         e64 = build_model(name, mesh.points, mesh.tets, material).elastic_energy(u)
         e32 = build_model(name, mesh.points, mesh.tets, material, precision="float32").elastic_energy(u)
