@@ -51,7 +51,7 @@ import numpy as np
 from .errors import InputError, is_real
 
 #: The laws of the ground truth; the fibre terms are the linear and StVK laws' (Picinbono et al. 2003).
-LAWS = ("linear", "stvk", "neo-hookean")
+LAWS = ("linear", "stvk", "neo-hookean", "stable-neo-hookean", "stable-neo-hookean-no-log")
 FIBRE_LAWS = ("linear", "stvk")
 
 
@@ -119,8 +119,9 @@ class Material:
         young: Young's modulus E, Pa.
         poisson: Poisson's ratio nu, dimensionless, in (-1, 0.5).
         density: mass density rho, kg/m^3.
-        law: continuum model of the ground truth, one of LAWS: "linear", "stvk" or "neo-hookean"
-            (compressible, isotropic: no fibres).
+        law: continuum model of the ground truth, one of LAWS: "linear", "stvk", "neo-hookean"
+            (compressible, isotropic: no fibres) or the stable neo-Hookean laws newton's tetrahedra run
+            (Smith et al. 2018, with and without the log term; isotropic).
         fiber: unit fibre direction a (3,) for a transversely isotropic material, or None.
         fiber_axis: instead of ``fiber``, fibres around this axis (3,) (circumferential), or None.
         fiber_point: a point (3,) m of that axis (default the origin).

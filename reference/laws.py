@@ -46,4 +46,31 @@ def neo_hookean_energy(F, lam, mu, a, dlam, dmu):
     return mu / 2 * (ufl.tr(F.T * F) - 3) - mu * ufl.ln(J) + lam / 2 * ufl.ln(J) ** 2
 
 
-LAWS = {"linear": linear_energy, "stvk": stvk_energy, "neo-hookean": neo_hookean_energy}
+def stable_neo_hookean_energy(F, lam, mu, a, dlam, dmu):
+    """Stable neo-Hookean with its log term (Smith, de Goes & Kim, "Stable Neo-Hookean Flesh Simulation",
+    ACM TOG 2018, eq. 14), its constants matched to the Lame constants at rest (section 3.4): k_mu = 4/3
+    mu, k_lam = lam + 5/6 mu, alpha = 1 + k_mu / k_lam - k_mu / (4 k_lam);
+    W = k_mu/2 (I_C - 3) - k_mu/2 ln(I_C + 1) + k_lam/2 (J - alpha)^2, I_C = tr(F^T F). newton's
+    semi-implicit tetrahedra run it. Isotropic (fibre coefficients unused)."""
+    k_mu, k_lam = 4 * mu / 3, lam + 5 * mu / 6
+    alpha = 1 + k_mu / k_lam - k_mu / (4 * k_lam)
+    ic = ufl.tr(F.T * F)
+    return k_mu / 2 * (ic - 3) - k_mu / 2 * ufl.ln(ic + 1) + k_lam / 2 * (ufl.det(F) - alpha) ** 2
+
+
+def stable_neo_hookean_no_log_energy(F, lam, mu, a, dlam, dmu):
+    """Stable neo-Hookean without the log term (Smith et al. 2018, eq. 13), its constants matched at rest:
+    k_lam = lam + mu, alpha = 1 + mu / k_lam; W = mu/2 (I_C - 3) + k_lam/2 (J - alpha)^2. newton's VBD
+    tetrahedra run it. Isotropic (fibre coefficients unused)."""
+    k_lam = lam + mu
+    alpha = 1 + mu / k_lam
+    return mu / 2 * (ufl.tr(F.T * F) - 3) + k_lam / 2 * (ufl.det(F) - alpha) ** 2
+
+
+LAWS = {
+    "linear": linear_energy,
+    "stvk": stvk_energy,
+    "neo-hookean": neo_hookean_energy,
+    "stable-neo-hookean": stable_neo_hookean_energy,
+    "stable-neo-hookean-no-log": stable_neo_hookean_no_log_energy,
+}

@@ -50,6 +50,10 @@ class ModelSpec:
         mechanics: False for a model with no internal force and no energy (a geometric baseline): what a
             force-field test cannot test.
         float32: it builds with precision = "float32" too (``Model.precision``).
+        own_law: the truth's law (``realtime.material.LAWS``) the model is that law's P1 solution of,
+            Lame constants matched at rest: against the P1 truth of it on the same mesh, its distance is
+            its numerics alone. None where no continuum law is its limit (a corotated or switched law,
+            springs, a mesh of its own).
         cuttable: it supports cutting and suturing (``realtime.topology``).
         own_mesh: it runs on a mesh of its own made from the scene's (adaptive refinement): its error's
             mesh part is not P1's on the scene's mesh, and no finer scene mesh is proposed for it.
@@ -72,6 +76,7 @@ class ModelSpec:
     linear: bool = False
     mechanics: bool = True
     float32: bool = False
+    own_law: str | None = None
     cuttable: bool = False
     own_mesh: bool = False
     memory: Callable[[float, float], float] | None = None

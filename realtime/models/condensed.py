@@ -24,6 +24,7 @@ def memory(dofs: float, surface_dofs: float) -> float:
 SPEC = ModelSpec(
     name=NAME,
     build=build,
+    own_law="linear",
     law="linear elasticity condensed onto the surface vertices, its static answer solved there (Bro-Nielsen 1996)",
     drops="the dynamics and the geometric non-linearity",
     represents=("fibres",),

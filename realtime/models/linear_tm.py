@@ -86,6 +86,7 @@ def cut(model: Model, which) -> Model:
 SPEC = ModelSpec(
     name=NAME,
     build=build,
+    own_law="linear",
     law="linear elasticity (small strain), P1 tetrahedra as vertex and edge tensors (Cotin et al. 2000)",
     drops="the geometric non-linearity: wrong under large rotations and stretches",
     represents=("fibres",),

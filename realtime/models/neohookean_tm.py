@@ -48,6 +48,7 @@ def build(
 SPEC = ModelSpec(
     name=NAME,
     build=build,
+    own_law="neo-hookean",
     law="compressible neo-Hookean, W = mu/2 (I1 - 3) - mu ln J + lam/2 (ln J)^2, P1 tetrahedra (Bonet & Wood 2008)",
     drops="nothing of its law; isotropic only",
     represents=("penalty",),

@@ -24,6 +24,7 @@ def memory(dofs: float, surface_dofs: float) -> float:
 SPEC = ModelSpec(
     name=NAME,
     build=build,
+    own_law="linear",
     law="linear elasticity, its static answer superposed from responses precomputed per tool vertex (Cotin et al. 1999)",
     drops="the dynamics and the geometric non-linearity",
     represents=("fibres",),

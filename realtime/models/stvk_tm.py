@@ -41,6 +41,7 @@ def build(
 SPEC = ModelSpec(
     name=NAME,
     build=build,
+    own_law="stvk",
     law="St Venant-Kirchhoff (Green-Lagrange strain, linear in it), P1 tetrahedra (Picinbono et al. 2003)",
     drops="nothing of its law; StVK itself softens and can invert under strong compression",
     represents=("fibres", "penalty"),

@@ -263,7 +263,7 @@ def _model_cases(name: str, mesh, base: dict, loading, u0, n: int) -> tuple[list
     cases = []
     haptic = []
     built = {}  # label -> the one-thread model of its row
-    for label, model_name, mat in (
+    rows = [
         (linear_tm.NAME, linear_tm.NAME, ISO),
         ("linear-tm (transverse)", linear_tm.NAME, FIBRE),
         (corotational_tm.NAME, corotational_tm.NAME, ISO),
@@ -271,7 +271,16 @@ def _model_cases(name: str, mesh, base: dict, loading, u0, n: int) -> tuple[list
         ("stvk-tm (transverse + penalty)", stvk_tm.NAME, FIBRE),
         ("hybrid-tm (10% of vertices past threshold)", hybrid_tm.NAME, ISO),
         (mass_spring.NAME, mass_spring.NAME, ISO),
-    ):
+    ]
+    # every other time-stepping model on the scene's own mesh, on the isotropic material: a model added
+    # as one file has its row
+    named = {m for _, m, _ in rows}
+    rows += [
+        (s.name, s.name, ISO)
+        for s in SPECS.values()
+        if not s.quasi_static and s.mechanics and not s.own_mesh and s.name not in named
+    ]
+    for label, model_name, mat in rows:
         log(f"bench: {name} {label}")
         model = build_model(model_name, mesh.points, mesh.tets, mat, loading)
         built[label] = model

@@ -259,6 +259,11 @@ def _print_row(scene, args, row) -> None:
                 f"of {b['model']:.3g}: the model's error offsets P1's, right for a wrong reason; a finer mesh "
                 "shrinks the mesh's part, not the model's"
             )
+    law = row.own_law or {}
+    if law.get("rel_l2") is not None:
+        print(f"  {'own law':<18} {law['rel_l2']:.3g} from P1 of {law['law']} on the same mesh: its numerics alone")
+    elif law:
+        print(f"  {'own law':<18} {law['law']}: no P1 answer ({law['why']})")
     if row.adaptation:
         a = row.adaptation
         print(

@@ -38,7 +38,9 @@ ADAPTERS_DIR, ENGINES_VENV = ROOT / "adapters", ROOT / ".venv-engines"
 @dataclass
 class AdapterEngine:
     """An engine behind an adapter script: ``solvers`` maps each model's name to the adapter's
-    ``--solver``; ``knobs`` are the options its command line takes besides ``dt``; ``explicit`` names
+    ``--solver``; ``laws`` the law (``realtime.material.LAWS``) each one's elasticity is, as its source
+    defines it with the constants the adapter passes; ``knobs`` are the options its command line takes
+    besides ``dt``; ``explicit`` names
     the models explicit in the elasticity (their steps are bound by the critical one), ``iterative``
     those with an iteration count."""
 
@@ -46,6 +48,7 @@ class AdapterEngine:
     script: str
     solvers: dict
     knobs: tuple = ()
+    laws: dict = field(default_factory=dict)
     explicit: tuple = ()
     iterative: tuple = ()
     timeout: float = TIMEOUT
@@ -58,7 +61,10 @@ class AdapterEngine:
     models: dict = field(init=False)  # each model's name -> its ModelSpec
 
     def __post_init__(self):
-        self.models = {m: foreign_spec(m, f"{self.name}'s {solver} solver") for m, solver in self.solvers.items()}
+        self.models = {
+            m: foreign_spec(m, f"{self.name}'s {solver} solver", own_law=self.laws.get(m))
+            for m, solver in self.solvers.items()
+        }
         self.spec = self.name
 
     def build(self, inputs: SceneInputs, model: str, integrator: str, options: dict):
@@ -78,6 +84,10 @@ ADAPTERS = {
         "newton_tets.py",
         {"newton-semi-implicit": "semi-implicit", "newton-vbd": "vbd", "newton-xpbd": "xpbd"},
         knobs=("iterations", "substeps"),
+        # newton's tetrahedra (adapters/newton_tets.py): the stable neo-Hookean with its log term (semi-implicit,
+        # kernels_particle.eval_tetrahedra) and without it (VBD, particle_vbd_kernels); XPBD's constraints
+        # are no hyperelastic law
+        laws={"newton-semi-implicit": "stable-neo-hookean", "newton-vbd": "stable-neo-hookean-no-log"},
         explicit=("newton-semi-implicit",),
         iterative=("newton-vbd", "newton-xpbd"),
         known_warnings=(
@@ -93,6 +103,7 @@ ADAPTERS = {
         "mujoco_flex.py",
         {"mujoco-flex": "discrete", "mujoco-flex-euler": "Euler"},
         knobs=("substeps",),
+        laws={"mujoco-flex": "stvk", "mujoco-flex-euler": "stvk"},  # its flex's elasticity is StVK
         explicit=("mujoco-flex-euler",),
         known_warnings=(
             (

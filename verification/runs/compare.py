@@ -164,6 +164,7 @@ def compare(
         status="ok",
         error_budget=parts,
         float32=single,
+        own_law=own_law(scene, spec, res) if spec.build is None else None,
         dt=m["dt"],
         dt_crit=m["dt_crit"],
         dt_crit_element=m.get("dt_crit_element"),
@@ -182,6 +183,23 @@ def compare(
         n_tets=mesh.n_tets,
         adaptation=_adaptation(m.get("adaptation")),
     )
+
+
+def own_law(scene: Scene, spec, res: Result) -> dict | None:
+    """Another engine's model against the P1 truth of its own law (its spec's ``own_law``: newton's
+    stable neo-Hookean, MuJoCo's StVK) on the scene's mesh, with the scene's Lame constants: {"law",
+    "rel_l2"}, an L2 distance over the vertices and output times relative to that solution's norm. What
+    remains is the engine's numerics alone (its settling, its solver's iterations), apart from its law.
+    None where the spec declares no law; {"law", "rel_l2": None, "why"} where that P1 truth has no answer."""
+    from reference.errors import ReferenceSolveError
+
+    if spec.own_law is None:
+        return None
+    try:
+        p1 = reference_result(scene.with_material(law=spec.own_law), **P1_OWN_MESH)
+    except ReferenceSolveError as exc:
+        return {"law": spec.own_law, "rel_l2": None, "why": " ".join(str(exc).split())}
+    return {"law": spec.own_law, "rel_l2": rel_l2(res.displacement, p1.displacement)}
 
 
 def _adaptation(record: list | None) -> dict | None:

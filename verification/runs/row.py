@@ -65,6 +65,10 @@ class Row:
     build_s: float | None = None
     #: Whose error is it (runs.compare.error_budget): the mesh's, the model's and the time step's parts.
     error_budget: dict | None = None
+    #: Another engine's model against the P1 truth of its own law on the same mesh (runs.compare.own_law):
+    #: {"law": its law, "rel_l2": the distance, its numerics alone}; None where it declares no law, or
+    #: for a built-in model (its own law's P1 solution by construction, which the tests hold).
+    own_law: dict | None = None
     #: The float32 twin of a float32-capable model's run (runs.compare.float32_twin).
     float32: dict | None = None
     #: The reference's summary: degree, refinement, law, cache key, its estimate and how it was solved.

@@ -241,6 +241,7 @@ def _summary(model: str, runs: list[tuple[dict, Row]]) -> dict:
             "dt": best.dt,
             "step_us": best.step_us,
             "model_part": (best.error_budget or {}).get("model"),
+            "own_law": best.own_law,
         },
         "iterations": None,
         "not_applicable": next((r.message for _, r in runs if r.status == "not applicable"), None),
@@ -304,6 +305,14 @@ def format_engines(out: dict) -> str:
                     else ""
                 )
             )
+            law = b.get("own_law") or {}
+            if law.get("rel_l2") is not None:
+                lines.append(
+                    f"  against P1 of its own law ({law['law']}) on the same mesh: {law['rel_l2']:.3g}, its numerics "
+                    f"alone (against the scene's law: {own:.3g})"
+                    if own is not None
+                    else f"  against P1 of its own law ({law['law']}) on the same mesh: {law['rel_l2']:.3g}"
+                )
         it = s["iterations"]
         if it:
             counts = ", ".join(f"{k}: {v if isinstance(v, str) else f'{v:.3g}'}" for k, v in it["rel_l2"].items())
