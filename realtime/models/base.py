@@ -11,13 +11,17 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
+from ..blocks import BlockData, block_data
+from ..errors import InputError
 from ..geometry import shape_gradients
 from ..material import Materials
-from ..model import Loading, Model, lumped_masses, no_scratch
+from ..model import PRECISIONS, Loading, Model, lumped_masses, no_scratch, prepare_mesh
 from ..tensor_mass import TensorMass, element_elasticity
+from ..threaded import block_kernel, check_threads
 
 #: The material terms beyond E, nu and rho a model may represent: "fibres" (a transversely isotropic
 #: law) and "penalty" (Material.volume_penalty, the incompressibility term of Picinbono et al. 2003).
@@ -180,6 +184,27 @@ def assemble(
         linear=linear,
         extra=extra,
         precision=precision,
+    )
+
+
+def block_model(
+    name, points, tets, material, loading, kernels, threads: int, precision: str = "float64", isotropic: str = ""
+) -> Model:
+    """The Model ``name`` of an element model on blocks of tetrahedra (``realtime.blocks``): ``kernels`` its
+    serial (force, energy, scratch maker of a float type); its force on ``threads`` threads
+    (``realtime.threaded``) in ``precision`` (Model.precision). ``isotropic``: why the model refuses a
+    material with fibres (InputError naming the model), or "" where it takes one."""
+    threads = check_threads(threads)
+    points, tets = prepare_mesh(points, tets)
+    if isotropic and Materials.of(material, len(tets)).transverse:
+        raise InputError(f"{name}: isotropic materials only ({isotropic})")
+    dtype = PRECISIONS[precision]
+    btets, geo, prm = block_data(points, tets, material, dtype)
+    data = BlockData(btets, geo, prm, np.ones(len(btets), dtype=np.bool_))
+    force, energy, scratch = kernels
+    kernel = block_kernel(force, energy, partial(scratch, dtype), data, len(points), threads)
+    return assemble(
+        name, points, tets, material, loading, *kernel[:3], False, kernel[3], precision=precision, threads=threads
     )
 
 

@@ -3,17 +3,11 @@ Genesis', SOFA's and FEBio's soft bodies offer, which resists inversion where St
 
 from __future__ import annotations
 
-from functools import partial
-
-import numpy as np
-
-from ..blocks import BlockData, block_data, block_scratch
-from ..errors import InputError
+from ..blocks import block_scratch
 from ..material import Material, Materials
-from ..model import PRECISIONS, Loading, Model, prepare_mesh
+from ..model import Loading, Model
 from ..neohookean import neohookean_energy, neohookean_force
-from ..threaded import block_kernel, check_threads
-from .base import ModelSpec, assemble
+from .base import ModelSpec, block_model
 
 NAME = "neohookean-tm"
 
@@ -30,19 +24,9 @@ def build(
     ``material.volume_penalty`` > 0 (realtime.neohookean). Rotation invariant; an inverted tetrahedron
     stops the run. ``threads`` > 1: the force on that many threads (realtime.threaded). ``precision``:
     Model.precision."""
-    threads = check_threads(threads)
-    points, tets = prepare_mesh(points, tets)
-    if Materials.of(material, len(tets)).transverse:
-        raise InputError(f"{NAME}: isotropic materials only (the neo-Hookean law has no fibre terms); use stvk-tm")
-    dtype = PRECISIONS[precision]
-    btets, geo, prm = block_data(points, tets, material, dtype)
-    data = BlockData(btets, geo, prm, np.ones(len(btets), dtype=np.bool_))
-    kernel = block_kernel(
-        neohookean_force, neohookean_energy, partial(block_scratch, dtype), data, len(points), threads
-    )
-    return assemble(
-        NAME, points, tets, material, loading, *kernel[:3], False, kernel[3], precision=precision, threads=threads
-    )
+    kernels = (neohookean_force, neohookean_energy, block_scratch)
+    why = "the neo-Hookean law has no fibre terms; use stvk-tm for fibres"
+    return block_model(NAME, points, tets, material, loading, kernels, threads, precision, isotropic=why)
 
 
 SPEC = ModelSpec(

@@ -2,16 +2,11 @@
 
 from __future__ import annotations
 
-from functools import partial
-
-import numpy as np
-
-from ..blocks import GEO_ROWS, BlockData, block_data, block_scratch
+from ..blocks import GEO_ROWS, block_scratch
 from ..material import Material, Materials
-from ..model import PRECISIONS, Loading, Model, prepare_mesh
+from ..model import Loading, Model
 from ..stvk import stvk_energy, stvk_force
-from ..threaded import block_kernel, check_threads
-from .base import ModelSpec, assemble
+from .base import ModelSpec, block_model
 
 NAME = "stvk-tm"
 
@@ -27,14 +22,8 @@ def build(
     """Non-linear StVK tensor-mass (Picinbono et al. 2003), isotropic or transversely isotropic, with
     the volume penalty when ``material.volume_penalty`` > 0. Rotation invariant. ``threads`` > 1: the
     force on that many threads (realtime.threaded). ``precision``: Model.precision."""
-    threads = check_threads(threads)
-    points, tets = prepare_mesh(points, tets)
-    dtype = PRECISIONS[precision]
-    btets, geo, prm = block_data(points, tets, material, dtype)
-    data = BlockData(btets, geo, prm, np.ones(len(btets), dtype=np.bool_))
-    kernel = block_kernel(stvk_force, stvk_energy, partial(block_scratch, dtype), data, len(points), threads)
-    return assemble(
-        NAME, points, tets, material, loading, *kernel[:3], False, kernel[3], precision=precision, threads=threads
+    return block_model(
+        NAME, points, tets, material, loading, (stvk_force, stvk_energy, block_scratch), threads, precision
     )
 
 
