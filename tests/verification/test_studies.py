@@ -749,3 +749,18 @@ def test_a_dynamic_run_reports_its_output_times_as_it_goes(monkeypatch, capfd):
     n_out = round(scene.time.end / scene.time.output_every) + 1
     assert len(lines) >= n_out - 1 and lines[-1].startswith("run: linear-tm (symplectic-euler, dt = "), lines[-3:]
     assert f"of {n_out}, t = " in lines[-1]
+
+
+@pytest.mark.slow
+def test_the_stability_map_shows_stvk_inverting_under_compression_where_neo_hookean_does_not():
+    """The extreme "compression to half the length" of the cantilever, which the StVK truth cannot follow
+    (its Newton meets inverted elements): the map records each model's own fate there. stvk-tm settles
+    with elements turned inside out (StVK's stress vanishes as a tetrahedron flattens); neohookean-tm,
+    whose energy is infinite at J = 0, settles with none."""
+    from verification.studies.stability import _alone, _far_face_tool
+
+    squeezed = _far_face_tool(load_scene("cantilever"), "compression")
+    stvk = _alone(squeezed, "stvk-tm", "symplectic-euler", "no reference")
+    nh = _alone(squeezed, "neohookean-tm", "symplectic-euler", "no reference")
+    assert stvk["status"] == nh["status"] == "settled, no reference"
+    assert stvk["inverted"] > 0 and nh["inverted"] == 0
