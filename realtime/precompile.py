@@ -37,7 +37,8 @@ STAMP = "tissuebench-precompiled.sha256"
 
 def jobs() -> list[tuple[str, str, int]]:
     """What each job builds: (model, precision, threads), for every model and every precision it has, on
-    one thread; the most expensive to compile first (``ModelSpec.cost`` from HEAVY), so that the pool's processes end together.
+    one thread; the most expensive to compile first (``ModelSpec.cost`` from HEAVY), so that the pool's
+    processes end together.
 
     The threaded kernels (``threads`` > 1) are left to compile when a run first builds one: no study
     does (sweep, advise, report and the reference never ask for threads), only a simulator embedding the
