@@ -28,8 +28,8 @@ def cache_dir() -> Path:
 KINDS = {
     "reference": "a scene's ground truth (runs.reference): its displacements, reactions and bar, and an "
     "adaptive truth's levels; the truth evaluated at another engine's points",
-    "runs": "a compare row (runs.store); a largest stable step (studies.stable_step); a seeds experiment's "
-    "settled answer (studies.seeds.common)",
+    "runs": "a compare row (runs.store) and, where a study asked, its run's displacements beside it; a largest "
+    "stable step (studies.stable_step); a seeds experiment's settled answer (studies.seeds.common)",
     "settled": "the built-in engine's static equilibria (engines.settling), the state a timed run starts from",
     "effectivity": "one case of the effectivity table (studies.effectivity)",
 }

@@ -199,17 +199,45 @@ def test_a_knob_without_its_value_is_one_line(capsys):
 # --- the engines study's rules, on constructed cases ------------------------------------------------------
 
 
-def _row(rel_l2, status="ok"):
-    return Row("s", "m", "own", status, rel_l2=rel_l2 if status == "ok" else None)
+def _row(rel_l2, status="ok", stalled_at=None):
+    engine = {"stalled_at": stalled_at} if stalled_at is not None else None
+    return Row("s", "m", "own", status, rel_l2=rel_l2 if status == "ok" else None, engine=engine)
 
 
-def test_iteration_dependence_is_decided_by_the_last_two_counts():
-    converged = _depends([(10, _row(0.30)), (20, _row(0.2840)), (50, _row(0.2841))])
-    assert converged["verdict"] == "converged" and converged["between"] == [20, 50]
-    # the counter-case: still moving between the two largest counts by more than DEPENDS
-    moving = _depends([(10, _row(0.30)), (20, _row(0.29)), (50, _row(0.29 - 2 * DEPENDS))])
-    assert moving["verdict"] == "depends"
-    assert _depends([(50, _row(0.3))])["verdict"] == "undecided"
+#: An answer (1 output time, 4 vertices, 3 components), m, and the reference's norm it is measured against.
+ANSWER, SCALE = np.array([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 1.0]]]) * 1e-3, 2.4e-3
+
+
+def test_two_different_answers_with_one_error_read_depends():
+    """The iteration dependence is the distance between the two largest counts' answers, not their
+    errors' difference: an answer mirrored about the reference has its error unchanged, and is another
+    answer. The old rule (|rel_l2(50) - rel_l2(20)| < DEPENDS) read it "converged"."""
+    mirrored = -ANSWER
+    out = _depends([(20, _row(0.3), ANSWER), (50, _row(0.3), mirrored)], SCALE)
+    assert out["verdict"] == "depends" and out["distance"] > 1.0 and out["between"] == [20, 50]
+
+
+def test_two_answers_within_round_off_read_converged_whatever_their_errors():
+    nudged = ANSWER * (1 + 1e-6)
+    out = _depends([(10, _row(0.31), -ANSWER), (20, _row(0.30), ANSWER), (50, _row(0.30), nudged)], SCALE)
+    assert out["verdict"] == "converged" and out["distance"] < DEPENDS
+    assert out["spread"] == pytest.approx(0.01)  # the first count's different answer shows in the spread only
+
+
+def test_a_distance_within_the_runs_stall_is_undecided_and_beyond_it_depends():
+    """A relaxation that stalled at a change of 2e-3 (float32's round-off) is off by about that: two such
+    answers 4e-3 apart are not told apart (undecided, saying why); 1e-2 apart, they differ."""
+    near = ANSWER + 4e-3 * SCALE / np.linalg.norm(ANSWER) * ANSWER
+    out = _depends([(20, _row(0.3, stalled_at=2e-3), ANSWER), (50, _row(0.3), near)], SCALE)
+    assert out["verdict"] == "undecided" and "floor" in out["why"] and out["floor"] == pytest.approx(6e-3)
+    far = ANSWER + 1e-2 * SCALE / np.linalg.norm(ANSWER) * ANSWER
+    assert _depends([(20, _row(0.3, stalled_at=2e-3), ANSWER), (50, _row(0.3), far)], SCALE)["verdict"] == "depends"
+
+
+def test_iteration_dependence_needs_two_kept_answers():
+    assert _depends([(50, _row(0.3), ANSWER)], SCALE)["verdict"] == "undecided"
+    lost = _depends([(20, _row(0.3), None), (50, _row(0.3), ANSWER)], SCALE)
+    assert lost["verdict"] == "undecided" and "not kept" in lost["why"]
 
 
 def test_the_plan_gives_each_solver_its_knobs():

@@ -764,3 +764,23 @@ def test_the_stability_map_shows_stvk_inverting_under_compression_where_neo_hook
     nh = _alone(squeezed, "neohookean-tm", "symplectic-euler", "no reference")
     assert stvk["status"] == nh["status"] == "settled, no reference"
     assert stvk["inverted"] > 0 and nh["inverted"] == 0
+
+
+def test_a_run_kept_with_its_answer_gives_it_back_and_one_kept_without_is_run_again():
+    """The engines study compares two runs' answers, so a run can keep its displacements beside its cached
+    row: the kept answer is the run's (its rel_l2 against the reference recomputed from it), and a row
+    cached without its answer is run again when the answer is asked for."""
+    from verification.metrics import rel_l2
+    from verification.runs.reference import REFERENCE_DEFAULTS
+    from verification.runs.store import cached_answer, cached_compare
+
+    scene = load_scene("cantilever-pull")
+    args = (scene, "linear-tm", "symplectic-euler", None, 0.9)
+    first = cached_compare(*args)
+    assert cached_answer(*args) is None  # cached without its answer
+    kept = cached_compare(*args, keep_answer=True)
+    assert not kept.cached  # run again to keep its answer
+    u = cached_answer(*args)
+    ref = reference_result(scene, **REFERENCE_DEFAULTS).displacement
+    assert u.shape == ref.shape and rel_l2(u, ref) == pytest.approx(first.rel_l2, rel=1e-12)
+    assert cached_compare(*args, keep_answer=True).cached

@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 
+from meshes.io import atomic_savez
 from realtime import DivergenceError
 from verification.engines import spec_of
 from verification.engines.builtin import BUILTIN
@@ -117,6 +118,7 @@ def compare(
     budget: bool = True,
     float32: bool = False,
     options: dict | None = None,
+    answer_to: str | None = None,
     **ref_options,
 ) -> Row:
     """Metrics of one model run against the scene's reference, as a Row (docs/metrics.md).
@@ -129,7 +131,9 @@ def compare(
     ``float32``: for a model whose spec says float32 under an explicit integrator, the row's ``float32`` holds
     its float32 twin (``float32_twin``): rel_l2_vs_float64, its distance from this run by the row's own
     metric, beside its rel_l2 against the reference, and its step times; None for the other models.
-    ``options`` go to the engine's build (an adapter's knobs: iterations, substeps).
+    ``options`` go to the engine's build (an adapter's knobs: iterations, substeps). ``answer_to``: a
+    path where the run's displacements (T, N, 3) m are also kept (``displacement`` in an .npz), for a study
+    that compares two runs' answers with each other.
     """
     # a quasi-static model has its own update whatever integrator was asked for
     spec = spec_of(model_name)
@@ -156,6 +160,8 @@ def compare(
     mesh = scene.mesh
     if vtk is not None:
         _write_vtk(vtk, scene, model_name, res, ref)
+    if answer_to is not None:
+        atomic_savez(answer_to, displacement=res.displacement)
     m = res.meta
     parts = error_budget(scene, model_name, res, ref, integrator, max_steps) if budget else None
     single = _float32_row(scene, res, ref) if float32 and spec.float32 and integrator != "implicit-euler" else None

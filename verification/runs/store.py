@@ -10,6 +10,9 @@ stable step of a model, found by bisection, is cached the same way.
 from __future__ import annotations
 
 import json
+from pathlib import Path
+
+import numpy as np
 
 from meshes.io import atomic_write_text
 from verification.cache import (
@@ -85,17 +88,20 @@ def cached_compare(
     budget: bool = True,
     float32: bool = False,
     options: dict | None = None,
+    keep_answer: bool = False,
 ) -> Row:
     """``runs.compare.compare`` through the run cache (``options``: the engine's, as compare's). The row
-    says whether it came from the cache. A plug-in engine's runs are never cached, their code is not in
+    says whether it came from the cache. ``keep_answer``: the run's displacements are kept beside the row
+    (``cached_answer`` reads them). A plug-in engine's runs are never cached, their code is not in
     the key; an adapter's are (the adapters and their pinned versions are, ``RUN_CODE``)."""
     ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
     use_cache = use_cache and (not plug_in(model) or getattr(engine_for(model), "cacheable", False))
     extra = {**({"float32": True} if float32 else {}), **({"engine": options} if options else {})}
     key = run_key(scene, model, integrator, dt, fraction, ref_opts, budget, extra or None)
     path = entry("runs", scene.name, key, ".json")
+    answer = answer_path(path) if keep_answer else None
     row = read_cached(path, _read_row) if use_cache else None
-    if row is not None:
+    if row is not None and (answer is None or answer.exists() or not row.ok):
         return row.replace(cached=True)
     ref = reference if reference is not None else reference_result(scene, **ref_opts)
     row = compare(
@@ -109,11 +115,29 @@ def cached_compare(
         budget=budget,
         float32=float32,
         options=options,
+        answer_to=answer,
     )
     row = row.replace(fraction=fraction)
     if use_cache:
         atomic_write_text(path, json.dumps(row.to_json(), default=jsonable))
     return row
+
+
+def answer_path(row_path: Path) -> Path:
+    """Where the run of the row cached at ``row_path`` keeps its displacements (``cached_compare``'s
+    ``keep_answer``): the same entry, as .npz."""
+    return row_path.with_name(row_path.stem + "-answer.npz")
+
+
+def cached_answer(scene: Scene, model: str, integrator: str, dt, fraction, ref_opts=None, budget=True, options=None):
+    """The displacements (T, N, 3) m of the run ``cached_compare`` with these arguments kept
+    (``keep_answer``), or None where it kept none (a run that gave no answer, or a damaged entry)."""
+    ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
+    extra = {"engine": options} if options else None
+    path = answer_path(
+        entry("runs", scene.name, run_key(scene, model, integrator, dt, fraction, ref_opts, budget, extra), ".json")
+    )
+    return read_cached(path, lambda p: np.load(p)["displacement"])
 
 
 def compare_or_unsettled(scene: Scene, model: str, integrator: str, dt, fraction, **options) -> Row:

@@ -45,9 +45,11 @@ EXPLICIT_FRACTIONS = (0.25, 0.5, 1.0, 2.0, 4.0)
 IMPLICIT_STEPS = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
 #: Iteration counts, at ITERATION_DT s.
 ITERATIONS, ITERATION_DT = (1, 2, 5, 10, 20, 50), 1e-3
-#: Two answers closer than this (relative L2 over the reference's norm) are the same: three times the
-#: relaxation's own round-off in float32 (measured 2.8e-4 with newton's semi-implicit solver on the
-#: built-in cantilever, adapters/exported.py STALLED), so a difference above it is the engine's.
+#: Two answers closer than this (their distance, relative L2 over the reference's norm) are the same:
+#: three times the relaxation's own round-off in float32 (measured 2.8e-4 with newton's semi-implicit
+#: solver on the built-in cantilever). A run whose relaxation stalled (adapters/exported.py: ``stalled_at``,
+#: its last relative change) has a floor of its own: two answers are told apart only above three times
+#: the larger of the two runs' stalls too.
 DEPENDS = 1e-3
 
 
@@ -91,7 +93,16 @@ def _compare(scene: Scene, item: dict, ref, use_cache: bool) -> Row:
     return cached_compare(
         scene, item["model"], "own", item["dt"], None, ref, use_cache=use_cache,
         budget=scene.time.mode == "static", options=item["options"] or None,
+        keep_answer=item["knob"] == "iterations",  # the iteration counts' answers are compared with each other
     )  # fmt: skip
+
+
+def _answer(scene: Scene, item: dict):
+    """The displacements (T, N, 3) m a planned run kept (``_compare``), or None."""
+    from verification.runs.store import cached_answer
+
+    budget = scene.time.mode == "static"
+    return cached_answer(scene, item["model"], "own", item["dt"], None, budget=budget, options=item["options"] or None)
 
 
 def _probe(scene: Scene, item: dict) -> Row:
@@ -149,6 +160,7 @@ def engines_study(
         mesh_part = float(np.linalg.norm(p1.displacement - ref.displacement) / np.linalg.norm(ref.displacement))
     except ReferenceSolveError:
         mesh_part = None
+    scale = float(np.linalg.norm(ref.displacement))
     plan = engines_plan(scene, pairs)
     rows, stopped, refused = [], None, {}
     try:
@@ -181,7 +193,10 @@ def engines_study(
         "reference_estimate": ref.meta.get("ref_err_estimate"),
         "mesh_error": mesh_part,
         "runs": [_entry(item, row) for item, row in rows],
-        "summary": [_summary(model, [(i, r) for i, r in rows if r.model == model]) for _, model in pairs],
+        "summary": [
+            _summary(model, [(i, r) for i, r in rows if r.model == model], lambda i: _answer(scene, i), scale)
+            for _, model in pairs
+        ],
         **({"stopped": stopped} if stopped else {}),
     }
 
@@ -218,7 +233,7 @@ def _state(row: Row) -> str:
     return f"rel_l2 {row.rel_l2:.3g}" + (f", {row.step_us:.4g} us" if row.step_us is not None else "")
 
 
-def _summary(model: str, runs: list[tuple[dict, Row]]) -> dict:
+def _summary(model: str, runs: list[tuple[dict, Row]], answer=lambda item: None, scale: float = 1.0) -> dict:
     """One model's answers: the largest stable step (and the smallest diverged above it), its best run,
     and whether its answer depends on the iteration count."""
     probes = sorted((r.dt, r.ok) for i, r in runs if i["knob"] == "stability" and r.status in ("ok", "diverged"))
@@ -246,27 +261,43 @@ def _summary(model: str, runs: list[tuple[dict, Row]]) -> dict:
         "iterations": None,
         "not_applicable": next((r.message for _, r in runs if r.status == "not applicable"), None),
     }
-    by_count = sorted((i["options"]["iterations"], r) for i, r in runs if i["knob"] == "iterations")
+    by_count = sorted(
+        ((i["options"]["iterations"], r, i) for i, r in runs if i["knob"] == "iterations"), key=lambda t: t[0]
+    )
     if by_count:
-        done = [(k, r) for k, r in by_count if r.ok]
+        done = [(k, r, answer(i)) for k, r, i in by_count if r.ok]
         out["iterations"] = {
-            "rel_l2": {str(k): (r.rel_l2 if r.ok else r.status) for k, r in by_count},
-            "depends": _depends(done),
+            "rel_l2": {str(k): (r.rel_l2 if r.ok else r.status) for k, r, _ in by_count},
+            "depends": _depends(done, scale),
         }
     return out
 
 
-def _depends(done: list[tuple[int, Row]]) -> dict:
-    """Whether the answer still moves with the iteration count: the change of rel_l2 between the two
-    largest counts that ran (a lower bound on the distance between their answers, by the triangle
-    inequality), against DEPENDS."""
+def _depends(done: list[tuple[int, Row, np.ndarray | None]], scale: float) -> dict:
+    """Whether the answer still moves with the iteration count: the distance between the answers (T, N, 3)
+    m of the two largest counts that ran, relative to ``scale`` (the reference's norm, m), against DEPENDS
+    and three times the larger of the two runs' stalls. Their errors' difference is no test: two different
+    answers can be equally far from the truth. "undecided" with the reason where fewer than two answers
+    were kept, or their distance lies within a stall's floor above DEPENDS."""
     if len(done) < 2:
         return {"verdict": "undecided", "why": "fewer than two iteration counts ran to an answer"}
-    (k1, r1), (k2, r2) = done[-2], done[-1]
-    change = abs(r2.rel_l2 - r1.rel_l2)
-    verdict = "depends" if change > DEPENDS else "converged"
-    spread = max(r.rel_l2 for _, r in done) - min(r.rel_l2 for _, r in done)
-    return {"verdict": verdict, "change": change, "between": [k1, k2], "spread": spread}
+    (k1, r1, a1), (k2, r2, a2) = done[-2], done[-1]
+    if a1 is None or a2 is None:
+        return {"verdict": "undecided", "why": f"the answers of {k1} and {k2} iterations were not kept"}
+    distance = float(np.linalg.norm(a2 - a1)) / max(scale, 1e-300)
+    stall = max(float((r.engine or {}).get("stalled_at") or 0.0) for r in (r1, r2))
+    floor = max(DEPENDS, 3.0 * stall)
+    out = {"distance": distance, "between": [k1, k2], "floor": floor}
+    out["spread"] = max(r.rel_l2 for _, r, _ in done) - min(r.rel_l2 for _, r, _ in done)
+    if distance > floor:
+        return {**out, "verdict": "depends"}
+    if distance <= DEPENDS and floor == DEPENDS:
+        return {**out, "verdict": "converged"}
+    return {
+        **out,
+        "verdict": "undecided",
+        "why": f"the answers are {distance:.2g} apart, within their relaxation's floor ({floor:.2g}: a stall)",
+    }
 
 
 def format_engines(out: dict) -> str:
@@ -318,8 +349,8 @@ def format_engines(out: dict) -> str:
             counts = ", ".join(f"{k}: {v if isinstance(v, str) else f'{v:.3g}'}" for k, v in it["rel_l2"].items())
             d = it["depends"]
             why = (
-                f" (rel_l2 moves {d['change']:.2g} between {d['between'][0]} and {d['between'][1]})"
-                if "change" in d
+                f" (the answers of {d['between'][0]} and {d['between'][1]} iterations {d['distance']:.2g} apart)"
+                if "distance" in d
                 else ""
             )
             lines.append(f"  rel_l2 by iterations at {ITERATION_DT:g} s: {counts}; answer {d['verdict']}{why}")
