@@ -131,17 +131,13 @@ def compare(
     ``float32``: for a model whose spec says float32 under an explicit integrator, the row's ``float32`` holds
     its float32 twin (``float32_twin``): rel_l2_vs_float64, its distance from this run by the row's own
     metric, beside its rel_l2 against the reference, and its step times; None for the other models.
-    ``options`` go to the engine's build (an adapter's knobs: iterations, substeps). ``answer_to``: a
-    path where the run's displacements (T, N, 3) m are also kept (``displacement`` in an .npz), for a study
-    that compares two runs' answers with each other.
+    ``options`` go to the engine's build (an adapter's knobs: iterations, substeps). ``answer_to``: an .npz
+    path that also keeps the run's ``displacement`` (T, N, 3) m, for a study comparing two runs' answers.
     """
     # a quasi-static model has its own update whatever integrator was asked for
     spec = spec_of(model_name)
-    base = {
-        "scene": scene.name,
-        "model": model_name,
-        "integrator": "quasi-static" if spec.quasi_static else integrator,
-    }
+    stepper = "quasi-static" if spec.quasi_static else integrator
+    base = {"scene": scene.name, "model": model_name, "integrator": stepper}
     base["unrepresented"] = tuple(spec.unrepresented(scene.body_material()))
     ref = reference if reference is not None else reference_result(scene, **{**REFERENCE_DEFAULTS, **ref_options})
     try:
