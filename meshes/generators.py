@@ -76,8 +76,11 @@ def _name_surfaces(gmsh, classify) -> dict[int, str]:
     return out
 
 
-def box(size=(0.1, 0.02, 0.02), h: float = 0.005) -> TetMesh:
-    """A box from the origin to ``size`` (m), target edge length h (m). Faces xmin ... zmax."""
+def box(size=(0.1, 0.02, 0.02), h: float = 0.005, fine: dict | None = None) -> TetMesh:
+    """A box from the origin to ``size`` (m), target edge length h (m). Faces xmin ... zmax.
+
+    ``fine``: {"point": (3,) m, "h": m, "radius": m}, edges of ``fine["h"]`` within ``fine["radius"]`` of
+    the point, growing by GRADE of the distance beyond it up to h: a mesh graded under a tool."""
     size = [float(s) for s in size]
     with _gmsh_session("box", h) as gmsh:
         gmsh.model.occ.addBox(0, 0, 0, *size)
@@ -91,8 +94,31 @@ def box(size=(0.1, 0.02, 0.02), h: float = 0.005) -> TetMesh:
             return "other"
 
         names = _name_surfaces(gmsh, classify)
+        if fine is not None:
+            _graded(gmsh, h, **fine)
         gmsh.model.mesh.generate(3)
-        return _extract(gmsh, f"box(size={size}, h={h})", names)
+        graded = "" if fine is None else f", fine={fine}"
+        return _extract(gmsh, f"box(size={size}, h={h}{graded})", names)
+
+
+#: How fast a graded mesh's edges grow away from its fine region: by this fraction of the distance.
+GRADE = 0.35
+
+
+def _graded(gmsh, h_max: float, point, h: float, radius: float) -> None:
+    """Edge lengths h (m) within ``radius`` (m) of ``point`` (3,) m, growing by GRADE of the distance
+    beyond it, up to h_max (gmsh's Distance and MathEval fields)."""
+    anchor = gmsh.model.occ.addPoint(*[float(c) for c in point])
+    gmsh.model.occ.synchronize()
+    field = gmsh.model.mesh.field
+    distance = field.add("Distance")
+    field.setNumbers(distance, "PointsList", [anchor])
+    size = field.add("MathEval")
+    field.setString(size, "F", f"min({h_max}, {h} + {GRADE} * max(F{distance} - {radius}, 0))")
+    field.setAsBackgroundMesh(size)
+    gmsh.option.setNumber("Mesh.MeshSizeMin", h / 2.0)
+    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
 
 
 def grid(size=(0.02, 0.02, 0.03), h: float = 0.005) -> TetMesh:

@@ -33,8 +33,13 @@ STORED = {
 
 def params_key(generator: str, params: dict) -> str:
     """Canonical text of a generator call, the key of the manifest."""
-    clean = {k: (list(map(float, v)) if isinstance(v, (list, tuple)) else float(v)) for k, v in params.items()}
-    return json.dumps({"generator": generator, **clean}, sort_keys=True)
+
+    def clean(v):
+        if isinstance(v, dict):  # a graded box's fine region
+            return {k: clean(x) for k, x in v.items()}
+        return list(map(float, v)) if isinstance(v, (list, tuple)) else float(v)
+
+    return json.dumps({"generator": generator, **{k: clean(v) for k, v in params.items()}}, sort_keys=True)
 
 
 def _manifest() -> dict:
