@@ -25,6 +25,7 @@ from meshes.regions import locate, spanned
 from meshes.tetmesh import TetMesh
 from realtime.material import Material, Materials
 
+from .contact import Contact
 from .errors import ReferenceSolveError
 from .laws import LAWS, volume_penalty_energy
 from .problem import Force, Problem, Traction
@@ -114,6 +115,7 @@ class ProblemForms:
         self._located = None  # the last points evaluate() located, and where (see _locate)
         self._reaction_form = None
         self._det_F = None  # the det F expression of min_det_F
+        self.contact = None  # the rigid tools' penalty (reference.contact), made by _residual_form
         self.bcs = self._boundary_conditions()
         self.residual = self._residual_form()
         self.timings = {"setup_s": time.perf_counter() - t0}
@@ -141,8 +143,9 @@ class ProblemForms:
 
     @property
     def linear(self) -> bool:
-        """True when every material's energy is quadratic (linear law, no volume penalty)."""
-        return all(m.law == "linear" and m.volume_penalty == 0.0 for m, _ in self.parts)
+        """True when every material's energy is quadratic (linear law, no volume penalty) and no rigid
+        tool touches the body."""
+        return not self.problem.contacts and all(m.law == "linear" and m.volume_penalty == 0.0 for m, _ in self.parts)
 
     @property
     def law(self) -> str:
@@ -199,6 +202,11 @@ class ProblemForms:
     def _residual_form(self):
         v = ufl.TestFunction(self.V)
         residual = self.internal_work(self.u, v)
+        if self.problem.contacts:
+            young = max(m.young for m, _ in self.parts)
+            self.contact = Contact(self.domain, self.problem.contacts, young, self.degree, self.comm)
+            self.contact.move(1.0)
+            residual += self.contact.work(self.u, v)
         g = self.problem.gravity()
         if np.any(g != 0.0):
             residual -= self.load_factor * self.mass_weighted(ufl.inner(self._constant(tuple(g)), v))
@@ -264,9 +272,12 @@ class ProblemForms:
         return bcs
 
     def set_tool_fraction(self, s: float) -> None:
-        """Move every tool to fraction s of its final displacement (angle, for rotations)."""
+        """Move every tool to fraction s of its final displacement (angle, for rotations), the rigid
+        tools to fraction s of their travel."""
         for tool, c, g in self._tool_functions:
             g.interpolate(lambda x, tool=tool, c=c: tool.at_fraction(x.T, s)[:, c])
+        if self.contact is not None:
+            self.contact.move(s)
 
     def rigid_body_modes(self):
         """The six rigid-body modes as a PETSc near null space (GAMG's coarse space for elasticity)."""
@@ -297,6 +308,8 @@ class ProblemForms:
         """Move every tool to where its ramp puts it at time t (s)."""
         for tool, c, g in self._tool_functions:
             g.interpolate(lambda x, tool=tool, c=c: tool.value(x.T, t)[:, c])
+        if self.contact is not None:
+            self.contact.move_at(t)
 
     def start_from(self, coarse: ProblemForms) -> None:
         """Set u to another problem's solution evaluated at this one's nodes (nested iteration: the

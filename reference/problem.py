@@ -147,13 +147,54 @@ class Displacement:
 
 Load = Gravity | Force | Traction | Displacement
 
+#: The shapes of a rigid tool (``RigidTool``).
+TOOL_SHAPES = ("sphere", "capsule", "plane")
+
+
+@dataclass(frozen=True)
+class RigidTool:
+    """A rigid instrument pressed on the body without friction, moving by a prescribed translation.
+
+    shape "sphere": ``center`` (3,) m and ``radius`` m; "capsule": the segment from ``center`` to ``end``
+    (3,) m swept by a ball of ``radius`` m; "plane": the half-space behind the plane through ``center``
+    whose unit ``normal`` (3,) points out of the tool, toward the body. ``travel`` (3,) m is the
+    translation reached at ``ramp`` s along ``ramp_shape`` (``ramp``), then held. The geometry is given
+    at t = 0, where the tool must not yet be inside the body.
+    """
+
+    shape: str
+    center: tuple[float, float, float]
+    radius: float = 0.0
+    end: tuple[float, float, float] | None = None
+    normal: tuple[float, float, float] | None = None
+    travel: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    ramp: float = 0.0
+    ramp_shape: str = "linear"
+
+    def offset(self, s: float) -> np.ndarray:
+        """(3,) m: where the tool has moved at fraction s of its travel."""
+        return s * np.asarray(self.travel, dtype=float)
+
+    def gap(self, y: np.ndarray, s: float) -> np.ndarray:
+        """(K,) m: the signed distance of points y (K, 3) m from the tool's surface at fraction s of its
+        travel, negative inside the tool (the reference's UFL ``reference.contact.gap`` is this formula)."""
+        y = np.asarray(y, dtype=float) - self.offset(s) - np.asarray(self.center, dtype=float)
+        if self.shape == "plane":
+            return y @ np.asarray(self.normal, dtype=float)
+        if self.shape == "capsule":
+            axis = np.asarray(self.end, dtype=float) - np.asarray(self.center, dtype=float)
+            t = np.clip(y @ axis / (axis @ axis), 0.0, 1.0)
+            y = y - t[:, None] * axis
+        return np.linalg.norm(y, axis=1) - self.radius
+
 
 @dataclass(frozen=True)
 class Problem:
-    """Constraints and loads. ``fixed`` and ``loads`` are tuples of the dataclasses above."""
+    """Constraints, loads and rigid tools: tuples of the dataclasses above."""
 
     fixed: tuple[Fixed, ...]
     loads: tuple[Load, ...]
+    contacts: tuple[RigidTool, ...] = ()  # rigid tools touching the body (reference.contact)
 
     @property
     def tools(self) -> tuple[Displacement, ...]:

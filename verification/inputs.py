@@ -144,6 +144,13 @@ def scene_inputs(scene) -> SceneInputs:
     its materials, its loading (``build_loading``) and its time mode; and, for an engine in this process
     that runs on a mesh of its own, the loading on that mesh."""
     mesh, ts = scene.mesh, scene.time
+    if scene.problem.contacts:
+        from verification.scene import SceneError
+
+        raise SceneError(
+            f"{scene.path}: tool: no engine models a rigid tool's contact yet; the reference solves it "
+            f"(tissuebench reference {scene.path})"
+        )
     return SceneInputs(
         name=scene.name,
         source=str(scene.path),

@@ -276,6 +276,42 @@ def small_tools(scene: Scene) -> list[str]:
     return out
 
 
+#: How many positions along its travel a rigid tool's approach to the body is measured at.
+TOOL_PATH_SAMPLES = 65
+
+
+def check_tools(scene: Scene) -> None:
+    """SceneError, before any work, for a rigid tool ([[tool]]) that starts inside the body (a surface
+    vertex inside it at t = 0, or its centre inside the body) or that never touches the body's rest
+    shape along its travel (sampled at TOOL_PATH_SAMPLES positions): the first has no contact problem
+    to start from, the second no contact."""
+    from meshes.regions import locate
+
+    mesh = scene.mesh
+    surface = mesh.points[mesh.surface_vertices]
+    tol = 1e-9 * float(np.ptp(mesh.points, axis=0).max())
+    for i, tool in enumerate(scene.problem.contacts):
+        where = f"{scene.path}: tool[{i}]"
+        start = tool.gap(surface, 0.0)
+        k = int(np.argmin(start))
+        inside = tool.shape != "plane" and locate(mesh, np.asarray([tool.center], dtype=float))[0] >= 0
+        if start[k] < -tol or inside:
+            at = (
+                f"its center {list(tool.center)} lies in the body"
+                if inside
+                else f"the body's surface point {np.round(surface[k], 6).tolist()} m lies {-start[k]:.3g} m inside it"
+            )
+            raise SceneError(
+                f"{where}: the {tool.shape} starts inside the body ({at}); place it outside at t = 0 and let travel bring it in"
+            )
+        closest = min(float(tool.gap(surface, s).min()) for s in np.linspace(0.0, 1.0, TOOL_PATH_SAMPLES))
+        if closest > tol:
+            raise SceneError(
+                f"{where}: the {tool.shape} never touches the body: along its travel {list(tool.travel)} m it comes no "
+                f"closer than {closest:.3g} m to the body's rest shape; lengthen travel or move the tool"
+            )
+
+
 def zone_index(scene: Scene, mesh: TetMesh) -> np.ndarray:
     """The [[material]] table of each tetrahedron of ``mesh`` (the scene's own, level 0): (M,) int64,
     the last table whose region holds it. A box, sphere or ``all`` holds the tetrahedra whose centroid

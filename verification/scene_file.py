@@ -20,11 +20,13 @@ from realtime.material import LAWS, Material, MaterialError
 from reference.problem import (
     COMPONENTS,
     RAMP_SHAPES,
+    TOOL_SHAPES,
     Displacement,
     Fixed,
     Force,
     Gravity,
     Problem,
+    RigidTool,
     Traction,
 )
 from verification.scene import SCENES_DIR, Scene, SceneError, TimeSpec
@@ -257,6 +259,29 @@ def _load(r: _Reader):
     return load
 
 
+def _rigid_tool(r: _Reader) -> RigidTool:
+    """A [[tool]] table: a rigid shape pressed on the body (reference.problem.RigidTool)."""
+    shape = r.string("shape", TOOL_SHAPES)
+    keys = {"sphere": ("radius",), "capsule": ("radius", "end"), "plane": ("normal",)}[shape]
+    fields = {"center": r.vec3("center"), "travel": r.vec3("travel", [0.0, 0.0, 0.0])}
+    fields["ramp"] = r.number("ramp", 0.0, nonneg=True)
+    fields["ramp_shape"] = r.string("ramp_shape", RAMP_SHAPES, default="linear")
+    if "radius" in keys:
+        fields["radius"] = r.number("radius", positive=True)
+    if "end" in keys:
+        fields["end"] = r.vec3("end")
+        length = float(np.linalg.norm(np.subtract(fields["end"], fields["center"])))
+        if not length > 1e-9 * fields["radius"]:
+            r.fail("end", f"= {list(fields['end'])} is the center: a capsule of length {length:g} m is a sphere")
+    if "normal" in keys:
+        normal = np.asarray(r.vec3("normal"))
+        if not np.linalg.norm(normal) > 0:
+            r.fail("normal", "must be a non-zero vector")
+        fields["normal"] = tuple(normal / np.linalg.norm(normal))
+    r.finish(("shape", "center", "travel", "ramp", "ramp_shape") + keys)
+    return RigidTool(shape, **fields)
+
+
 def _tables(r: _Reader, key: str) -> list[_Reader]:
     v = r.get(key, [])
     if not isinstance(v, list):
@@ -274,11 +299,13 @@ def parse(path: Path, data: dict) -> Scene:
     material, zones = errors.section(_materials, top) or (None, None)
     fixed = [f for f in (errors.section(_fixed, fr) for fr in errors.section(_tables, top, "fixed") or []) if f]
     loads = [ld for ld in (errors.section(_load, lr) for lr in errors.section(_tables, top, "load") or []) if ld]
+    contacts = [t for t in (errors.section(_rigid_tool, tr) for tr in errors.section(_tables, top, "tool") or []) if t]
     tspec = errors.section(_time, top)
     manufactured = errors.section(_manufactured, top) if top.has("manufactured") else None
     events = errors.section(_events, top, tspec and tspec.mode) or ()
     errors.section(
-        top.finish, ("name", "description", "mesh", "material", "fixed", "load", "time", "manufactured", "event")
+        top.finish,
+        ("name", "description", "mesh", "material", "fixed", "load", "tool", "time", "manufactured", "event"),
     )
     errors.check()
     if zones and manufactured:
@@ -299,7 +326,7 @@ def parse(path: Path, data: dict) -> Scene:
         path,
         spec,
         material,
-        Problem(tuple(fixed), tuple(loads)),
+        Problem(tuple(fixed), tuple(loads), tuple(contacts)),
         tspec,
         raw=data,
         manufactured=manufactured,
@@ -325,7 +352,14 @@ def _mesh_spec(top: _Reader) -> dict:
     refine = mr.get("refine", 0)
     if not (isinstance(refine, int) and not isinstance(refine, bool) and 0 <= refine <= MAX_REFINE):
         mr.fail("refine", f"must be a whole number from 0 to {MAX_REFINE} (uniform refinements), got {refine!r}")
-    mr.finish(("generator", "refine") + tuple(MESH_PARAMS[gen]))
+    if gen == "box" and mr.has("fine"):
+        fine = _Reader(top.path, mr.get("fine"), mr.key("fine"))
+        spec["fine"] = {"point": list(fine.vec3("point")), "h": fine.number("h", positive=True)}
+        spec["fine"]["radius"] = fine.number("radius", 0.0, nonneg=True)
+        fine.finish(("point", "h", "radius"))
+        if not spec["fine"]["h"] < spec["h"]:
+            fine.fail("h", f"= {spec['fine']['h']!r} must be below the mesh's h = {spec['h']!r}")
+    mr.finish(("generator", "refine") + (("fine",) if gen == "box" else ()) + tuple(MESH_PARAMS[gen]))
     if gen == "tube" and not spec["inner_radius"] < spec["outer_radius"]:
         mr.fail("inner_radius", f"{spec['inner_radius']!r} must be below outer_radius = {spec['outer_radius']!r}")
     if gen != "file":

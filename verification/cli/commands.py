@@ -10,7 +10,7 @@ from pathlib import Path
 from realtime.models import linear_tm, stvk_tm
 from verification.inputs import check_held
 from verification.metrics import METRICS
-from verification.scene import SceneError, implausible
+from verification.scene import SceneError, check_tools, implausible
 from verification.scene_file import builtin_scenes, load_scene
 
 
@@ -67,6 +67,11 @@ def _scene(args, warn: bool = True, solves: bool = True):
             f"tissuebench converge {args.scene})"
         )
     check_held(scene)
+    check_tools(scene)
+    if scene.problem.contacts and args.command not in ("reference", "check", "judge"):
+        from verification.inputs import scene_inputs
+
+        scene_inputs(scene)  # refuses, in one line, before any truth is solved for an engine that cannot use it
     if scene.events:  # each state's body must be held too: a cut right through frees a piece
         from verification.events import states
 
@@ -121,7 +126,7 @@ def _write_levels(target: str, name: str, res) -> None:
 
 
 def cmd_reference(args) -> int:
-    from verification.runs.reference import reference_result
+    from verification.runs.reference import contact_summary, reference_result
 
     scene = _scene(args)
     estimate = False if args.no_estimate else {"p3": "p3", "adaptive": "adaptive"}.get(args.estimate, True)
@@ -153,6 +158,7 @@ def cmd_reference(args) -> int:
         "out": args.out,
         "max_displacement": float(abs(res.displacement).max()),
         "reaction": res.reaction[-1].tolist(),
+        "contact": contact_summary(res.meta),
         "meta": res.meta,
     }
     if MPI.COMM_WORLD.rank == 0:
@@ -166,6 +172,12 @@ def cmd_reference(args) -> int:
                 + (f", written to {args.out}" if args.out else "")
                 + (f"; unverified: {res.meta['unchecked']}" if res.meta.get("unchecked") else "")
             )
+            for row in summary["contact"]:
+                force, area = (("unknown" if b is None else f"{b:.2g}") for b in (row["force_bar"], row["area_bar"]))
+                print(
+                    f"  tool[{row['tool']}]: force [{', '.join(f'{f:.4g}' for f in row['force'])}] N (bar {force}), "
+                    f"contact area {row['area']:.4g} m^2 (bar {area})"
+                )
     return 0
 
 

@@ -54,6 +54,12 @@ def _regions(scene) -> list[dict]:
                 {"table": f"load[{i}]", "region": ld.region.describe(), "vertices": len(held),
                  "inside": int((~surface[held]).sum())}
             )  # fmt: skip
+    for i, tool in enumerate(scene.problem.contacts):
+        size = f"radius {tool.radius:g} m" if tool.shape != "plane" else f"normal {list(tool.normal)}"
+        regions.append(
+            {"table": f"tool[{i}]", "region": f"a rigid {tool.shape}, {size}, travelling {list(tool.travel)} m",
+             "vertices": int((tool.gap(mesh.points[surface], 1.0) < 0.0).sum()), "rigid": True}
+        )  # fmt: skip
     return regions
 
 
@@ -116,7 +122,9 @@ def check_text(o: dict) -> str:
         for z in o["materials"]
     ]
     lines += [
-        f"  {r['table']}: {r['region']} holds {r['vertices']} vert{'ex' if r['vertices'] == 1 else 'ices'}"
+        f"  {r['table']}: {r['region']} {'ends with' if 'rigid' in r else 'holds'} {r['vertices']} "
+        f"{'surface ' if 'rigid' in r else ''}vert{'ex' if r['vertices'] == 1 else 'ices'}"
+        + (" of the rest shape inside it" if "rigid" in r else "")
         + (
             f", {r['inside']} inside the body (precomputed, whose responses exist for surface vertices only, "
             "will not run this scene)"

@@ -378,3 +378,31 @@ def reference_at(scene: Scene, points: np.ndarray, **options) -> Result:
     return Result(
         points, empty, np.zeros(1), sol["displacement"][None], sol["reaction"][None], {**base.meta, **sol["meta"]}
     )
+
+
+def contact_summary(meta: dict) -> list[dict]:
+    """Each rigid tool's force and contact area as the truth states them, with bars, from a reference's
+    ``meta`` (its solves' ``contact`` records, reference.static): the force (3,) N of the returned
+    solve at its stiffest penalty, its bar the difference to the other level's plus the penalty's
+    error; the area m^2 of the returned solve at its first penalty (the penetrated region's edge is
+    lost in round-off as the penalty stiffens on a fixed mesh), its bar the difference to the other
+    level's plus its change when the penalty stiffens. [] for a scene without tools; a bar is None
+    when the reference solved one level (unknown, never zero)."""
+    solves = [s for s in meta.get("solves", []) if s.get("contact")]
+    if not solves:
+        return []
+    mine = [s for s in solves if s.get("level") == meta.get("returned_level") and s.get("degree") == meta.get("degree")]
+    returned = mine[0] if mine else solves[0]
+    other = next((s for s in solves if s is not returned), None)
+    out = []
+    for k in range(len(returned["contact"][0]["area"])):
+        force = np.asarray(returned["contact"][-1]["force"][k])
+        area = returned["contact"][0]["area"][k]
+        row = {"tool": k, "force": force.tolist(), "area": area, "force_bar": None, "area_bar": None}
+        if other is not None:
+            penalty_area = abs(returned["contact"][1]["area"][k] - area)
+            row["force_bar"] = float(np.linalg.norm(force - np.asarray(other["contact"][-1]["force"][k])))
+            row["force_bar"] += returned["penalty_error"]["force"][k]
+            row["area_bar"] = abs(area - other["contact"][0]["area"][k]) + penalty_area
+        out.append(row)
+    return out

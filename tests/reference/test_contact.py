@@ -1,0 +1,179 @@
+"""A rigid tool pressed on the body (reference.contact): the truth's gap is the problem's, Hertz's closed
+form holds for a sphere pressing a large block with the truth's bar shown beside it, and a tool a
+scene cannot use is one line."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem
+from dolfinx import mesh as dmesh
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from meshes.generators import box
+from meshes.regions import TagRegion
+from realtime.material import Material
+from reference.contact import gap
+from reference.fem import ElasticityProblem
+from reference.problem import Fixed, Problem, RigidTool
+from tests.verification.test_input_errors import assert_one_line, run
+
+TOOLS = {
+    "sphere": RigidTool("sphere", (0.3, 0.2, 0.9), radius=0.25, travel=(0.1, -0.2, -0.3)),
+    "capsule": RigidTool("capsule", (0.1, 0.5, 0.8), radius=0.15, end=(0.9, 0.4, 0.7), travel=(0.0, 0.1, -0.2)),
+    "plane": RigidTool(
+        "plane", (0.0, 0.0, 0.7), normal=tuple(np.array([0.2, 0.1, -1.0]) / np.linalg.norm([0.2, 0.1, -1.0]))
+    ),
+}
+
+
+@pytest.mark.parametrize("shape", sorted(TOOLS))
+def test_the_truths_gap_is_the_problems_gap(shape):
+    """reference.contact.gap (UFL) against RigidTool.gap (numpy), at the quadrature points of a unit cube's
+    cells, the tool moved 0.6 of its travel; both are the same closed form, so round-off (1e-13 of the
+    cube's side) separates them. The capsule's points lie before, along and beyond its segment."""
+    tool = TOOLS[shape]
+    domain = dmesh.create_unit_cube(MPI.COMM_SELF, 3, 3, 3)
+    offset = fem.Constant(domain, PETSc.ScalarType(tuple(tool.offset(0.6))))
+    x = ufl.SpatialCoordinate(domain)
+    points = np.array([[0.1, 0.2, 0.3], [0.25, 0.25, 0.25], [0.6, 0.1, 0.2], [0.3, 0.6, 0.05]])
+    cells = np.arange(domain.topology.index_map(3).size_local, dtype=np.int32)
+    g = fem.Expression(gap(tool, x, offset), points).eval(cells).ravel()
+    y = fem.Expression(x, points).eval(cells).reshape(-1, 3)
+    np.testing.assert_allclose(g, tool.gap(y, 0.6), rtol=0, atol=1e-13)
+    assert (g < 0).any() and (g > 0).any()  # the tool's surface crosses the cube: both sides are tested
+
+
+R, E, NU = 0.005, 5.0e3, 0.45  # m, Pa: a 5 mm tool tip on soft tissue
+L = 40 * R  # the block's side: its finite size shifts the force by about 0.4 % of Hertz's (L = 20 R: 0.8 %)
+
+
+def press(d: float, h: float) -> dict:
+    """A rigid sphere of radius R pressed d into a quarter of a block (side L, symmetry planes x = 0 and
+    y = 0, base held), the mesh graded to edges h under the tool: the truth's force (N, on the whole
+    block) and contact area (m^2), and their penalty errors."""
+    mesh = box((L, L, L), L / 4, fine={"point": (0.0, 0.0, L), "h": h, "radius": 0.3 * R})
+    fixed = (Fixed(TagRegion("xmin"), ("x",)), Fixed(TagRegion("ymin"), ("y",)), Fixed(TagRegion("zmin")))
+    tool = RigidTool("sphere", (0.0, 0.0, L + R), radius=R, travel=(0.0, 0.0, -d))
+    material = Material(law="linear", young=E, poisson=NU, density=1000.0)
+    info = ElasticityProblem(mesh, material, Problem(fixed, (), (tool,)), degree=2).solve()
+    last = info["contact"][-1]
+    return {
+        "force": -4.0 * last["force"][0][2],
+        "area": 4.0 * info["contact"][0]["area"][0],  # the first penalty's (verification.runs.reference)
+        "force_penalty": 4.0 * info["penalty_error"]["force"][0],
+        "order": info["penalty_order"],
+    }
+
+
+@pytest.mark.slow
+def test_a_sphere_pressing_a_block_follows_hertz_within_the_truths_bar():
+    """Hertz: a rigid sphere pressed d into an elastic half-space takes F = 4/3 E/(1 - nu^2) sqrt(R) d^1.5
+    over a contact radius sqrt(R d). The truth is P2 on a graded block at edges of 0.08 R and 0.04 R under
+    the tool, at d/R = 0.01, 0.0224 and 0.05; its bar on a force is the difference between the two meshes
+    plus the penalty's error. Asked: the fitted exponent within 0.03 of 1.5 and the prefactor (F / d^1.5
+    fitted with Hertz's exponent) within 3 % of Hertz's, both counting the bar; measured: 1.499 +- 0.013 and
+    +0.6 % +- 1.7 % (at 0.06 R and 0.03 R, twice the time: 1.500 +- 0.007 and +0.6 % +- 0.9 %). The contact
+    area, printed, is 0.92 to 0.95 of pi R d (the exact sphere: 0.98 to 0.99): the penetrated region's edge,
+    where the pressure falls to zero, converges slowly.
+    Two effects Hertz leaves out are smaller than that: the exact sphere (Sneddon) takes 0.1 to 0.5 % less
+    force than Hertz's paraboloid, the finite block about 0.4 % more. (At nu = 0.3, the frictionless
+    sphere's radial push on the surface adds 0.17 a / R through the 1 - 2 nu coupling, which Hertz's
+    first-order theory drops: 3.7 % at d/R = 0.05; nu = 0.45 is tissue's and keeps it under 1 %.)"""
+    depths = R * np.array([0.01, 0.0224, 0.05])
+    coarse = [press(d, 0.08 * R) for d in depths]
+    fine = [press(d, 0.04 * R) for d in depths]
+    force = np.array([f["force"] for f in fine])
+    bar = np.array([abs(f["force"] - c["force"]) + f["force_penalty"] for f, c in zip(fine, coarse, strict=True)])
+    hertz = 4.0 / 3.0 * E / (1.0 - NU**2) * np.sqrt(R) * depths**1.5
+    print("d/R, F/Hertz, bar/Hertz, area/(pi R d):")
+    for d, f, b, h, a in zip(depths / R, force, bar, hertz, [f["area"] for f in fine], strict=True):
+        print(f"  {d:.4f} {f / h:.4f} {b / h:.1e} {a / (np.pi * R * R * d):.3f}")
+    exponent = np.polyfit(np.log(depths), np.log(force), 1)[0]
+    # the exponent's bar: the fit's slope moved by the bars at the two ends, the worst way
+    spread = np.log((force[-1] + bar[-1]) / (force[0] - bar[0])) - np.log((force[-1] - bar[-1]) / (force[0] + bar[0]))
+    spread /= np.log(depths[-1] / depths[0])
+    prefactor = np.sum(force * depths**1.5) / np.sum(depths**3)  # least squares of F = C d^1.5
+    hertz_prefactor = 4.0 / 3.0 * E / (1.0 - NU**2) * np.sqrt(R)
+    prefactor_bar = np.max(bar / hertz)
+    print(
+        f"exponent {exponent:.4f} +- {spread / 2:.4f}; prefactor / Hertz's {prefactor / hertz_prefactor:.4f} +- {prefactor_bar:.4f}"
+    )
+    assert abs(exponent - 1.5) + spread / 2 <= 0.03
+    assert abs(prefactor / hertz_prefactor - 1.0) + prefactor_bar <= 0.03
+    assert all(f["force_penalty"] < 1e-3 * f["force"] for f in fine)  # the penalty is not what the bar is made of
+
+
+BLOCK = """name = "press"
+[mesh]
+generator = "box"
+size = [0.04, 0.04, 0.02]
+h = 0.01
+[material]
+law = "linear"
+young = 5.0e3
+poisson = 0.45
+density = 1000.0
+[[fixed]]
+tag = "zmin"
+[[tool]]
+"""
+
+
+@pytest.mark.parametrize(
+    "tool, needles",
+    [
+        ('shape = "sphere"\ncenter = [0.02, 0.02, 0.021]\nradius = 0.005', ("tool[0]", "starts inside", "m inside it")),
+        (
+            'shape = "sphere"\ncenter = [0.02, 0.02, 0.01]\nradius = 0.001',
+            ("tool[0]", "its center", "lies in the body"),
+        ),
+        (
+            'shape = "sphere"\ncenter = [0.02, 0.02, 0.03]\nradius = 0.005\ntravel = [0.0, 0.0, -0.004]',
+            ("tool[0]", "never touches", "0.001"),
+        ),
+        (
+            'shape = "capsule"\ncenter = [0.0, 0.0, 0.03]\nend = [0.0, 0.0, 0.03]\nradius = 0.005',
+            ("tool[0].end", "length 0"),
+        ),
+        ('shape = "cone"\ncenter = [0.0, 0.0, 0.03]', ("tool[0].shape", "cone", "sphere")),
+        ('shape = "plane"\ncenter = [0.0, 0.0, 0.03]\nnormal = [0.0, 0.0, 0.0]', ("tool[0].normal", "non-zero")),
+    ],
+    ids=["surface-inside", "center-inside", "never-touches", "zero-length-capsule", "unknown-shape", "zero-normal"],
+)
+def test_a_tool_the_scene_cannot_use_is_one_line_and_exit_2(tmp_path, capsys, tool, needles):
+    path = tmp_path / "press.toml"
+    path.write_text(BLOCK + tool + "\n")
+    code, _, err = run(["check", str(path)], capsys)
+    assert code == 2
+    assert_one_line(err, str(path), *needles)
+
+
+def test_an_engine_on_a_contact_scene_says_it_has_no_contact_in_one_line(tmp_path, capsys):
+    """Until the engines model a rigid tool, a contact scene run on one is refused by name, not solved
+    without its tool."""
+    path = tmp_path / "press.toml"
+    path.write_text(
+        BLOCK + 'shape = "sphere"\ncenter = [0.02, 0.02, 0.025]\nradius = 0.005\ntravel = [0.0, 0.0, -0.001]\n'
+    )
+    code, _, err = run(["compare", str(path), "--model", "linear-tm"], capsys)
+    assert code == 2
+    assert_one_line(err, str(path), "tool", "no engine models")
+
+
+def test_the_reference_command_states_each_tools_force_and_area_with_their_bars(tmp_path, capsys):
+    """tissuebench reference on a contact scene: the tool's force (it pushes the block down) and contact
+    area, each with its bar from the two levels and the penalty; on this coarse P1 block the bars are
+    large, and they are stated, not zero."""
+    path = tmp_path / "press.toml"
+    path.write_text(
+        BLOCK + 'shape = "sphere"\ncenter = [0.02, 0.02, 0.025]\nradius = 0.005\ntravel = [0.0, 0.0, -0.001]\n'
+    )
+    code, out, err = run(["reference", str(path), "--degree", "1", "--json"], capsys)
+    assert code == 0, err
+    (row,) = __import__("json").loads(out)["contact"]
+    # pressed down; sideways a little, as this coarse mesh under a tool its own size is not symmetric (11 %)
+    assert row["force"][2] < 0.0 and abs(row["force"][2]) > 5 * np.abs(row["force"][:2]).max()
+    assert 0.0 < row["area"] and row["force_bar"] > 0.0 and row["area_bar"] > 0.0
