@@ -48,6 +48,9 @@ class NewtonStepper(Stepper):
         import newton
 
         self.wp, self.substeps, self.kind = wp, substeps, solver
+        # the body about its centre: newton holds positions in float32, whose unit grows with the
+        # coordinate; the vertices are given and read back about this origin (float64 on our side)
+        self.origin = 0.5 * (scene.points.min(axis=0) + scene.points.max(axis=0))
         lam, mu, rho = scene.lame()
         if len(set(rho.tolist())) > 1:
             raise AdapterError("newton's add_soft_mesh takes one density per body; this scene has several")
@@ -58,7 +61,7 @@ class NewtonStepper(Stepper):
             rot=wp.quat_identity(),
             scale=1.0,
             vel=(0.0, 0.0, 0.0),
-            vertices=scene.points.tolist(),
+            vertices=(scene.points - self.origin).tolist(),
             indices=scene.tets.ravel().tolist(),
             density=float(rho[0]),
             k_mu=k_mu,
@@ -119,11 +122,11 @@ class NewtonStepper(Stepper):
         return f.numpy().astype(float)
 
     def positions(self) -> np.ndarray:
-        return self.states[0].particle_q.numpy().astype(float)
+        return self.states[0].particle_q.numpy().astype(float) + self.origin
 
     def set_positions(self, x: np.ndarray) -> None:
         self._held_x = x
-        self.states[0].particle_q.assign(x.astype(np.float32))
+        self.states[0].particle_q.assign((x - self.origin).astype(np.float32))
 
     def velocities(self) -> np.ndarray:
         return self.states[0].particle_qd.numpy().astype(float)

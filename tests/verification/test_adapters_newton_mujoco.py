@@ -167,17 +167,19 @@ def test_mujoco_flex_is_p1_stvk_on_the_same_mesh(monkeypatch):
 def test_newton_semi_implicit_is_near_p1_stvk(capsys):
     """newton's semi-implicit solver runs the stable neo-Hookean law (Smith et al. 2018, with its log term),
     the scene's is StVK: at the cantilever's 7% tip deflection the two P1 solutions differ at second order
-    in the strain (measured 4.6e-3 of the displacement, float32 round-off included); 1e-2 bounds it.
-    Against the P1 truth of its own law on the same mesh, what remains is its numerics alone: measured
-    7.4e-3, more than the 2.6e-3 between the two laws' P1 solutions, because its float32 positions stall
-    its relaxation (a step's increment of 7e-9 m is under a float32 unit of a 0.1 m coordinate; the run
-    records the stall, at a change of 4e-4 of the displacement). Bound: 1e-2, the stall's measured error
-    with a margin; the law is declared and its distance reported."""
+    in the strain (measured 2.1e-3 of the displacement from P1 StVK, float32 round-off included); 1e-2
+    bounds it. Against the P1 truth of its own law on the same mesh, what remains is its numerics alone:
+    measured 1.5e-3, nearer than the scene's law, as a law mapped right must be. Its float32 positions
+    stall its relaxation (the run records where, at a change of 7e-5 of the displacement); the adapter
+    holds them about the body's centre, where a float32 unit is smallest (about the corner: 7.4e-3, the
+    stall at 4e-4). Bound: 3e-3, the stall's measured error with a margin for another machine's float32
+    sums."""
     code = main(["compare", "cantilever", "--engine", "newton", "--model", "newton-semi-implicit", "--json"])
     row = json.loads(capsys.readouterr().out)
     assert code == 0 and row["status"] == "ok"
     assert row["error_budget"]["model"] < 1e-2
-    assert row["own_law"]["law"] == "stable-neo-hookean" and row["own_law"]["rel_l2"] < 1e-2
+    assert row["own_law"]["law"] == "stable-neo-hookean" and row["own_law"]["rel_l2"] < 3e-3
+    assert row["own_law"]["rel_l2"] < row["error_budget"]["model"]
     assert row["engine"]["stalled_at"] > 1e-5  # the relaxation says where float32 stopped it
     assert "Neo-Hookean" in row["engine"]["law"]
 
