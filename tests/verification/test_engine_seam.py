@@ -293,6 +293,42 @@ def test_an_engine_in_another_process_is_judged_through_the_seam(capsys):
     assert theirs["step_us"] > 0.0 and theirs["integrator"] == "the command's own"
 
 
+STATES_STEPS = """
+import subprocess, sys
+import numpy as np
+scene, result, steps, direct = sys.argv[1:5]
+subprocess.run([sys.executable, direct, scene, result], check=True)
+with np.load(result) as z:
+    out = dict(z)
+out["steps"] = np.asarray(eval(steps))  # the test's literal: 400, or a bad value
+out["step_us"] = out["step_us"] / float(out["steps"])  # its solve's time, as 400 steps of it
+np.savez(result, **out)
+"""
+
+
+def test_an_engine_commands_settling_steps_are_charged_to_its_frames(tmp_path, capsys):
+    """A command whose result file says its static answer took 400 steps (``steps``, each a 400th of its
+    solve's time) is costed as 400 updates of its step time: frames of steps, and the answer after 400
+    of them; the same command
+    without ``steps`` is one update a frame, as before. A ``steps`` that is no whole number is one
+    line."""
+    script = tmp_path / "steps.py"
+    script.write_text(STATES_STEPS)
+    direct = EXAMPLES / "direct_p1.py"
+    args = ["compare", "cantilever-pull", "--degree", "1", "--rate", "60", "--json", "--model", "numpy-p1"]
+    assert main([*args, "--engine-cmd", f"{sys.executable} {script} {{scene}} {{result}} 400 {direct}"]) == 0
+    stated = json.loads(capsys.readouterr().out)
+    assert main([*args, "--engine-cmd", DIRECT_P1]) == 0
+    silent = json.loads(capsys.readouterr().out)
+    assert stated["settle_steps"] == 400 and silent["settle_steps"] == 1
+    frame, one = stated["frame"], silent["frame"]
+    assert one["steps_per_frame"] == 1 and "one update" in one["why"]
+    assert frame["time_to_answer_s"] == pytest.approx(400 * stated["step_us"] * 1e-6)
+    assert "settles in 400 steps" in frame["why"]
+    code = main([*args, "--engine-cmd", f"{sys.executable} {script} {{scene}} {{result}} 2.5 {direct}"])
+    _one_line_exit_2(code, capsys.readouterr().err, ("steps = ", "2.5", "is not a whole number of steps"))
+
+
 @pytest.mark.parametrize(
     "command, needles",
     [

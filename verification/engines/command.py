@@ -65,7 +65,7 @@ class CommandSimulation:
 
     def __init__(self, engine: CommandEngine, inputs: SceneInputs, model: str):
         self.engine, self.inputs, self.model = engine, inputs, model
-        self._answer = None  # (displacement (T, N, 3) m, reaction (T, 3) N, step_us or None)
+        self._answer = None  # (displacement (T, N, 3) m, reaction (T, 3) N, step_us or None, {steps, dt} stated)
         self._k = 0  # the output instant held
 
     @property
@@ -124,8 +124,22 @@ class CommandSimulation:
         on_scene(self.inputs, self.label, res.displacement)
         with np.load(path) as z:
             step_us = float(z["step_us"]) if "step_us" in z.files else None
+            settled = self._settled(path, {k: z[k] for k in ("steps", "dt") if k in z.files})
         reaction = res.reaction if res.reaction is not None else np.full((expected, 3), np.nan)  # none given
-        return res.displacement, reaction, step_us
+        return res.displacement, reaction, step_us, settled
+
+    def _settled(self, path: Path, given: dict) -> dict:
+        """The steps (a whole number >= 1) a static answer took, and their dt (s), where the result file
+        states them; CommandError for a value that is neither."""
+        out = {}
+        for key, value in given.items():
+            v = float(value) if np.ndim(value) == 0 and np.issubdtype(np.asarray(value).dtype, np.number) else None
+            whole = key != "steps" or (v is not None and v == int(v))
+            if v is None or not (np.isfinite(v) and v > 0.0 and whole and (key != "steps" or v >= 1)):
+                what = "a whole number of steps, at least 1" if key == "steps" else "a time step in seconds, > 0"
+                raise CommandError(f"{self.label}: {path.name}: {key} = {value!r} is not {what}")
+            out[key] = int(v) if key == "steps" else v
+        return out
 
     def critical_dt(self):
         return None  # its step is its own
@@ -139,11 +153,15 @@ class CommandSimulation:
         self._k = int(round(t / step))
 
     def settle(self, rtol, max_steps, dt, dt_fraction) -> Settling:
+        """Its static answer; the steps it took when its result file says (``steps``, with ``dt`` when it
+        steps in time), so that a frame budget charges each of them, else one update."""
         t0 = time.perf_counter()
         self._run()
         wall = time.perf_counter() - t0
-        static = {"method": self.label, "steps": 1, "residual": None, "wall_s": wall}
-        return Settling(1, None, None, None, wall, static)
+        settled = self._answer[3]
+        steps, step = settled.get("steps", 1), settled.get("dt")
+        static = {"method": self.label, "steps": steps, "residual": None, "wall_s": wall, "stated": bool(settled)}
+        return Settling(steps, None, step, None, wall, static)
 
     def step(self, n: int) -> None:
         pass  # it ran in its own process: the harness does not time it (timing None)

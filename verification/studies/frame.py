@@ -58,7 +58,9 @@ def visual_budget(row: Row, rate: float, dynamic: bool, share: float = FRAME_SHA
         out.update(steps_per_frame=None, work_us=None, time_to_answer_s=None, holds=False)
         out["why"] = "the engine reports no step time"
         return out
-    if row.dt is None:  # quasi-static: one update per frame
+    # quasi-static: one update per frame; a static answer of many steps without a time step (an engine
+    # command's iterations) is costed by its steps, as a time-stepping model's settling is
+    if row.dt is None and (dynamic or (row.settle_steps or 1) <= 1):
         holds = step_us <= budget_us
         out.update(
             steps_per_frame=1,
@@ -68,8 +70,8 @@ def visual_budget(row: Row, rate: float, dynamic: bool, share: float = FRAME_SHA
             why=f"one update of {step_us:.3g} us per frame of {frame_us:.3g} us",
         )
         return out
-    dt_us = row.dt * 1e6
     if dynamic:
+        dt_us = row.dt * 1e6
         n = max(1, math.ceil(frame_us / dt_us * (1.0 - 1e-12)))
         work = n * step_us
         # a step of one frame, printed to 6 digits in a command and read back, is still one frame
