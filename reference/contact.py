@@ -87,6 +87,12 @@ class Contact:
             form += self.kappa * ufl.min_value(g, 0.0) * ufl.dot(grad, v) * self.ds
         return form
 
+    def stations(self) -> tuple[float, ...]:
+        """The fractions of the travel where the force-indentation curve is read: k / n for k = 1..n, n the
+        most ``stations`` any tool asks (none: the end only, which the static solve reads anyway)."""
+        n = max(tool.stations for tool in self.tools)
+        return tuple(k / n for k in range(1, n + 1)) if n > 1 else ()
+
     def move(self, s: float) -> None:
         """Every tool at fraction s of its travel."""
         for tool, offset in zip(self.tools, self.offsets, strict=True):
@@ -98,7 +104,7 @@ class Contact:
             offset.value = tool.offset(ramp(t, tool.ramp, tool.ramp_shape)[0])
 
     def read(self, u) -> dict:
-        """Each tool's force on the body (T, 3) N and contact area (T,) m^2 at u, on every rank."""
+        """Each tool's force on the body [T][3] N and contact area [T] m^2 at u (lists), on every rank."""
         if self._read is None:
             self._read = []
             for g, grad in self._gaps(u):
@@ -110,6 +116,6 @@ class Contact:
         def total(form) -> float:
             return self.comm.allreduce(fem.assemble_scalar(form), op=MPI.SUM)
 
-        forces = np.array([[total(f) for f in force] for force, _ in self._read])
-        areas = np.array([total(area) for _, area in self._read])
+        forces = [[total(f) for f in force] for force, _ in self._read]
+        areas = [total(area) for _, area in self._read]
         return {"force": forces, "area": areas, "gamma": float(self.gamma.value)}

@@ -159,7 +159,8 @@ class RigidTool:
     (3,) m swept by a ball of ``radius`` m; "plane": the half-space behind the plane through ``center``
     whose unit ``normal`` (3,) points out of the tool, toward the body. ``travel`` (3,) m is the
     translation reached at ``ramp`` s along ``ramp_shape`` (``ramp``), then held. The geometry is given
-    at t = 0, where the tool must not yet be inside the body.
+    at t = 0, where the tool must not yet be inside the body. ``stations`` (a static scene): the truth
+    reads the force and contact area at that many evenly spaced fractions of the travel.
     """
 
     shape: str
@@ -170,6 +171,7 @@ class RigidTool:
     travel: tuple[float, float, float] = (0.0, 0.0, 0.0)
     ramp: float = 0.0
     ramp_shape: str = "linear"
+    stations: int = 0  # a static scene's force-indentation curve: read at k / stations of the travel
 
     def offset(self, s: float) -> np.ndarray:
         """(3,) m: where the tool has moved at fraction s of its travel."""
@@ -195,6 +197,12 @@ class Problem:
     fixed: tuple[Fixed, ...]
     loads: tuple[Load, ...]
     contacts: tuple[RigidTool, ...] = ()  # rigid tools touching the body (reference.contact)
+
+    def __repr__(self) -> str:
+        """The dataclass's repr, without ``contacts`` when there are none: a scene's hash is drawn from it,
+        and a scene without rigid tools keeps the hash (and the gates' baselines) it had before they were."""
+        tools = f", contacts={self.contacts!r}" if self.contacts else ""
+        return f"Problem(fixed={self.fixed!r}, loads={self.loads!r}{tools})"
 
     @property
     def tools(self) -> tuple[Displacement, ...]:

@@ -93,23 +93,16 @@ class StaticSolves:
         seconds. Each load step's Newton iterations go to stderr.
         """
         opts, record = chosen_options(self.n_dofs, petsc_options, comm=self.comm)  # record: before any fallback
-        du = ufl.TrialFunction(self.V)
-        solver = Newton(
-            self.comm,
-            self.residual,
-            self.u,
-            self.bcs,
-            ufl.derivative(self.residual, self.u, du),
-            opts,
-            near_nullspace=self.rigid_body_modes() if opts.get("pc_type") == "gamg" else None,
-        )
+        solver = self._newton(opts)
         t0 = time.perf_counter()
         done, inc = 0.0, 1.0 / steps
-        history = []
+        history, curve = [], []  # curve: the rigid tools' force and area at each of their stations
+        stations = self.contact.stations() if self.contact is not None else ()
+        start_at_full_load = start_at_full_load and not stations  # a curve is the path from rest
         if start_at_full_load:
             done = self._full_load_from_coarse(solver, rtol, max_it, history)
         while done < 1.0 - 1e-14:
-            target = min(1.0, done + inc)
+            target = min(1.0, done + inc, *(s for s in stations if s > done + 1e-12))
             saved = self.u.x.array.copy()
             self.load_factor.value = target
             self.set_tool_fraction(target)
@@ -127,6 +120,7 @@ class StaticSolves:
                 self._log(f"{self._said()} load {target:.4g}: {said}")
                 done = target
                 inc = min(2.0 * inc, 1.0)
+                curve += [{"fraction": target, **self.contact.read(self.u)}] if target in stations else []
                 continue
             self.u.x.array[:] = saved
             inc *= 0.5
@@ -136,7 +130,7 @@ class StaticSolves:
             if inc < min_increment or elapsed > time_limit:
                 why = f"increments down to {inc:.1e}" if inc < min_increment else f"{elapsed:.0f} s, the limit"
                 raise self._no_equilibrium(done, why, steps)
-        contact = self._tighten(solver, rtol, max_it) if self.contact is not None else {}
+        contact = {**self._tighten(solver, rtol, max_it), "contact_curve": curve} if self.contact is not None else {}
         self.timings["solve_s"] = time.perf_counter() - t0
         return {
             **contact,
@@ -152,6 +146,12 @@ class StaticSolves:
             "rtol": rtol,
             "min_det_F": history[-1]["min_det_F"],
         }
+
+    def _newton(self, opts: dict) -> Newton:
+        """The static residual's Newton with these PETSc options (GAMG given the rigid-body modes)."""
+        jacobian = ufl.derivative(self.residual, self.u, ufl.TrialFunction(self.V))
+        modes = self.rigid_body_modes() if opts.get("pc_type") == "gamg" else None
+        return Newton(self.comm, self.residual, self.u, self.bcs, jacobian, opts, near_nullspace=modes)
 
     def _tighten(self, solver: Newton, rtol: float, max_it: int) -> dict:
         """The rigid tools' penalty made TIGHTEN and TIGHTEN^2 times stiffer, Newton solved again from the
@@ -174,11 +174,10 @@ class StaticSolves:
         du = self.comm.allreduce(float(np.abs(answers[2] - answers[1]).max(initial=0.0)), op=MPI.MAX)
         error = {
             "force": (last / (TIGHTEN - 1.0)).tolist(),
-            "area": (np.abs(reads[2]["area"] - reads[1]["area"]) / (TIGHTEN - 1.0)).tolist(),
+            "area": (np.abs(np.subtract(reads[2]["area"], reads[1]["area"])) / (TIGHTEN - 1.0)).tolist(),
             "u": du / (TIGHTEN - 1.0),
         }
-        lists = [{k: np.asarray(v).tolist() for k, v in r.items()} for r in reads]
-        return {"contact": lists, "penalty_error": error, "penalty_order": order}
+        return {"contact": reads, "penalty_error": error, "penalty_order": order}
 
     def _raise_penalty(self, solver: Newton, target: float, rtol: float, max_it: int) -> int:
         """gamma raised to ``target`` by Newton from the present answer, in geometric steps halved (in

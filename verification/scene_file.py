@@ -278,7 +278,13 @@ def _rigid_tool(r: _Reader) -> RigidTool:
         if not np.linalg.norm(normal) > 0:
             r.fail("normal", "must be a non-zero vector")
         fields["normal"] = tuple(normal / np.linalg.norm(normal))
-    r.finish(("shape", "center", "travel", "ramp", "ramp_shape") + keys)
+    stations = r.get("stations", 0)
+    if not (isinstance(stations, int) and not isinstance(stations, bool) and 0 <= stations <= 50):
+        r.fail(
+            "stations", f"must be a whole number from 0 to 50 (points of the force-indentation curve), got {stations!r}"
+        )
+    fields["stations"] = stations
+    r.finish(("shape", "center", "travel", "ramp", "ramp_shape", "stations") + keys)
     return RigidTool(shape, **fields)
 
 

@@ -50,21 +50,22 @@ R, E, NU = 0.005, 5.0e3, 0.45  # m, Pa: a 5 mm tool tip on soft tissue
 L = 40 * R  # the block's side: its finite size shifts the force by about 0.4 % of Hertz's (L = 20 R: 0.8 %)
 
 
-def press(d: float, h: float) -> dict:
-    """A rigid sphere of radius R pressed d into a quarter of a block (side L, symmetry planes x = 0 and
-    y = 0, base held), the mesh graded to edges h under the tool: the truth's force (N, on the whole
-    block) and contact area (m^2), and their penalty errors."""
+def press(h: float) -> dict:
+    """A rigid sphere of radius R pressed 0.05 R into a quarter of a block (side L, symmetry planes x = 0
+    and y = 0, base held), the mesh graded to edges h under the tool, the force read at five stations of
+    the travel (d/R = 0.01 to 0.05): the truth's forces (5,) N and contact areas (5,) m^2 on the whole
+    block, and the penalty's relative error measured at the end."""
     mesh = box((L, L, L), L / 4, fine={"point": (0.0, 0.0, L), "h": h, "radius": 0.3 * R})
     fixed = (Fixed(TagRegion("xmin"), ("x",)), Fixed(TagRegion("ymin"), ("y",)), Fixed(TagRegion("zmin")))
-    tool = RigidTool("sphere", (0.0, 0.0, L + R), radius=R, travel=(0.0, 0.0, -d))
+    tool = RigidTool("sphere", (0.0, 0.0, L + R), radius=R, travel=(0.0, 0.0, -0.05 * R), stations=5)
     material = Material(law="linear", young=E, poisson=NU, density=1000.0)
     info = ElasticityProblem(mesh, material, Problem(fixed, (), (tool,)), degree=2).solve()
-    last = info["contact"][-1]
+    curve = info["contact_curve"]
     return {
-        "force": -4.0 * last["force"][0][2],
-        "area": 4.0 * info["contact"][0]["area"][0],  # the first penalty's (verification.runs.reference)
-        "force_penalty": 4.0 * info["penalty_error"]["force"][0],
-        "order": info["penalty_order"],
+        "depth": np.array([0.05 * R * c["fraction"] for c in curve]),
+        "force": np.array([-4.0 * c["force"][0][2] for c in curve]),
+        "area": np.array([4.0 * c["area"][0] for c in curve]),  # the first penalty's (verification.runs.reference)
+        "penalty": info["penalty_error"]["force"][0] / abs(info["contact"][-1]["force"][0][2]),
     }
 
 
@@ -72,25 +73,22 @@ def press(d: float, h: float) -> dict:
 def test_a_sphere_pressing_a_block_follows_hertz_within_the_truths_bar():
     """Hertz: a rigid sphere pressed d into an elastic half-space takes F = 4/3 E/(1 - nu^2) sqrt(R) d^1.5
     over a contact radius sqrt(R d). The truth is P2 on a graded block at edges of 0.08 R and 0.04 R under
-    the tool, at d/R = 0.01, 0.0224 and 0.05; its bar on a force is the difference between the two meshes
-    plus the penalty's error. Asked: the fitted exponent within 0.03 of 1.5 and the prefactor (F / d^1.5
-    fitted with Hertz's exponent) within 3 % of Hertz's, both counting the bar; measured: 1.499 +- 0.013 and
-    +0.6 % +- 1.7 % (at 0.06 R and 0.03 R, twice the time: 1.500 +- 0.007 and +0.6 % +- 0.9 %). The contact
-    area, printed, is 0.92 to 0.95 of pi R d (the exact sphere: 0.98 to 0.99): the penetrated region's edge,
-    where the pressure falls to zero, converges slowly.
-    Two effects Hertz leaves out are smaller than that: the exact sphere (Sneddon) takes 0.1 to 0.5 % less
-    force than Hertz's paraboloid, the finite block about 0.4 % more. (At nu = 0.3, the frictionless
-    sphere's radial push on the surface adds 0.17 a / R through the 1 - 2 nu coupling, which Hertz's
-    first-order theory drops: 3.7 % at d/R = 0.05; nu = 0.45 is tissue's and keeps it under 1 %.)"""
-    depths = R * np.array([0.01, 0.0224, 0.05])
-    coarse = [press(d, 0.08 * R) for d in depths]
-    fine = [press(d, 0.04 * R) for d in depths]
-    force = np.array([f["force"] for f in fine])
-    bar = np.array([abs(f["force"] - c["force"]) + f["force_penalty"] for f, c in zip(fine, coarse, strict=True)])
+    the tool, its force read at d/R = 0.01, 0.02 ... 0.05 along one travel; its bar on a force is the
+    difference between the two meshes plus the penalty's error. Asked: the fitted exponent within 0.03 of
+    1.5 and the prefactor (F / d^1.5 fitted with Hertz's exponent) within 3 % of Hertz's, both counting
+    the bar; measured: 1.499 +- 0.007 and +0.5 % +- 0.9 %. Two effects Hertz leaves out are smaller than that: the exact sphere (Sneddon) takes 0.1 to
+    0.5 % less force than Hertz's paraboloid, the finite block about 0.4 % more. (At nu = 0.3, the
+    frictionless sphere's radial push on the surface adds 0.17 a / R through the 1 - 2 nu coupling, which
+    Hertz's first-order theory drops: 3.7 % at d/R = 0.05; nu = 0.45 is tissue's and keeps it under 1 %.)
+    The contact area, printed, is 0.92 to 0.95 of pi R d (the exact sphere's: 0.98 to 0.99); it converges
+    slowly, as the penetrated region's edge is where the pressure falls to zero."""
+    coarse, fine = press(0.08 * R), press(0.04 * R)
+    depths, force = fine["depth"], fine["force"]
+    bar = np.abs(force - coarse["force"]) + fine["penalty"] * force
     hertz = 4.0 / 3.0 * E / (1.0 - NU**2) * np.sqrt(R) * depths**1.5
     print("d/R, F/Hertz, bar/Hertz, area/(pi R d):")
-    for d, f, b, h, a in zip(depths / R, force, bar, hertz, [f["area"] for f in fine], strict=True):
-        print(f"  {d:.4f} {f / h:.4f} {b / h:.1e} {a / (np.pi * R * R * d):.3f}")
+    for d, f, b, h, a in zip(depths, force, bar, hertz, fine["area"], strict=True):
+        print(f"  {d / R:.4f} {f / h:.4f} {b / h:.1e} {a / (np.pi * R * d):.3f}")
     exponent = np.polyfit(np.log(depths), np.log(force), 1)[0]
     # the exponent's bar: the fit's slope moved by the bars at the two ends, the worst way
     spread = np.log((force[-1] + bar[-1]) / (force[0] - bar[0])) - np.log((force[-1] - bar[-1]) / (force[0] + bar[0]))
@@ -103,7 +101,7 @@ def test_a_sphere_pressing_a_block_follows_hertz_within_the_truths_bar():
     )
     assert abs(exponent - 1.5) + spread / 2 <= 0.03
     assert abs(prefactor / hertz_prefactor - 1.0) + prefactor_bar <= 0.03
-    assert all(f["force_penalty"] < 1e-3 * f["force"] for f in fine)  # the penalty is not what the bar is made of
+    assert fine["penalty"] < 1e-3  # the penalty is not what the bar is made of
 
 
 BLOCK = """name = "press"
@@ -165,15 +163,21 @@ def test_an_engine_on_a_contact_scene_says_it_has_no_contact_in_one_line(tmp_pat
 
 def test_the_reference_command_states_each_tools_force_and_area_with_their_bars(tmp_path, capsys):
     """tissuebench reference on a contact scene: the tool's force (it pushes the block down) and contact
-    area, each with its bar from the two levels and the penalty; on this coarse P1 block the bars are
-    large, and they are stated, not zero."""
+    area, each with its bar from the two levels and the penalty, and the force at four stations of the
+    travel, growing; on this coarse P1 block the bars are large, and they are stated, not zero."""
     path = tmp_path / "press.toml"
     path.write_text(
-        BLOCK + 'shape = "sphere"\ncenter = [0.02, 0.02, 0.025]\nradius = 0.005\ntravel = [0.0, 0.0, -0.001]\n'
+        BLOCK
+        + 'shape = "sphere"\ncenter = [0.02, 0.02, 0.025]\nradius = 0.005\ntravel = [0.0, 0.0, -0.001]\nstations = 4\n'
     )
     code, out, err = run(["reference", str(path), "--degree", "1", "--json"], capsys)
     assert code == 0, err
     (row,) = __import__("json").loads(out)["contact"]
+    # the force-indentation curve: a point at each quarter of the travel, the last the answer's own
+    curve = row["curve"]
+    assert [c["fraction"] for c in curve] == [0.25, 0.5, 0.75, 1.0]
+    pushes = [-c["force"][2] for c in curve]
+    assert all(b > a > 0.0 for a, b in zip(pushes, pushes[1:], strict=False)) and all(c["force_bar"] > 0 for c in curve)
     # pressed down; sideways a little, as this coarse mesh under a tool its own size is not symmetric (11 %)
     assert row["force"][2] < 0.0 and abs(row["force"][2]) > 5 * np.abs(row["force"][:2]).max()
     assert 0.0 < row["area"] and row["force_bar"] > 0.0 and row["area_bar"] > 0.0

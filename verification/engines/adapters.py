@@ -199,7 +199,7 @@ class AdapterSimulation(CommandSimulation):
             t = r.get("diverged_at")
             raise AdapterDivergence(self.model, int(r.get("steps", 0)), float(r["dt"]), self.integrator, t)
         if r.get("probe"):  # a stability probe's field is no answer
-            return None, None, r.get("step_us")
+            return None, None, r.get("step_us"), {}
         if r.get("settled") == 0 and r.get("hold_drift") is not None:
             raise NotConvergedError(
                 f"{self.label}: no equilibrium at dt = {float(r['dt']):.3g} s: its relaxed state, released from "

@@ -399,10 +399,32 @@ def contact_summary(meta: dict) -> list[dict]:
         force = np.asarray(returned["contact"][-1]["force"][k])
         area = returned["contact"][0]["area"][k]
         row = {"tool": k, "force": force.tolist(), "area": area, "force_bar": None, "area_bar": None}
+        row["curve"] = _curve(returned, other, k)
         if other is not None:
             penalty_area = abs(returned["contact"][1]["area"][k] - area)
             row["force_bar"] = float(np.linalg.norm(force - np.asarray(other["contact"][-1]["force"][k])))
             row["force_bar"] += returned["penalty_error"]["force"][k]
             row["area_bar"] = abs(area - other["contact"][0]["area"][k]) + penalty_area
         out.append(row)
+    return out
+
+
+def _curve(returned: dict, other: dict | None, k: int) -> list[dict]:
+    """Tool k's force-indentation curve from the returned solve's stations (reference.static): at each
+    fraction of the travel, the force (3,) N and area m^2 at the first penalty, and the force's bar: the
+    other level's difference at the same fraction plus the penalty's error at the end in proportion to
+    the force (the penetration is the pressure over kappa); None without another level."""
+    theirs = {round(s["fraction"], 12): s for s in (other or {}).get("contact_curve", [])}
+    end = np.linalg.norm(returned["contact"][-1]["force"][k]) or 1.0
+    out = []
+    for station in returned.get("contact_curve", []):
+        force = np.asarray(station["force"][k])
+        match = theirs.get(round(station["fraction"], 12))
+        bar = None
+        if match is not None:
+            bar = float(np.linalg.norm(force - np.asarray(match["force"][k])))
+            bar += returned["penalty_error"]["force"][k] * float(np.linalg.norm(force)) / end
+        out.append(
+            {"fraction": station["fraction"], "force": force.tolist(), "area": station["area"][k], "force_bar": bar}
+        )
     return out
