@@ -56,9 +56,12 @@ def test_frame_budget_of_a_static_run_is_its_time_to_settle():
     assert "13 frames" in b["why"]  # ceil(1000 / 80)
     # a step that does not fit in a frame does not hold the rate, whatever its accuracy
     assert not frame_budget(_row(step_us=900.0), 1000.0, dynamic=False, share=0.8)["holds"]
-    # a quasi-static model answers in one update
-    q = frame_budget(_row(model="precomputed", dt=None, step_us=50.0), 1000.0, dynamic=False)
+    # a quasi-static model answers in one update (its settling is that one update)
+    q = frame_budget(_row(model="precomputed", dt=None, step_us=50.0, settle=1), 1000.0, dynamic=False)
     assert q["holds"] and q["time_to_answer_s"] == pytest.approx(50e-6)
+    # an engine command's answer of 400 iterations with no time step is costed by its iterations
+    c = frame_budget(_row(model="its-own", dt=None, step_us=50.0, settle=400), 1000.0, dynamic=False, share=0.8)
+    assert c["steps_per_frame"] == 16 and c["time_to_answer_s"] == pytest.approx(400 * 50e-6)
 
 
 def test_rows_whose_step_changes_nothing_are_one_row_ranked_by_time_to_settle():
