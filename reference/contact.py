@@ -5,7 +5,7 @@ Where a point y = X + u of the body's boundary lies inside a tool, at signed dis
 tool's surface (``gap``), the boundary stores the energy kappa/2 g^2 per unit reference area, so the tool
 pushes it out with the traction kappa (-g) grad g. The penalty is kappa = gamma E / h, E the stiffest
 material's Young's modulus and h the diameter of the cell under the facet; its error falls as 1/gamma
-(the penetration is the pressure over kappa), which ``Contact.tighten`` measures by solving again with
+(the penetration is the pressure over kappa), which the static solve measures by solving again with
 gamma four and sixteen times larger (``reference.static``). The contact force and area are integrals over
 the boundary at the facets' Gauss points (the area of the penetrated region: a discontinuous
 integrand, read with a high quadrature degree).

@@ -183,8 +183,7 @@ class StaticSolves:
         """gamma raised to ``target`` by Newton from the present answer, in geometric steps halved (in
         their logarithm) when Newton fails: a node just outside the contact enters it with the stiffer
         penalty and a whole step can overshoot, as a load step can. Returns the Newton iterations."""
-        its, ratio = 0, target / float(self.contact.gamma.value)
-        step = ratio
+        its, step = 0, target / float(self.contact.gamma.value)
         while float(self.contact.gamma.value) < target * (1.0 - 1e-12):
             saved, before = self.u.x.array.copy(), float(self.contact.gamma.value)
             self.contact.gamma.value = min(before * step, target)

@@ -314,6 +314,9 @@ def parse(path: Path, data: dict) -> Scene:
         ("name", "description", "mesh", "material", "fixed", "load", "tool", "time", "manufactured", "event"),
     )
     errors.check()
+    if contacts and (tspec.mode != "static" or events):
+        what = "a dynamic scene" if tspec.mode != "static" else "a scene with events"
+        top.fail("tool", f"a rigid tool is solved in a static scene without events; this is {what}")
     if zones and manufactured:
         top.fail("manufactured", "a manufactured solution is for one [material]; this scene has [[material]] tables")
     if (

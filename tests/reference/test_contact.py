@@ -138,8 +138,21 @@ tag = "zmin"
         ),
         ('shape = "cone"\ncenter = [0.0, 0.0, 0.03]', ("tool[0].shape", "cone", "sphere")),
         ('shape = "plane"\ncenter = [0.0, 0.0, 0.03]\nnormal = [0.0, 0.0, 0.0]', ("tool[0].normal", "non-zero")),
+        (
+            'shape = "sphere"\ncenter = [0.02, 0.02, 0.025]\nradius = 0.005\ntravel = [0.0, 0.0, -0.001]\n'
+            '[time]\nmode = "dynamic"\nend = 0.1\noutput_every = 0.01',
+            ("tool", "static scene", "a dynamic scene"),
+        ),
     ],
-    ids=["surface-inside", "center-inside", "never-touches", "zero-length-capsule", "unknown-shape", "zero-normal"],
+    ids=[
+        "surface-inside",
+        "center-inside",
+        "never-touches",
+        "zero-length-capsule",
+        "unknown-shape",
+        "zero-normal",
+        "dynamic",
+    ],
 )
 def test_a_tool_the_scene_cannot_use_is_one_line_and_exit_2(tmp_path, capsys, tool, needles):
     path = tmp_path / "press.toml"
