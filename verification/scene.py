@@ -287,6 +287,8 @@ def check_tools(scene: Scene) -> None:
     to start from, the second no contact."""
     from meshes.regions import locate
 
+    if not scene.problem.contacts:
+        return
     mesh = scene.mesh
     surface = mesh.points[mesh.surface_vertices]
     tol = 1e-9 * float(np.ptp(mesh.points, axis=0).max())
