@@ -167,20 +167,22 @@ def test_mujoco_flex_is_p1_stvk_on_the_same_mesh(monkeypatch):
 def test_newton_semi_implicit_is_near_p1_stvk(capsys):
     """newton's semi-implicit solver runs the stable neo-Hookean law (Smith et al. 2018, with its log term),
     the scene's is StVK: at the cantilever's 7% tip deflection the two P1 solutions differ at second order
-    in the strain (measured 2.1e-3 of the displacement from P1 StVK, float32 round-off included); 1e-2
-    bounds it. Against the P1 truth of its own law on the same mesh, what remains is its numerics alone:
-    measured 1.5e-3, nearer than the scene's law, as a law mapped right must be. Its float32 positions
-    stall its relaxation (the run records where, at a change of 7e-5 of the displacement); the adapter
-    holds them about the body's centre, where a float32 unit is smallest (about the corner: 7.4e-3, the
-    stall at 4e-4). Bound: 3e-3, the stall's measured error with a margin for another machine's float32
-    sums."""
+    in the strain (measured 2.6e-3 of the displacement from P1 StVK, float32 round-off included); 1e-2
+    bounds it. Against the P1 truth of its own law on the same mesh, what remains is its numerics alone,
+    which the issue asks within 1e-3: measured 1.5e-4. Its float32 force's random walk stalls the kinetic
+    damping's change measure (at 7e-5 of the displacement) while the answer still drifts along the
+    slowest mode (1.5e-3 away then); the relaxation then damps that mode critically, its omega read by
+    Rayleigh's method from the engine's own force (75 rad/s), and the drift is gone. The adapter holds
+    the positions about the body's centre, where a float32 unit is smallest (about the corner, with no
+    tail: 7.4e-3)."""
     code = main(["compare", "cantilever", "--engine", "newton", "--model", "newton-semi-implicit", "--json"])
     row = json.loads(capsys.readouterr().out)
     assert code == 0 and row["status"] == "ok"
     assert row["error_budget"]["model"] < 1e-2
-    assert row["own_law"]["law"] == "stable-neo-hookean" and row["own_law"]["rel_l2"] < 3e-3
+    assert row["own_law"]["law"] == "stable-neo-hookean" and row["own_law"]["rel_l2"] <= 1e-3
     assert row["own_law"]["rel_l2"] < row["error_budget"]["model"]
     assert row["engine"]["stalled_at"] > 1e-5  # the relaxation says where float32 stopped it
+    assert row["engine"]["tail_steps"] > 0 and 10.0 < row["engine"]["tail_omega"] < 1e3  # and how it went on
     assert "Neo-Hookean" in row["engine"]["law"]
 
 

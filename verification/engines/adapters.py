@@ -233,7 +233,7 @@ class AdapterSimulation(CommandSimulation):
         """What the run was: the engine and its version, the law the scene's was mapped to, the knobs."""
         self._run()
         r = self.report
-        keep = ("engine", "law", "iterations", "substeps", "stalled_at", "hold_drift")
+        keep = ("engine", "law", "iterations", "substeps", "stalled_at", "tail_omega", "tail_steps", "hold_drift")
         return {k: r[k] for k in keep if k in r}
 
     def start(self, dt) -> None:
