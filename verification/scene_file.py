@@ -372,10 +372,25 @@ def _mesh_spec(top: _Reader) -> dict:
     if gen == "tube" and not spec["inner_radius"] < spec["outer_radius"]:
         mr.fail("inner_radius", f"{spec['inner_radius']!r} must be below outer_radius = {spec['outer_radius']!r}")
     if gen != "file":
-        n_tets = _volume(spec) / (spec["h"] ** 3 / (6.0 * math.sqrt(2.0)))
+        n_tets = _volume(spec) / (spec["h"] ** 3 / (6.0 * math.sqrt(2.0))) + _graded_tets(spec)
         if n_tets > MAX_TETS:
-            mr.fail("h", f"{spec['h']!r} m would make about {n_tets:.1e} tetrahedra (the limit is {MAX_TETS:.0e})")
+            key = "fine" if "fine" in spec else "h"
+            mr.fail(key, f"{spec[key]!r} would make about {n_tets:.1e} tetrahedra (the limit is {MAX_TETS:.0e})")
     return spec
+
+
+def _graded_tets(spec: dict) -> float:
+    """An upper estimate of the tetrahedra a box's fine region adds (``meshes.generators.box``): the
+    regular tetrahedra of the local edge length over the whole ball where it is below the mesh's h."""
+    from meshes.generators import GRADE
+
+    if "fine" not in spec:
+        return 0.0
+    h, fine = spec["h"], spec["fine"]
+    r = np.linspace(0.0, fine["radius"] + (h - fine["h"]) / GRADE, 4001)
+    size = np.minimum(h, fine["h"] + GRADE * np.maximum(r - fine["radius"], 0.0))
+    density = 4.0 * math.pi * r**2 / (size**3 / (6.0 * math.sqrt(2.0)))
+    return float(np.sum(0.5 * (density[1:] + density[:-1]) * np.diff(r)))
 
 
 def _materials(top: _Reader) -> tuple[Material, tuple | None]:

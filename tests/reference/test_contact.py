@@ -194,3 +194,16 @@ def test_the_reference_command_states_each_tools_force_and_area_with_their_bars(
     # pressed down; sideways a little, as this coarse mesh under a tool its own size is not symmetric (11 %)
     assert row["force"][2] < 0.0 and abs(row["force"][2]) > 5 * np.abs(row["force"][:2]).max()
     assert 0.0 < row["area"] and row["force_bar"] > 0.0 and row["area_bar"] > 0.0
+
+
+def test_a_fine_region_too_fine_to_mesh_is_one_line_before_gmsh_runs(tmp_path, capsys):
+    """[mesh] fine with edges of a micrometre would ask gmsh for about 1e11 tetrahedra: refused by the
+    estimate, naming the key, before any meshing (the same limit as a box's own h)."""
+    path = tmp_path / "press.toml"
+    text = BLOCK.replace("h = 0.01\n", "h = 0.01\nfine = { point = [0.02, 0.02, 0.02], h = 1e-6, radius = 0.002 }\n")
+    path.write_text(
+        text + 'shape = "sphere"\ncenter = [0.02, 0.02, 0.025]\nradius = 0.005\ntravel = [0.0, 0.0, -0.001]\n'
+    )
+    code, _, err = run(["check", str(path)], capsys)
+    assert code == 2
+    assert_one_line(err, str(path), "mesh.fine", "tetrahedra (the limit is")
