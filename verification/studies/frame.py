@@ -38,7 +38,8 @@ def visual_budget(row: Row, rate: float, dynamic: bool, share: float = FRAME_SHA
     ``advise`` decide alike), and what reaching its answer costs.
 
     - A quasi-static model (precomputed, condensed) updates once per frame: the update must fit; so
-      does a plug-in engine's step, which it times itself (a run without a time does not hold).
+      does a plug-in engine's step, which it times itself (a run without a time does not hold), unless
+      its static answer says how many steps it took: those are costed as a settling's, below.
     - On a dynamic scene a time-stepping model must keep up with the wall clock: a frame of 1/rate s
       advances it by 1/rate s, ceil(1 / (rate dt)) steps, which must fit in the frame (a real-time
       factor of at least one, rounding included), and dt must not exceed the frame, or the state
