@@ -293,14 +293,14 @@ def test_an_engine_in_another_process_is_judged_through_the_seam(capsys):
     assert theirs["step_us"] > 0.0 and theirs["integrator"] == "the command's own"
 
 
-STATES_STEPS = """
-import subprocess, sys
+STATED_STEPS = """
+import ast, subprocess, sys
 import numpy as np
 scene, result, steps, direct = sys.argv[1:5]
 subprocess.run([sys.executable, direct, scene, result], check=True)
 with np.load(result) as z:
     out = dict(z)
-out["steps"] = np.asarray(eval(steps))  # the test's literal: 400, or a bad value
+out["steps"] = np.asarray(ast.literal_eval(steps))  # the test's literal: 400, or a bad value
 out["step_us"] = out["step_us"] / float(out["steps"])  # its solve's time, as 400 steps of it
 np.savez(result, **out)
 """
@@ -313,7 +313,7 @@ def test_an_engine_commands_settling_steps_are_charged_to_its_frames(tmp_path, c
     without ``steps`` is one update a frame, as before. A ``steps`` that is no whole number is one
     line."""
     script = tmp_path / "steps.py"
-    script.write_text(STATES_STEPS)
+    script.write_text(STATED_STEPS)
     direct = EXAMPLES / "direct_p1.py"
     args = ["compare", "cantilever-pull", "--degree", "1", "--rate", "60", "--json", "--model", "numpy-p1"]
     assert main([*args, "--engine-cmd", f"{sys.executable} {script} {{scene}} {{result}} 400 {direct}"]) == 0

@@ -133,12 +133,14 @@ class CommandSimulation:
         states them; CommandError for a value that is neither."""
         out = {}
         for key, value in given.items():
-            v = float(value) if np.ndim(value) == 0 and np.issubdtype(np.asarray(value).dtype, np.number) else None
-            whole = key != "steps" or (v is not None and v == int(v))
-            if v is None or not (np.isfinite(v) and v > 0.0 and whole and (key != "steps" or v >= 1)):
+            v = np.asarray(value)
+            ok = v.ndim == 0 and np.issubdtype(v.dtype, np.number) and bool(np.isfinite(v)) and v > 0.0
+            if ok and key == "steps":
+                ok = v >= 1 and float(v) == int(v)
+            if not ok:
                 what = "a whole number of steps, at least 1" if key == "steps" else "a time step in seconds, > 0"
                 raise CommandError(f"{self.label}: {path.name}: {key} = {value!r} is not {what}")
-            out[key] = int(v) if key == "steps" else v
+            out[key] = int(v) if key == "steps" else float(v)
         return out
 
     def critical_dt(self):
