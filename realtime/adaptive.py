@@ -27,6 +27,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from .blocks import BLOCK, HOT, JIT, BlockData, block_data
+from .contact import below
 from .errors import InputError
 from .geometry import shape_gradients
 from .hierarchy import (
@@ -263,6 +264,7 @@ def adaptive_model(
                 "tool_vertex": mixed_loading.tool_vertex[keep],
                 "tool_mask": mixed_loading.tool_mask[keep],
                 "tool_id": mixed_loading.tool_id[keep],
+                "contacts": below(mixed_loading.contacts, nm),
             }
         )
     n_full = len(plan.points)

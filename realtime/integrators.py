@@ -8,7 +8,9 @@ preconditioner in ``realtime.linsolve``, static equilibrium by damped dynamics i
 
 Equations of motion, with lumped masses m_i and Rayleigh damping C = alpha M + beta K:
 
-    m_i a_i = f_int(u + beta v)_i + f_ext_i - alpha m_i v_i
+    m_i a_i = f_int(u + beta v)_i + f_ext_i + f_contact(u, t)_i - alpha m_i v_i
+
+f_contact: the rigid tools' penalty force (``realtime.contact``), on the surface vertices near a tool.
 
 Evaluating the internal force at u + beta v is exactly -K u - beta K v for a linear model and the
 tangent stiffness damping to first order for a non-linear one, with no extra matrix.
@@ -31,6 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .contact import Contacts, no_contacts
+from .contact import forces as contact_forces
 from .errors import InputError, float_array, is_real
 from .linsolve import FACTOR_LIMIT, NO_FACTOR, factorise
 from .model import TOOL_ROTATION, Model, State, Tools
@@ -100,6 +104,8 @@ class _Prepared:
     scratch: tuple  # the force kernel's own scratch (Model.new_scratch): this workspace's alone
     vt: np.ndarray  # (P, 3) m/s, the tool vertices' velocities before the last step
     reaction: np.ndarray  # (L, 3) N, the tools' force on the body in the last step
+    contacts: Contacts  # the rigid tools (the Loading's, or none)
+    creaction: np.ndarray  # (K, 3) N, each rigid tool's force on the body at the last contact force evaluated
     threads: int  # the threads of the model's force (Model.extra), on which symplectic Euler's update runs
     # symplectic Euler's (force, update): the model's kernel and se_update, or a threaded model's unsummed
     # kernel (threaded.UNSUMMED) and se_sum_update_threads, which adds the threads' arrays and updates
@@ -128,6 +134,12 @@ class _Prepared:
         n = model.n_vertices
         threads = int(model.extra.get("threads", 1))
         tensors = model.extra.get("tensors")
+        own_contacts = lo.contacts if lo.contacts is not None else no_contacts()
+        # the paths copied for set_rigid_tool, as the tools' targets are for set_tool
+        contacts = own_contacts._replace(travel=own_contacts.travel.copy(), ramp=own_contacts.ramp.copy())
+        # a threaded model's fused sum and update would overwrite the contact force added between them:
+        # with rigid tools its force kernel sums its threads itself and the update is the serial one
+        fused = threads > 1 and contacts.count == 0
         return _Prepared(
             model,
             inv_mass,
@@ -143,9 +155,11 @@ class _Prepared:
             model.new_scratch(),
             np.zeros((len(vert), 3)),
             np.zeros((len(kind), 3)),
-            threads,
+            contacts,
+            np.zeros((contacts.count, 3)),
+            threads if fused else 1,
             (UNSUMMED[model.force_kernel.__name__], se_sum_update_threads)
-            if threads > 1
+            if fused
             else (model.force_kernel, se_update),
             tensors,
             model.extra.get("generation", tensors.generation) if tensors is not None else 0,
@@ -157,7 +171,8 @@ class _Prepared:
             m = self.model
             self.work = step_work(
                 m.data, self.scratch, m.points, m.mass, self.inv_mass, m.loading.free, self.per_dof, self.fext,
-                self.tools, self.bound, self.f, self.w, self.vt, self.reaction, self.threads,
+                self.tools, self.bound, self.f, self.w, self.vt, self.reaction, self.threads, self.contacts,
+                self.creaction,
             )  # fmt: skip
         return self.work
 
@@ -228,6 +243,11 @@ class Integrator:
         wherever a vertex sat in the hysteresis band)."""
         return model.force_with(self._prepare(model).scratch, u)
 
+    def static_force(self, model: Model, u: np.ndarray) -> np.ndarray:
+        """``internal_force`` plus the rigid tools' contact force at the end of their travel (N, 3) N: the
+        force a static equilibrium balances against the external loads (``realtime.statics``)."""
+        return self.internal_force(model, u) + model.contact_force(u)
+
     def set_forces(self, model: Model, forces: np.ndarray) -> None:
         """Apply the external nodal forces ``forces`` (N, 3) float64, N, from the next step on, in place of
         the model's ``loading.external_force`` (the model does not change; the forces live in this
@@ -258,6 +278,26 @@ class Integrator:
                 raise InputError(f"set_tool: tool {tool} translates: give translation (3,) m, got angle = {angle!r}")
             p.tools.vector[tool] = _frame_array("translation", translation, (3,))
         p.tools.ramp[tool] = 0.0  # held at the target from now on
+
+    def set_rigid_tool(self, model: Model, tool: int, translation) -> None:
+        """Hold rigid tool ``tool`` (the Loading's ``contacts``, in order) moved by ``translation`` (3,) m from
+        where it was built, from the next step on, without a ramp: a haptic device's frame moves it so."""
+        p = self._prepare(model)
+        count = p.contacts.count
+        if count == 0:
+            raise InputError(
+                f"set_rigid_tool: tool = {tool!r}: {model.name} was built with no rigid tools (Loading.contacts)"
+            )
+        if not isinstance(tool, (int, np.integer)) or not 0 <= tool < count:
+            raise InputError(f"set_rigid_tool: tool = {tool!r}: must be an index in 0..{count - 1}")
+        p.contacts.travel[tool] = _frame_array("translation", translation, (3,))
+        p.contacts.ramp[tool] = 0.0
+
+    def rigid_forces(self, model: Model) -> np.ndarray:
+        """Each rigid tool's force on the body (K, 3) float64 N at the last contact force the steps evaluated
+        (symplectic Euler and implicit Euler: at the last step's start; central difference: at its end),
+        the Loading's ``contacts`` in order; (0, 3) without rigid tools."""
+        return self._prepare(model).creaction.copy()
 
     def _diverged(self, model, state, bad, dt, dt_crit):
         """Raise DivergenceError for the step ``bad`` of this call, the last one the kernel took: the
@@ -405,6 +445,7 @@ class CentralDifference(Integrator):
         )
         if not usable or state.acc_key not in (None, key):
             f0 = model.internal_force(state.u + self.beta * state.v)
+            f0 += contact_forces(p.contacts, model.points, state.u, state.t)[0]
             acc = (f0 + p.fext) * p.inv_mass[:, None] * lo.free
             state.acc = acc
         state.acc_key = key

@@ -19,9 +19,12 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
+from .contact import check as check_contacts
+from .contact import forces as contact_forces
 from .errors import InputError, LoadingError, float_array, index_array, whole_numbers
 from .geometry import InvalidMeshError, check_tets, lumped_volumes, signed_volumes
 from .material import Material, Materials
+from .ramps import RAMP_SHAPES, ramp_fraction
 
 _JIT = dict(nogil=True, cache=True)
 
@@ -40,20 +43,6 @@ PRECISIONS = {"float64": np.dtype(np.float64), "float32": np.dtype(np.float32)}
 
 TOOL_TRANSLATION = 0
 TOOL_ROTATION = 1
-#: How a tool travels from 0 at t = 0 to its full value at t = ramp: "linear" (a constant speed, with
-#: jumps in velocity at both ends) or "smooth" (the quintic 10 s^3 - 15 s^4 + 6 s^5 of s = t / ramp,
-#: whose velocity and acceleration vanish at both ends). Index = the code in Loading.tool_ramp_shape.
-RAMP_SHAPES = ("linear", "smooth")
-
-
-@nb.njit(**_JIT)
-def ramp_fraction(t: float, ramp: float, shape: int) -> float:
-    """Fraction in [0, 1] of its travel a tool has made at time t (s), for a ramp of ``ramp`` s (0:
-    at once) and the shape RAMP_SHAPES[shape]."""
-    s = 1.0 if ramp <= 0.0 else min(max(t / ramp, 0.0), 1.0)
-    if shape == 1:
-        return s * s * s * (10.0 + s * (6.0 * s - 15.0))
-    return s
 
 
 class Tools(NamedTuple):
@@ -91,6 +80,8 @@ class Loading:
         tool_ramp: (L,) float64, s; the tool moves (the angle, for rotations) from 0 at t = 0 and holds
             its final value from t = ramp on; 0 means applied at once.
         tool_ramp_shape: (L,) int64, the index in RAMP_SHAPES of how it moves in between.
+        contacts: rigid tools touching the body (``realtime.contact.Contacts``, made by
+            ``realtime.contact.contacts``), or None: no rigid tool.
     """
 
     free: np.ndarray
@@ -105,6 +96,7 @@ class Loading:
     tool_angle: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tool_ramp: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tool_ramp_shape: np.ndarray | None = None
+    contacts: object = None
 
     def __post_init__(self):
         if self.tool_ramp_shape is None:  # linear unless said otherwise
@@ -162,6 +154,8 @@ class Loading:
         if len(self.tool_ramp) and self.tool_ramp.min() < 0.0:
             bad = int(np.argmin(self.tool_ramp))
             raise LoadingError(f"Loading.tool_ramp[{bad}] = {self.tool_ramp[bad]}: must be >= 0 s")
+        if self.contacts is not None:
+            check_contacts(self.contacts, n_vertices)
 
     @staticmethod
     def translating_tool(
@@ -417,9 +411,27 @@ class Model:
         np.add.at(out, lo.tool_id, -f[lo.tool_vertex] * lo.tool_mask)
         return out
 
+    def rigid_reactions(self, u: np.ndarray, t: float = np.inf) -> np.ndarray:
+        """Force (K, 3) N each rigid tool (Loading.contacts) exerts on the body at displacement u (N, 3) m
+        with the tools where they are at time t (s; default: at the end of their travel): the penalty
+        forces on the vertices inside it, summed (``realtime.contact``); (0, 3) without rigid tools."""
+        c = self.loading.contacts
+        if c is None:
+            return np.zeros((0, 3))
+        return contact_forces(c, self.points, self.nodal("rigid_reactions: u", u), t)[1]
+
+    def contact_force(self, u: np.ndarray, t: float = np.inf) -> np.ndarray:
+        """The rigid tools' force (N, 3) N on each vertex at displacement u (N, 3) m with the tools where
+        they are at time t (s; default: at the end of their travel); zero without rigid tools."""
+        c = self.loading.contacts
+        if c is None:
+            return np.zeros((self.n_vertices, 3))
+        return contact_forces(c, self.points, self.nodal("contact_force: u", u), t)[0]
+
     def reaction(self, u: np.ndarray) -> np.ndarray:
-        """Total force (3,) N the tools exert on the body at static equilibrium (tool_reactions summed)."""
-        return self.tool_reactions(u).sum(axis=0)
+        """Total force (3,) N the tools exert on the body at static equilibrium: tool_reactions summed, and
+        the rigid tools' at the end of their travel (rigid_reactions)."""
+        return self.tool_reactions(u).sum(axis=0) + self.rigid_reactions(u).sum(axis=0)
 
 
 def check_float64(model: Model, what: str) -> None:

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .contact import travel_end
 from .errors import InputError
 from .integrators import DivergenceError, ImplicitEuler, NotConvergedError, SymplecticEuler
 from .model import Model, State
@@ -92,14 +93,14 @@ def solve_static(
     """
     max_steps = _step_budget(model, steps, max_steps)
     state, lo = model.rest_state(), model.loading
-    arrived = float(lo.tool_ramp.max()) if len(lo.tool_ramp) else 0.0
+    arrived = _arrival(lo)
     free = lo.free
     omega2 = max_eigenvalue(model) if omega2 is None else omega2
     dt_crit = 2.0 / math.sqrt(omega2)
     adaptive = dt is None
     dt = safety * dt_crit if adaptive else dt
     integ, damping = SymplecticEuler(alpha=0.0), _Damping(model, omega2, omega2_min)
-    force = functools.partial(integ.internal_force, model)  # as the steps see it (hybrid-tm's memory too)
+    force = functools.partial(integ.static_force, model)  # as the steps see it (hybrid-tm's memory too)
     taken, residual, best, since_best = 0, np.inf, np.inf, 0
     fmag = float(np.linalg.norm(lo.external_force * free))
     while taken < max_steps:
@@ -134,6 +135,12 @@ def solve_static(
     state.v[:] = 0.0
     state.steps = taken
     return StaticResult(state=state, steps=taken, residual=residual, dt=dt)
+
+
+def _arrival(lo) -> float:
+    """When every tool, prescribed or rigid, has arrived (s): the ramps' end."""
+    prescribed = float(lo.tool_ramp.max()) if len(lo.tool_ramp) else 0.0
+    return max(prescribed, 0.0 if lo.contacts is None else travel_end(lo.contacts))
 
 
 class _Damping:
@@ -252,7 +259,7 @@ def solve_static_implicit(
     integ = integrator if integrator is not None else ImplicitEuler(tol=min(1e-10, rtol))
     lo = model.loading
     state = model.rest_state()
-    arrived = float(lo.tool_ramp.max()) if len(lo.tool_ramp) else 0.0
+    arrived = _arrival(lo)
     fmag = float(np.linalg.norm(lo.external_force * lo.free))
     residual = best = np.inf
     since_best = 0
@@ -262,7 +269,7 @@ def solve_static_implicit(
             if progress is not None:
                 progress(k, None)
             continue
-        r = (integ.internal_force(model, state.u) + lo.external_force) * lo.free
+        r = (integ.static_force(model, state.u) + lo.external_force) * lo.free
         scale = max(fmag, float(np.linalg.norm(model.reaction(state.u))), 1e-300)
         residual = float(np.linalg.norm(r)) / scale
         if progress is not None:

@@ -17,6 +17,7 @@ from numba.core import types
 from numba.experimental import structref
 
 from .blocks import U1, U2
+from .contact import contact_force, contact_kick, contact_tangent
 from .linsolve import factor_solve
 from .model import _tool_value
 from .threaded import sum_range, thread_range
@@ -118,20 +119,43 @@ class StepWork(structref.StructRefProxy):
     by the next call. Fields: data and scratch (the force kernel's), points (N, 3) m, mass (N,) kg,
     inv_mass (N,) 1/kg, free (N, 3) (the Loading's mask), per_dof (3N, 2) (_se_update),
     fext (N, 3) N, tools (model.Tools), bound m, f and w (N, 3), vt (P, 3) m/s, reaction (L, 3) N, parts
-    (int) the threads of a threaded model's force (1 otherwise), on which the update runs too."""
+    (int) the threads of a threaded model's force (1 otherwise), on which the update runs too, contacts
+    (contact.Contacts, the rigid tools) and creaction (K, 3) N, each rigid tool's force on the body at the
+    last contact force a loop evaluated."""
 
 
 STEP_WORK_FIELDS = (
     "data", "scratch", "points", "mass", "inv_mass", "free", "per_dof", "fext", "tools", "bound", "f", "w", "vt",
-    "reaction", "parts",
+    "reaction", "parts", "contacts", "creaction",
 )  # fmt: skip
 structref.define_proxy(StepWork, StepWorkType, list(STEP_WORK_FIELDS))
 
 
 @nb.njit(**_JIT)
-def step_work(data, scratch, points, mass, inv_mass, free, per_dof, fext, tools, bound, f, w, vt, reaction, parts):
+def step_work(
+    data,
+    scratch,
+    points,
+    mass,
+    inv_mass,
+    free,
+    per_dof,
+    fext,
+    tools,
+    bound,
+    f,
+    w,
+    vt,
+    reaction,
+    parts,
+    contacts,
+    creaction,
+):
     """A StepWork holding these arrays (not copies), in the order of STEP_WORK_FIELDS."""
-    return StepWork(data, scratch, points, mass, inv_mass, free, per_dof, fext, tools, bound, f, w, vt, reaction, parts)
+    return StepWork(
+        data, scratch, points, mass, inv_mass, free, per_dof, fext, tools, bound, f, w, vt, reaction, parts, contacts,
+        creaction,
+    )  # fmt: skip
 
 
 @nb.njit(inline="always", **_JIT)
@@ -216,6 +240,7 @@ def _run_symplectic_euler(n, dt, t0, force, update, work, alpha, beta, u, v):
     data, scratch, points, per_dof = work.data, work.scratch, work.points, work.per_dof
     mass, fext, tools, bound = work.mass, work.fext, work.tools, work.bound
     f, w, vt, reaction, parts = work.f, work.w, work.vt, work.reaction, work.parts
+    contacts, creaction, free = work.contacts, work.creaction, work.free
     tmp = np.empty(3)
     u1, v1, f1, p1 = u.reshape(-1), v.reshape(-1), f.reshape(-1), per_dof.reshape(-1)
     damp = 1.0 / (1.0 + dt * alpha)  # mass damping treated implicitly: stable for any alpha
@@ -226,6 +251,7 @@ def _run_symplectic_euler(n, dt, t0, force, update, work, alpha, beta, u, v):
             force(data, scratch, w, f)
         else:
             force(data, scratch, u, f)
+        contact_kick(contacts, points, u, t0 + s * dt, v, f, fext, free, mass, dt, damp, creaction)
         out = update(p1, scratch, u1, v1, f1, dt, damp, bound, parts)
         _apply_tools(points, tools, t0 + (s + 1) * dt, dt, u, v, tmp)
         if out:
@@ -250,6 +276,7 @@ def _run_central_difference(n, dt, t0, force, work, alpha, beta, u, v, a):
     data, scratch, points, mass, inv_mass = work.data, work.scratch, work.points, work.mass, work.inv_mass
     free, fext, tools, bound = work.free, work.fext, work.tools, work.bound
     f, w, vt, reaction = work.f, work.w, work.vt, work.reaction
+    contacts, creaction = work.contacts, work.creaction
     tmp = np.empty(3)
     h = 0.5 * dt
     keep = 1.0 - h * alpha
@@ -267,6 +294,7 @@ def _run_central_difference(n, dt, t0, force, work, alpha, beta, u, v, a):
             force(data, scratch, w, f)
         else:
             force(data, scratch, u, f)
+        contact_kick(contacts, points, u, t0 + (s + 1) * dt, v, f, fext, free, mass, dt, 1.0, creaction)
         ok = True
         for i in range(u.shape[0]):
             im = inv_mass[i]
@@ -332,9 +360,9 @@ def _precondition(factored, fac, cm, mass, r, z):
 
 
 @nb.njit(**_JIT)
-def _implicit_cg(force, data, scratch, u, linear, cm, ck, cg, fac, mass, free, cgw):
+def _implicit_cg(force, data, scratch, u, linear, cm, ck, cg, fac, mass, free, cgw, contacts, points, t):
     """Preconditioned CG for implicit Euler's step: (cm M + ck K) x = r on the free components, K the
-    tangent at ``u`` (N, 3) m, from x = 0 (``cgw``'s r holds the right-hand side, its x the answer),
+    tangent at ``u`` (N, 3) m (the rigid tools' ``contacts`` at time t s included), from x = 0 (``cgw``'s r holds the right-hand side, its x the answer),
     to ``cg.tol`` of the first preconditioned residual or ``cg.maxit`` iterations. Returns (the
     iterations, the last preconditioned residual rr, the first one's square root r0)."""
     f, kv, r, z, p, ap, x, t1, t2 = cgw
@@ -347,6 +375,7 @@ def _implicit_cg(force, data, scratch, u, linear, cm, ck, cg, fac, mass, free, c
     it = 0
     while it < cg.maxit and np.sqrt(rr) > cg.tol * r0 and rr > 0.0:
         _tangent_product(force, data, scratch, u, p, linear, ap, t1, t2)
+        contact_tangent(contacts, points, u, t, p, ap)
         pap = 0.0
         for i in range(nv):
             for c in range(3):
@@ -377,7 +406,7 @@ def _run_implicit_euler(n, dt, t0, force, work, linear, alpha, beta, cg, fac, u,
     run CG).
 
     (M (1 + dt alpha) + (dt beta + dt^2) K) dv = dt (f(u) + f_ext - alpha M v - (beta + dt) K v), K the
-    tangent at u_n, solved by preconditioned CG on the free components to a relative residual
+    tangent at u_n (the rigid tools' contact at t_n included: their force and stiffness), solved by preconditioned CG on the free components to a relative residual
     ``tol`` (the preconditioner: the factored system with the rest stiffness if ``factored``, else
     the mass term); then v += dv, u += dt v. ``reaction`` (L, 3) N: the tools' force on the body in the
     last step, from the same equation on their components: m (v_new - v_old) / dt + alpha m v_new +
@@ -387,7 +416,7 @@ def _run_implicit_euler(n, dt, t0, force, work, linear, alpha, beta, cg, fac, u,
     """
     data, scratch, points, mass = work.data, work.scratch, work.points, work.mass
     free, fext, tools, bound = work.free, work.fext, work.tools, work.bound
-    vt, reaction = work.vt, work.reaction
+    vt, reaction, contacts, creaction = work.vt, work.reaction, work.contacts, work.creaction
     f, kv, r, z, p, ap, x, t1, t2 = cgw
     tol, maxit, budget = cg.tol, cg.maxit, cg.budget
     tmp = np.empty(3)
@@ -399,13 +428,18 @@ def _run_implicit_euler(n, dt, t0, force, work, linear, alpha, beta, cg, fac, u,
     nv = u.shape[0]
     for s in range(n):
         _tool_velocities(tools, v, vt)
+        ts = t0 + s * dt
         force(data, scratch, u, f)
+        contact_force(contacts, points, u, ts, f, creaction)
         _tangent_product(force, data, scratch, u, v, linear, kv, t1, t2)
+        contact_tangent(contacts, points, u, ts, v, kv)
         for i in range(nv):
             for c in range(3):
                 r[i, c] = dt * (f[i, c] + fext[i, c] - alpha * mass[i] * v[i, c] - (beta + dt) * kv[i, c]) * free[i, c]
                 x[i, c] = 0.0
-        it, rr, r0 = _implicit_cg(force, data, scratch, u, linear, cm, ck, cg, fac, mass, free, cgw)
+        it, rr, r0 = _implicit_cg(
+            force, data, scratch, u, linear, cm, ck, cg, fac, mass, free, cgw, contacts, points, ts
+        )
         total += it
         worst = max(worst, it)
         unconverged = it >= maxit and np.sqrt(rr) > tol * r0
@@ -423,6 +457,7 @@ def _run_implicit_euler(n, dt, t0, force, work, linear, alpha, beta, cg, fac, u,
                         ok = False
         if last and ok:  # the implicit part of the step's force, with the velocities the solve used
             _tangent_product(force, data, scratch, z, v, linear, kv, t1, t2)
+            contact_tangent(contacts, points, z, ts, v, kv)
             for i in range(nv):
                 for c in range(3):
                     f[i, c] -= (beta + dt) * kv[i, c]

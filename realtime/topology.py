@@ -21,6 +21,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from .contact import below
 from .errors import InputError, index_array
 from .geometry import TET_FACES, signed_volumes
 from .material import Material
@@ -232,6 +233,11 @@ def suture(model: Model, pairs) -> Model:
         tm.truncate(keep)
         points, mass = points[:keep], mass[:keep]
         loading = Loading(
-            **{**loading.__dict__, "free": loading.free[:keep], "external_force": loading.external_force[:keep]}
+            **{
+                **loading.__dict__,
+                "free": loading.free[:keep],
+                "external_force": loading.external_force[:keep],
+                "contacts": below(loading.contacts, keep),
+            }
         )
     return changed_model(model, tm, points, mass, loading)

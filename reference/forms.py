@@ -434,9 +434,13 @@ class ProblemForms:
         return total / count[:, None]
 
     def reaction(self) -> np.ndarray:
-        """Total force (3,) N the tools exert on the body: the residual summed over their dofs."""
+        """Total force (3,) N the tools exert on the body: the residual summed over their dofs, and the
+        rigid tools' contact forces (``Contact.read``, with the penalty in use)."""
+        rigid = np.zeros(3)
+        if self.contact is not None:
+            rigid = np.sum(np.asarray(self.contact.read(self.u)["force"]), axis=0)
         if not self.tool_dofs:
-            return np.zeros(3)
+            return rigid
         if self._reaction_form is None:  # compiled once: a dynamic solve asks at every output
             self._reaction_form = fem.form(self.residual)
         r = fem.petsc.assemble_vector(self._reaction_form)
@@ -450,7 +454,7 @@ class ProblemForms:
             new = [d for d in own if d not in seen]  # a vertex in two tools counts once
             seen.update(new)
             out[c] += float(np.sum(arr[np.asarray(new, dtype=np.int64)])) if new else 0.0
-        return self.comm.allreduce(out, op=MPI.SUM)
+        return self.comm.allreduce(out, op=MPI.SUM) + rigid
 
     def stiffness_matrix(self):
         """Serial only: the stiffness at u = 0 without boundary conditions as scipy CSR, and the dof

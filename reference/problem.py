@@ -208,6 +208,12 @@ class Problem:
     def tools(self) -> tuple[Displacement, ...]:
         return tuple(ld for ld in self.loads if isinstance(ld, Displacement))
 
+    @property
+    def held_by_tools(self) -> bool:
+        """Whether a tool, prescribed (a displacement load) or rigid (a contact), exerts a force on the
+        body: the force a haptic device renders, which ``reaction`` sums."""
+        return bool(self.tools or self.contacts)
+
     def gravity(self) -> np.ndarray:
         """Sum of the gravity loads (3,) m/s^2."""
         g = np.zeros(3)

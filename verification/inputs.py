@@ -15,8 +15,10 @@ from __future__ import annotations
 import numpy as np
 
 from meshes import TetMesh
+from realtime.contact import Rigid, contacts
 from realtime.errors import InputError
 from realtime.geometry import face_areas
+from realtime.material import Materials
 from realtime.model import RAMP_SHAPES, TOOL_ROTATION, TOOL_TRANSLATION, Loading, lumped_masses
 from realtime.models import linear_tm
 from reference.problem import Displacement, Fixed, Force, Gravity, Problem, Traction, component_mask
@@ -31,7 +33,10 @@ def region_faces(mesh: TetMesh, region) -> np.ndarray:
     return faces[np.all(inside[faces], axis=1)]
 
 
-def build_loading(mesh: TetMesh, density: float, problem: Problem) -> Loading:
+def build_loading(mesh: TetMesh, density: float, problem: Problem, young: float | None = None) -> Loading:
+    """The Loading of ``problem`` on ``mesh`` (the module's docstring), with lumped masses of ``density``
+    kg/m^3 (one number or (M,) float64); the rigid tools' penalty (realtime.contact) scaled by ``young``
+    Pa, the body's stiffest Young's modulus (needed only where the problem has rigid tools)."""
     n = mesh.n_vertices
     free = np.ones((n, 3))
     fext = np.zeros((n, 3))
@@ -70,10 +75,12 @@ def build_loading(mesh: TetMesh, density: float, problem: Problem) -> Loading:
             tools["angle"].append(np.radians(ld.angle))
             tools["ramp"].append(ld.ramp)
             tools["shape"].append(RAMP_SHAPES.index(ld.ramp_shape))
+    contacts = _contacts(mesh, problem, young)
     if tools["kind"]:
         return Loading(
             free=free,
             external_force=fext,
+            contacts=contacts,
             tool_vertex=np.concatenate(tool["vertex"]).astype(np.int64),
             tool_mask=np.concatenate(tool["mask"]).astype(np.float64),
             tool_id=np.concatenate(tool["id"]).astype(np.int64),
@@ -85,7 +92,25 @@ def build_loading(mesh: TetMesh, density: float, problem: Problem) -> Loading:
             tool_ramp=np.asarray(tools["ramp"], dtype=np.float64),
             tool_ramp_shape=np.asarray(tools["shape"], dtype=np.int64),
         )
-    return Loading(free=free, external_force=fext)
+    return Loading(free=free, external_force=fext, contacts=contacts)
+
+
+def _contacts(mesh: TetMesh, problem: Problem, young: float | None):
+    """The engine's Contacts of the problem's rigid tools on ``mesh`` (None without any)."""
+    if not problem.contacts:
+        return None
+    if young is None:
+        raise InputError("build_loading: the scene has rigid tools; their penalty needs young (Pa)")
+    rigid = [
+        Rigid(t.shape, t.center, t.radius, t.end, t.normal, t.travel, t.ramp, t.ramp_shape) for t in problem.contacts
+    ]
+    return contacts(mesh.points, mesh.tets, rigid, young)
+
+
+def stiffest_young(scene) -> float:
+    """The largest Young's modulus (Pa) of the scene's materials: the contact penalty's scale, as the
+    reference's (reference.contact)."""
+    return float(np.max(Materials.of(scene.body_material(), scene.mesh.n_tets).per_tet("young")))
 
 
 #: Free components up to which ``check_held`` looks for zero-energy modes (a sparse factorisation of
@@ -112,7 +137,7 @@ def check_held(scene) -> None:
     mesh = base.mesh
     if 3 * mesh.n_vertices > HELD_CHECK_LIMIT:
         return
-    loading = build_loading(mesh, base.densities(), base.problem)
+    loading = build_loading(mesh, base.densities(), base.problem, stiffest_young(base))
     n_blocks, _ = mesh.blocks()
     anchors = mesh.points[np.all(loading.free == 0.0, axis=1)]
     extent = float(np.ptp(mesh.points, axis=0).max())
@@ -144,13 +169,6 @@ def scene_inputs(scene) -> SceneInputs:
     its materials, its loading (``build_loading``) and its time mode; and, for an engine in this process
     that runs on a mesh of its own, the loading on that mesh."""
     mesh, ts = scene.mesh, scene.time
-    if scene.problem.contacts:
-        from verification.scene import SceneError
-
-        raise SceneError(
-            f"{scene.path}: tool: no engine models a rigid tool's contact yet; the reference solves it "
-            f"(tissuebench reference {scene.path})"
-        )
     return SceneInputs(
         name=scene.name,
         source=str(scene.path),
@@ -158,7 +176,7 @@ def scene_inputs(scene) -> SceneInputs:
         points=mesh.points,
         tets=mesh.tets,
         material=scene.body_material(),
-        loading=build_loading(mesh, scene.densities(), scene.problem),
+        loading=build_loading(mesh, scene.densities(), scene.problem, stiffest_young(scene)),
         time=TimeMode(ts.mode, ts.end, ts.output_every, ts.damping_mass, ts.damping_stiffness),
         gravity=next((tuple(ld.value) for ld in scene.problem.loads if isinstance(ld, Gravity)), (0.0, 0.0, 0.0)),
         loading_on=_loading_on(scene),
@@ -170,6 +188,6 @@ def _loading_on(scene):
 
     def on(points, tets, parent):
         mixed = TetMesh(points, tets, source=f"{scene.mesh.source} adaptive")
-        return build_loading(mixed, scene.densities()[parent], scene.problem_on(mixed))
+        return build_loading(mixed, scene.densities()[parent], scene.problem_on(mixed), stiffest_young(scene))
 
     return on

@@ -16,7 +16,7 @@ from functools import partial
 import numpy as np
 
 from ..blocks import BlockData, block_data
-from ..errors import InputError
+from ..errors import InputError, ModelRestriction
 from ..geometry import shape_gradients
 from ..material import Materials
 from ..model import PRECISIONS, Loading, Model, lumped_masses, no_scratch, prepare_mesh
@@ -211,7 +211,14 @@ def block_model(
 def with_quasistatic(model: Model, name: str, solver) -> Model:
     """``model`` renamed ``name``, with ``solver(model)`` as its quasi-static solver (a class or a function
     of the model returning the solver). It steps no more in time, and its cutting tensors are not its
-    own to cut: a cut would leave the solver's factorisation behind."""
+    own to cut: a cut would leave the solver's factorisation behind. A loading with rigid tools is refused
+    (ModelRestriction): its contact has no place in a precomputed or condensed linear solve."""
+    contacts = model.loading.contacts
+    if contacts is not None and contacts.count:
+        raise ModelRestriction(
+            f"{name}: the loading has {contacts.count} rigid tool(s) (a [[tool]] in contact); this quasi-static "
+            "model prescribes its tools' vertices and has no contact: use a time-stepping model"
+        )
     extra = {k: v for k, v in model.extra.items() if k != "cuttable"}
     extra["quasistatic"] = solver(model)
     return Model(**{**model.__dict__, "name": name, "extra": extra})

@@ -104,7 +104,7 @@ def test_p1_reference_and_settled_linear_tm_are_one_system():
 @pytest.mark.parametrize("shape", ["linear", "smooth"])
 def test_the_reference_ramp_is_its_own_and_agrees_with_the_engine(shape):
     from realtime.model import RAMP_SHAPES as ENGINE_SHAPES
-    from realtime.model import ramp_fraction
+    from realtime.ramps import ramp_fraction
     from reference.problem import RAMP_SHAPES, ramp
 
     assert RAMP_SHAPES == ENGINE_SHAPES  # the engine's codes index the same names

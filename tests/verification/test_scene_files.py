@@ -117,7 +117,7 @@ assert TOOL != GOOD
 def test_smooth_ramp_reaches_both_ends_at_rest(tmp_path):
     """ramp_shape = "smooth": the tool's fraction is the quintic 10 s^3 - 15 s^4 + 6 s^5, whose
     velocity and acceleration vanish at both ends; the scene passes it to the reference's tool and to
-    the real-time models' alike (one function: realtime.model.ramp_fraction)."""
+    the real-time models' alike (one function: realtime.ramps.ramp_fraction)."""
     from verification.engines.builtin import scene_model
 
     scene = load_scene(write(tmp_path, TOOL))

@@ -62,7 +62,7 @@ class Question:
     def of(self, scene) -> Question:
         """The question as it applies to ``scene``: without its haptic part where no tool gives a device a
         force to hold (a scene hung under gravity is judged at the rate alone, not refused)."""
-        return self if scene.problem.tools else dataclasses.replace(self, haptic_rate=None)
+        return self if scene.problem.held_by_tools else dataclasses.replace(self, haptic_rate=None)
 
     @staticmethod
     def answered(advice: dict) -> Question:

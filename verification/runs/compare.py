@@ -280,7 +280,7 @@ def run_metrics(scene: Scene, res: Result, ref: Result) -> dict:
     A scene with events is measured on the union of its states' vertices (``runs.staged``), its surface
     every state's (a cut's lips included), and each state's rel_l2 and bar are listed in ``states``."""
     mesh = scene.mesh
-    has_tools = bool(scene.problem.tools) and bool(np.all(np.isfinite(res.reaction)))  # NaN: an engine gave none
+    has_tools = scene.problem.held_by_tools and bool(np.all(np.isfinite(res.reaction)))  # NaN: an engine gave none
     surface = mesh.surface_vertices
     per_state = {}
     if scene.events:

@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from realtime import DivergenceError, NotConvergedError
-from realtime.errors import InputError
+from realtime.errors import InputError, ModelRestriction
 from reference.progress import Progress
 
 from ..cache import git_commit, versions
@@ -100,6 +100,11 @@ def run_model(
             scene, lambda s: run_model(s, model_name, dt, dt_fraction, integrator, rtol, max_steps, options, engine)
         )
     if engine is not BUILTIN:
+        if scene.problem.contacts:
+            raise ModelRestriction(
+                f"{scene.path}: tool: {model_name} ({engine.name}) is given the scene through the seam, which does "
+                "not carry a rigid tool's contact yet; the built-in models model it"
+            )
         return _plug_in(scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options)
     return _run(scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options)
 

@@ -287,7 +287,7 @@ def _undecided_count(rows: list[Row], metric: str, tol: float) -> str:
 def check_question(scene: Scene, tol: float, rate: float, metric: str, haptic_rate, force_tol) -> dict | None:
     """The question checked against the scene (SceneError in one line), and its haptic part for
     ``frame_budget``: {"rate", "force_tol" (default ``tol``)}, or None without a haptic rate."""
-    if metric == "reaction_rel_err" and not scene.problem.tools:
+    if metric == "reaction_rel_err" and not scene.problem.held_by_tools:
         raise SceneError(
             f"{scene.path}: --metric reaction_rel_err measures the tool's force, and this scene has no "
             "displacement load (tool); use rel_l2 or surface_rel_l2"
@@ -296,7 +296,7 @@ def check_question(scene: Scene, tol: float, rate: float, metric: str, haptic_ra
         raise SceneError(f"--tol {tol!r} and --rate {rate!r}: both must be positive")
     if haptic_rate is None:
         return None
-    if not scene.problem.tools:
+    if not scene.problem.held_by_tools:
         raise SceneError(
             f"{scene.path}: --haptic-rate judges the tool's force, and this scene has no displacement "
             "load (tool) for a haptic device to hold"

@@ -173,7 +173,7 @@ def judge(
     ref_u = ref.displacement[which]
     check_units(result.source, result.displacement, ref_u)  # before any number: one line, the likely cause
     check_held_and_tools(scene, result.source, result.points, result.displacement, ref_u, which)
-    tools = bool(scene.problem.tools) and result.reaction is not None
+    tools = scene.problem.held_by_tools and result.reaction is not None
     flipped = flipped_force(result.reaction, ref.reaction[which]) if tools else None
     est = ref.meta.get("ref_err_estimate")
     tets = result.tets
