@@ -107,6 +107,11 @@ def _contacts(mesh: TetMesh, problem: Problem, young: float | None):
     return contacts(mesh.points, mesh.tets, rigid, young)
 
 
+def scene_loading(scene) -> Loading:
+    """``build_loading`` of a scene on its own mesh, its rigid tools' penalty scaled as the truth's."""
+    return build_loading(scene.mesh, scene.densities(), scene.problem, stiffest_young(scene))
+
+
 def stiffest_young(scene) -> float:
     """The largest Young's modulus (Pa) of the scene's materials: the contact penalty's scale, as the
     reference's (reference.contact)."""
@@ -137,7 +142,7 @@ def check_held(scene) -> None:
     mesh = base.mesh
     if 3 * mesh.n_vertices > HELD_CHECK_LIMIT:
         return
-    loading = build_loading(mesh, base.densities(), base.problem, stiffest_young(base))
+    loading = scene_loading(base)
     n_blocks, _ = mesh.blocks()
     anchors = mesh.points[np.all(loading.free == 0.0, axis=1)]
     extent = float(np.ptp(mesh.points, axis=0).max())
@@ -176,7 +181,7 @@ def scene_inputs(scene) -> SceneInputs:
         points=mesh.points,
         tets=mesh.tets,
         material=scene.body_material(),
-        loading=build_loading(mesh, scene.densities(), scene.problem, stiffest_young(scene)),
+        loading=scene_loading(scene),
         time=TimeMode(ts.mode, ts.end, ts.output_every, ts.damping_mass, ts.damping_stiffness),
         gravity=next((tuple(ld.value) for ld in scene.problem.loads if isinstance(ld, Gravity)), (0.0, 0.0, 0.0)),
         loading_on=_loading_on(scene),

@@ -14,10 +14,10 @@ def describe(scene) -> dict:
     load's inside the body counted: precomputed's responses exist for surface vertices only), the
     materials, the element estimate of the explicit critical step, the warnings and the event states."""
     import realtime
-    from verification.inputs import build_loading
+    from verification.inputs import scene_loading
 
     mesh = scene.mesh
-    loading = build_loading(mesh, scene.densities(), scene.problem)
+    loading = scene_loading(scene)
     lo, hi = mesh.bounding_box()
     model = realtime.build_model(linear_tm.NAME, mesh.points, mesh.tets, scene.body_material(), loading)
     m = scene.material

@@ -218,7 +218,7 @@ def _report(sub) -> None:
     s.add_argument(
         "scenes",
         nargs="*",
-        help="scenes (default: cantilever cantilever-pull cantilever-dynamic stiff-inclusion, with the "
+        help="scenes (default: cantilever cantilever-pull cantilever-dynamic stiff-inclusion liver-press, with the "
         "convergence and stability studies)",
     )
     s.add_argument("--out", help="report directory (default reports/NAME)")

@@ -38,7 +38,7 @@ from verification.studies.prefetch import advice_jobs, scene_jobs, settle_ahead,
 from verification.studies.stability import FAILED_REFERENCES, reference_jobs, settle_cells
 from verification.studies.sweep import default_fractions, sweep_csv
 
-DEFAULT_SCENES = ["cantilever", "cantilever-pull", "cantilever-dynamic", "stiff-inclusion"]
+DEFAULT_SCENES = ["cantilever", "cantilever-pull", "cantilever-dynamic", "stiff-inclusion", "liver-press"]
 
 
 def report_dir(scenes: list[str], out: str | None = None) -> tuple[str, Path]:

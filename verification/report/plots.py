@@ -207,6 +207,26 @@ def plot_reaction(times, ref_reaction, runs: dict, title: str) -> str:
     return png(fig)
 
 
+def plot_contact_curve(travel, truth, bars, runs: dict, title: str) -> str:
+    """A rigid tool's force against its travel: the reference's points with their bars (None: no bar
+    drawn), each model's line over the same stations. travel (S,) m; truth (S,) N; runs: model -> (S,) N."""
+    fig, ax = plt.subplots(figsize=(7.2, 4.2))
+    mm = np.asarray(travel) * 1e3
+    known = [b is not None for b in bars]
+    ax.errorbar(mm[known], np.asarray(truth)[known], yerr=[b for b in bars if b is not None], fmt="ko", capsize=3,
+                lw=2, label="reference (bar)", zorder=3)  # fmt: skip
+    if not all(known):
+        ax.plot(mm[~np.asarray(known)], np.asarray(truth)[~np.asarray(known)], "ko", mfc="none", label="reference")
+    for k, (model, forces) in enumerate(runs.items()):
+        ax.plot(mm, forces, MARKERS[k % len(MARKERS)] + "-", lw=1, ms=4, label=model)
+    ax.set_xlabel("tool travel (mm)")
+    ax.set_ylabel("tool's push along its travel (N)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    legend_beside(ax)
+    return png(fig)
+
+
 def plot_convergence(res: dict, title: str, xlabel: str, ylabel: str) -> str:
     """Log-log error against h (or dt) with dashed reference slopes at the theoretical orders."""
     fig, ax = plt.subplots(figsize=(6.4, 4.2))

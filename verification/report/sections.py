@@ -16,6 +16,7 @@ from realtime.models import linear_tm, mass_spring, precomputed, stvk_tm
 from verification.figures import img as _img
 from verification.progress import log
 from verification.report.common import fmt
+from verification.report.contact import contact_html
 from verification.report.plots import (
     budget_rows,
     budget_verdict,
@@ -176,6 +177,7 @@ def scene_section(name: str, fractions=None, question: Question = DEFAULT_QUESTI
     question = question.of(scene)
     adv = advise(scene, tol=question.tol, rate=question.rate, haptic_rate=question.haptic_rate)
     pictures, reactions = _pictures(scene, ref, rows)
+    contact, contact_data = contact_html(scene, ref, rows)
     q = mesh.quality()
     budgets = budget_rows(rows)
     section = f"""
@@ -196,6 +198,7 @@ mesh against the converged reference), the model's part (the model against that 
 scenes, the time step's (the model against itself at an eighth of its step).</p>
 {_budget_html(scene, budgets)}
 {_reaction_html(scene, ref, reactions)}
+{contact}
 <h3>Deformed shapes</h3>
 {"".join(_img(p, f"deformed {scene.name}", wide=True) for p in pictures)}
 </section>"""
@@ -207,6 +210,7 @@ scenes, the time step's (the model against itself at an eighth of its step).</p>
         "reference": ref.meta,
         "sweep": sw,
         "advice": adv,
+        "contact": contact_data,
         "budget": {
             "rows": [{"model": r.model, "dt": r.dt, **r.error_budget} for r in budgets],
             "verdict": budget_verdict(budgets),

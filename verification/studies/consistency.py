@@ -53,12 +53,12 @@ def check_held_and_tools(scene: Scene, source: str, points, u, ref_u, which) -> 
     """EngineResultError where a held component moved or a tool's vertex is away from its place: ``points``
     (K, 3) m and ``u`` (T, K, 3) m the result's, ``ref_u`` (T, K, 3) m the reference at its points, which
     holds the scene's constraints exactly; ``which`` (T,) the output instants."""
-    from verification.inputs import build_loading
+    from verification.inputs import scene_loading
 
     vertices, at = _on_vertices(scene, points)
     if not len(vertices):
         return
-    lo = build_loading(scene.mesh, scene.densities(), scene.problem)
+    lo = scene_loading(scene)
     tool = np.zeros((scene.mesh.n_vertices, 3), dtype=bool)
     tool[lo.tool_vertex] = lo.tool_mask != 0.0
     held = (lo.free == 0.0) & ~tool

@@ -1,0 +1,63 @@
+"""A contact scene's force against the tool's travel: the truth's curve with its bars (the reference's
+stations, ``runs.reference.contact_summary``) and each time-stepping model's, settled with the tool at
+each station (the scene's variant with the travel cut to that fraction), as a haptic device pressing
+slowly would feel them."""
+
+from __future__ import annotations
+
+import dataclasses
+import html
+
+import numpy as np
+
+from verification.figures import img
+from verification.progress import log
+from verification.report.plots import plot_contact_curve
+from verification.runs.reference import contact_summary
+from verification.runs.row import Row
+from verification.runs.simulate import run_model
+
+
+def at_fraction(scene, fraction: float):
+    """The scene with each rigid tool's travel (and ramp) cut to ``fraction`` of its own: a variant with a
+    hash of its own (Scene.sha256 reads the problem)."""
+    tools = tuple(
+        dataclasses.replace(t, travel=tuple(fraction * np.asarray(t.travel)), ramp=fraction * t.ramp)
+        for t in scene.problem.contacts
+    )
+    return dataclasses.replace(scene, problem=dataclasses.replace(scene.problem, contacts=tools))
+
+
+def contact_html(scene, ref, rows: list[Row]) -> tuple[str, dict]:
+    """On a static scene with one rigid tool and the truth's stations: the plot and its data (the travel m,
+    the truth's force along the travel N with bars, each model's at the same stations). Each model runs at
+    the step of its row of the largest step that settled (every station's own settling); "" elsewhere.
+    The forces are the tool's push on the body, projected on its travel."""
+    summary = contact_summary(ref.meta)
+    if scene.time.mode != "static" or len(scene.problem.contacts) != 1 or not summary or not summary[0]["curve"]:
+        return "", {}
+    travel = np.asarray(scene.problem.contacts[0].travel, dtype=float)
+    along = travel / np.linalg.norm(travel)
+    curve = summary[0]["curve"]
+    fractions = [c["fraction"] for c in curve]
+    truth = [float(np.dot(c["force"], along)) for c in curve]  # the tool's push on the body
+    bars = [c["force_bar"] for c in curve]
+    models = {}
+    for model in sorted({r.model for r in rows if r.status == "ok" and r.dt is not None}):
+        r = max((r for r in rows if r.model == model and r.status == "ok" and r.dt is not None), key=lambda r: r.dt)
+        log(f"report: {scene.name}: {model} at {len(fractions)} stations of the tool's travel")
+        forces = []
+        for f in fractions:
+            res = run_model(at_fraction(scene, f), model, dt_fraction=r.fraction, integrator=r.integrator)
+            forces.append(float(np.dot(res.reaction[-1], along)))
+        models[model] = forces
+    distance = np.linalg.norm(travel) * np.asarray(fractions)
+    plot = plot_contact_curve(distance, truth, bars, models, f"{scene.name}: the tool's force along its travel")
+    text = (
+        "<h3>The tool's force along its travel</h3><p>The force the rigid tool pushes the body with along its "
+        "travel, what a haptic device pressing slowly renders (with the opposite sign): the reference at its stations with its bar (two "
+        "levels and the penalty; none drawn where one level was solved), and each time-stepping model settled "
+        "with the tool at each station.</p>" + img(plot, f"tool force along the travel for {html.escape(scene.name)}")
+    )
+    data = {"travel_m": distance.tolist(), "reference": truth, "reference_bar": bars, "models": models}
+    return text, data
