@@ -68,7 +68,8 @@ class Contacts(NamedTuple):
     shape (K,) int64 the index in SHAPES; center, end (K, 3) float64 m at t = 0 (end: the capsule's, else
     center); normal (K, 3) float64 (the plane's unit normal, else 0); radius (K,) float64 m; travel (K, 3)
     float64 m; ramp (K,) float64 s; ramp_shape (K,) int64 (RAMP_SHAPES); vertex (S,) int64 the candidate
-    vertices; tool (S,) int64 the tool each faces; stiffness (S,) float64 N/m the k_i above."""
+    vertices; tool (S,) int64 the tool each faces; stiffness (S,) float64 N/m the k_i above; area (S,)
+    float64 m^2 the A_i above (what ``areas`` sums)."""
 
     shape: np.ndarray
     center: np.ndarray
@@ -81,6 +82,7 @@ class Contacts(NamedTuple):
     vertex: np.ndarray
     tool: np.ndarray
     stiffness: np.ndarray
+    area: np.ndarray
 
     @property
     def count(self) -> int:
@@ -92,7 +94,7 @@ def no_contacts() -> Contacts:
     """No tool: what a Loading without rigid tools steps with."""
     z3, z = np.zeros((0, 3)), np.zeros(0)
     zi = np.zeros(0, dtype=np.int64)
-    return Contacts(zi, z3, z3, z3, z, z3, z, zi, zi, zi, z)
+    return Contacts(zi, z3, z3, z3, z, z3, z, zi, zi, zi, z, z)
 
 
 def _tool_arrays(tool: Rigid, i: int) -> tuple:
@@ -127,8 +129,9 @@ def _tool_arrays(tool: Rigid, i: int) -> tuple:
 
 
 def surface_stiffness(points: np.ndarray, tets: np.ndarray, young: float, gamma: float) -> tuple:
-    """(vertices (B,) int64, k (B,) float64 N/m) of the boundary vertices: k_i = gamma E A_i / h_i (the
-    module's docstring), from points (N, 3) float64 m, tets (M, 4) int64 and E = ``young`` Pa."""
+    """(vertices (B,) int64, k (B,) float64 N/m, A (B,) float64 m^2) of the boundary vertices: k_i = gamma
+    E A_i / h_i (the module's docstring), from points (N, 3) float64 m, tets (M, 4) int64 and E = ``young``
+    Pa."""
     faces = boundary_faces(tets)
     x = points[faces]
     area = 0.5 * np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1)
@@ -139,7 +142,7 @@ def surface_stiffness(points: np.ndarray, tets: np.ndarray, young: float, gamma:
     total = np.bincount(faces.ravel(), weights=np.repeat(area, 3), minlength=n)
     vertices = np.flatnonzero(total > 0.0)
     h = weighted[vertices] / total[vertices]
-    return vertices.astype(np.int64), gamma * young * lumped[vertices] / h
+    return vertices.astype(np.int64), gamma * young * lumped[vertices] / h, lumped[vertices]
 
 
 #: Positions along a tool's travel at which ``contacts`` measures the rest gap of the surface vertices.
@@ -159,10 +162,10 @@ def contacts(points: np.ndarray, tets: np.ndarray, tools, young: float, gamma: f
         raise LoadingError(f"contacts: young = {young!r} Pa, gamma = {gamma!r}: both must be numbers > 0")
     arrays = [_tool_arrays(tool, i) for i, tool in enumerate(tools)]
     shape, center, end, normal, radius, travel, ramp, ramp_shape = (np.array(a) for a in zip(*arrays, strict=True))
-    vertices, k = surface_stiffness(points, tets, young, gamma)
+    vertices, k, lumped = surface_stiffness(points, tets, young, gamma)
     faces = boundary_faces(tets)
     edge = float(np.max(np.linalg.norm(points[faces] - points[np.roll(faces, 1, axis=1)], axis=2)))
-    vertex, owner, stiffness = [], [], []
+    vertex, owner, stiffness, area = [], [], [], []
     y = points[vertices]
     for i in range(len(tools)):
         reach = float(np.linalg.norm(travel[i])) + 2.0 * edge if margin is None else float(margin)
@@ -173,6 +176,7 @@ def contacts(points: np.ndarray, tets: np.ndarray, tools, young: float, gamma: f
         vertex.append(vertices[near])
         owner.append(np.full(int(near.sum()), i, dtype=np.int64))
         stiffness.append(k[near])
+        area.append(lumped[near])
     return Contacts(
         shape.astype(np.int64),
         center.astype(float),
@@ -185,6 +189,7 @@ def contacts(points: np.ndarray, tets: np.ndarray, tools, young: float, gamma: f
         np.concatenate(vertex).astype(np.int64),
         np.concatenate(owner),
         np.concatenate(stiffness).astype(float),
+        np.concatenate(area).astype(float),
     )
 
 
@@ -206,7 +211,12 @@ def check(c: Contacts, n_vertices: int) -> None:
     """LoadingError unless the candidate arrays index a mesh of ``n_vertices`` and the tools' arrays agree
     in length (the kernels do no bounds checks)."""
     k, s = len(c.shape), len(c.vertex)
-    for name, a, length in (("vertex", c.vertex, s), ("tool", c.tool, s), ("stiffness", c.stiffness, s)):
+    for name, a, length in (
+        ("vertex", c.vertex, s),
+        ("tool", c.tool, s),
+        ("stiffness", c.stiffness, s),
+        ("area", c.area, s),
+    ):
         if a.shape != (length,):
             raise LoadingError(f"Loading.contacts.{name}: must be a ({length},) array, got {a.shape}")
     for name in ("center", "end", "normal", "travel"):
@@ -325,15 +335,22 @@ def contact_tangent(c, points, u, t, x, out):
                 out[i, d] += c.stiffness[j] * nx * n[d]
 
 
+def _tool_gaps(c: Contacts, points: np.ndarray, u: np.ndarray, t: float, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(the candidates facing tool k (S,) bool, their gaps m) at u (N, 3) m and time t (s; np.inf: the end
+    of the travel)."""
+    mine = c.tool == k
+    s = ramp_fraction(float(min(t, 1e300)), c.ramp[k], c.ramp_shape[k])
+    y = points[c.vertex[mine]] + u[c.vertex[mine]]
+    shift = s * c.travel[k]
+    return mine, rest_gap(c.shape[k], c.center[k] + shift, c.end[k] + shift, c.normal[k], c.radius[k], y)
+
+
 def contact_energy(c: Contacts, points: np.ndarray, u: np.ndarray, t: float) -> float:
     """sum k_i / 2 min(g_i, 0)^2, J, at u (N, 3) m and time t (s): the energy whose negative gradient
     ``contact_force`` is (the tests check the one against differences of the other)."""
     total = 0.0
     for k in range(c.count):
-        mine = c.tool == k
-        s = ramp_fraction(t, c.ramp[k], c.ramp_shape[k])
-        y = points[c.vertex[mine]] + u[c.vertex[mine]]
-        g = rest_gap(c.shape[k], c.center[k] + s * c.travel[k], c.end[k] + s * c.travel[k], c.normal[k], c.radius[k], y)
+        mine, g = _tool_gaps(c, points, u, t, k)
         total += 0.5 * float(np.sum(c.stiffness[mine] * np.minimum(g, 0.0) ** 2))
     return total
 
@@ -347,6 +364,17 @@ def forces(c: Contacts, points: np.ndarray, u: np.ndarray, t: float) -> tuple[np
     return f, reaction
 
 
+def areas(c: Contacts, points: np.ndarray, u: np.ndarray, t: float) -> np.ndarray:
+    """Each tool's contact area (K,) m^2 at u (N, 3) m and time t (s; np.inf: at the end of the travel): the
+    lumped boundary areas A_i of the vertices inside it. A vertex-lumped measure: a patch a few vertices
+    wide reads coarsely, as the engine feels it."""
+    out = np.zeros(c.count)
+    for k in range(c.count):
+        mine, g = _tool_gaps(c, points, u, t, k)
+        out[k] = float(np.sum(c.area[mine][g < 0.0]))
+    return out
+
+
 def travel_end(c: Contacts) -> float:
     """The time (s) when every tool has arrived (0 without tools)."""
     return float(c.ramp.max()) if c.count else 0.0
@@ -358,4 +386,4 @@ def below(c: Contacts | None, n: int) -> Contacts | None:
     if c is None:
         return None
     keep = c.vertex < n
-    return c._replace(vertex=c.vertex[keep], tool=c.tool[keep], stiffness=c.stiffness[keep])
+    return c._replace(vertex=c.vertex[keep], tool=c.tool[keep], stiffness=c.stiffness[keep], area=c.area[keep])

@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
+from .contact import areas as contact_areas
 from .contact import check as check_contacts
 from .contact import forces as contact_forces
 from .errors import InputError, LoadingError, float_array, index_array, whole_numbers
@@ -419,6 +420,15 @@ class Model:
         if c is None:
             return np.zeros((0, 3))
         return contact_forces(c, self.points, self.nodal("rigid_reactions: u", u), t)[1]
+
+    def rigid_areas(self, u: np.ndarray, t: float = np.inf) -> np.ndarray:
+        """Each rigid tool's contact area (K,) m^2 at displacement u (N, 3) m with the tools where they are
+        at time t (s; default: the end of their travel): the lumped boundary areas of the vertices inside
+        it (``realtime.contact.areas``); (0,) without rigid tools."""
+        c = self.loading.contacts
+        if c is None:
+            return np.zeros(0)
+        return contact_areas(c, self.points, self.nodal("rigid_areas: u", u), t)
 
     def contact_force(self, u: np.ndarray, t: float = np.inf) -> np.ndarray:
         """The rigid tools' force (N, 3) N on each vertex at displacement u (N, 3) m with the tools where

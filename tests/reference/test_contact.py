@@ -215,7 +215,9 @@ def test_compare_judges_a_built_in_models_contact_force_against_the_truths(tmp_p
     truth's does, and its tool force is judged (reaction_rel_err, a number with the truth's bar), not
     left unknown. The block is graded to edges of 1 mm under the 5 mm tool (on edges of 1 cm the tool
     dips between the engine's vertices: 0.9 of its force is missed, where the truth's facets feel it);
-    measured against the P1 truth: the force 12 %, the displacement 8 %."""
+    measured against the P1 truth: the force 12 %, the displacement 8 %. The contact area is judged too:
+    the engine's (its penetrated vertices' lumped areas, 1.6e-5 m^2, near pi R d) against the truth's
+    (9.9e-6 at P1, its bar 0.58 of it: the weak output), 0.66 apart."""
     path = tmp_path / "press.toml"
     fine = "h = 0.005\nfine = { point = [0.02, 0.02, 0.02], h = 0.001, radius = 0.003 }\n"
     path.write_text(
@@ -226,6 +228,9 @@ def test_compare_judges_a_built_in_models_contact_force_against_the_truths(tmp_p
     assert code == 0, err
     row = __import__("json").loads(out)
     assert 0.0 < row["reaction_rel_err"] < 0.25 and 0.0 < row["rel_l2"] < 0.2, row
+    (area,) = row["contact"]
+    assert area["area"] > 0.0 and area["ref_area"] > 0.0 and area["ref_area_bar"] > 0.0
+    assert area["area_rel_err"] == pytest.approx(abs(area["area"] / area["ref_area"] - 1.0))
 
 
 def test_the_reports_contact_curve_puts_each_model_beside_the_truths_stations(tmp_path):
@@ -235,10 +240,9 @@ def test_the_reports_contact_curve_puts_each_model_beside_the_truths_stations(tm
     coarse mesh against the truth's refined level: the bound is 15 %) and by the same factor at every
     station to 1e-4 (once the plane touches the whole top, the problem is linear: the ratio measured equal
     to eight digits); the plot drawn."""
-    from types import SimpleNamespace
-
     from verification.report.contact import contact_html
     from verification.runs.reference import reference_result
+    from verification.runs.row import Row
     from verification.scene_file import load_scene
 
     path = tmp_path / "press.toml"
@@ -246,9 +250,11 @@ def test_the_reports_contact_curve_puts_each_model_beside_the_truths_stations(tm
     path.write_text(BLOCK + tool + "stations = 4\n")
     scene = load_scene(path)
     ref = reference_result(scene, degree=1)
-    row = SimpleNamespace(model="linear-tm", status="ok", dt=1e-4, fraction=0.9, integrator="symplectic-euler")
+    area = {"tool": 0, "area": 4.2e-4, "ref_area": 4e-4, "area_rel_err": 0.05, "ref_area_bar": 0.01}
+    row = Row("press", "linear-tm", "symplectic-euler", "ok", dt=1e-4, fraction=0.9, contact=(area,))
     text, data = contact_html(scene, ref, [row])
     assert "data:image/png;base64," in text and data["travel_m"] == pytest.approx([1.25e-4, 2.5e-4, 3.75e-4, 5e-4])
+    assert "<td>linear-tm</td><td>0.00042</td><td>0.05</td>" in text  # the row's area beside the truth's
     truth, engine = np.array(data["reference"]), np.array(data["models"]["linear-tm"])
     assert np.all(np.diff(truth) > 0) and np.all(np.diff(engine) > 0) and all(b > 0 for b in data["reference_bar"])
     ratio = engine / truth

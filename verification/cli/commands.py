@@ -275,6 +275,13 @@ def _print_row(scene, args, row) -> None:
                 f"of {b['model']:.3g}: the model's error offsets P1's, right for a wrong reason; a finer mesh "
                 "shrinks the mesh's part, not the model's"
             )
+    for c in row.contact:
+        span = true_range(c["area_rel_err"], c["ref_area_bar"])
+        area = "-" if c["area"] is None else f"{c['area']:.4g} m^2"
+        err = "-" if c["area_rel_err"] is None else f"{c['area_rel_err']:.4g}"
+        bar = f"   {span} (the reference's bar)" if span else ""
+        truth = "-" if c["ref_area"] is None else f"{c['ref_area']:.4g}"
+        print(f"  {'contact area':<18} tool {c['tool']}: {area} against the reference's {truth}: {err}{bar}")
     law = row.own_law or {}
     if law.get("rel_l2") is not None:
         print(f"  {'own law':<18} {law['rel_l2']:.3g} from P1 of {law['law']} on the same mesh: its numerics alone")

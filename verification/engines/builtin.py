@@ -168,6 +168,12 @@ class BuiltinSimulation:
     def tool_force(self) -> np.ndarray:
         return self.model_obj.reaction(self.state.u) if self._sample is None else self._sample[1]
 
+    def contact_area(self) -> np.ndarray:
+        """(K,) float64, m^2: each rigid tool's contact area now (realtime.contact.areas), at the end of its
+        travel (static scenes only take rigid tools)."""
+        u = self.state.u if self._sample is None else self._sample[0]
+        return self.model_obj.rigid_areas(u)
+
 
 class BuiltinEngine:
     """``realtime``'s models (docs/models.md) as an Engine."""

@@ -51,13 +51,34 @@ def contact_html(scene, ref, rows: list[Row]) -> tuple[str, dict]:
             res = run_model(at_fraction(scene, f), model, dt_fraction=r.fraction, integrator=r.integrator)
             forces.append(float(np.dot(res.reaction[-1], along)))
         models[model] = forces
+    areas = _areas_html(summary[0], rows)
     distance = np.linalg.norm(travel) * np.asarray(fractions)
     plot = plot_contact_curve(distance, truth, bars, models, f"{scene.name}: the tool's force along its travel")
     text = (
         "<h3>The tool's force along its travel</h3><p>The force the rigid tool pushes the body with along its "
         "travel, what a haptic device pressing slowly renders (with the opposite sign): the reference at its stations with its bar (two "
         "levels and the penalty; none drawn where one level was solved), and each time-stepping model settled "
-        "with the tool at each station.</p>" + img(plot, f"tool force along the travel for {html.escape(scene.name)}")
+        "with the tool at each station.</p>"
+        + img(plot, f"tool force along the travel for {html.escape(scene.name)}")
+        + areas
     )
     data = {"travel_m": distance.tolist(), "reference": truth, "reference_bar": bars, "models": models}
     return text, data
+
+
+def _areas_html(truth: dict, rows: list[Row]) -> str:
+    """The contact area at the end of the travel: the truth's with its bar, each model's run at its largest
+    settled step with its distance from the truth's (Row.contact)."""
+    bar = "unknown" if truth["area_bar"] is None else f"{truth['area_bar']:.3g}"
+    cells = []
+    for model in sorted({r.model for r in rows if r.status == "ok" and r.contact}):
+        r = max((r for r in rows if r.model == model and r.status == "ok" and r.contact), key=lambda r: r.dt or 0.0)
+        c = r.contact[0]
+        if c["area"] is not None:
+            err = "-" if c["area_rel_err"] is None else f"{c['area_rel_err']:.3g}"
+            cells.append(f"<tr><td>{html.escape(model)}</td><td>{c['area']:.3g}</td><td>{err}</td></tr>")
+    return (
+        f"<p>Contact area at the end of the travel: the reference's {truth['area']:.3g} m&sup2; (bar {bar}); "
+        "the models' are their penetrated vertices' lumped boundary areas.</p><table><tr><th>model</th>"
+        "<th>area (m&sup2;)</th><th>relative to the reference's</th></tr>" + "".join(cells) + "</table>"
+    )

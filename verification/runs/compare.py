@@ -184,7 +184,34 @@ def compare(
         n_vertices=mesh.n_vertices,
         n_tets=mesh.n_tets,
         adaptation=_adaptation(m.get("adaptation")),
+        contact=contact_areas(scene, res, ref),
     )
+
+
+def contact_areas(scene: Scene, res: Result, ref: Result) -> tuple:
+    """Each rigid tool's contact area, the run's (its meta's ``contact_area``) against the truth's
+    (runs.reference.contact_summary): ``Row.contact``; () on a scene without rigid tools."""
+    from verification.runs.reference import contact_summary
+
+    if not scene.problem.contacts:
+        return ()
+    truth = {t["tool"]: t for t in contact_summary(ref.meta)}
+    mine = res.meta.get("contact_area")
+    out = []
+    for k in range(len(scene.problem.contacts)):
+        t = truth.get(k, {})
+        area, ref_area, bar = None if mine is None else mine[k], t.get("area"), t.get("area_bar")
+        known = area is not None and ref_area
+        out.append(
+            {
+                "tool": k,
+                "area": area,
+                "ref_area": ref_area,
+                "area_rel_err": abs(area - ref_area) / ref_area if known else None,
+                "ref_area_bar": bar / ref_area if bar is not None and ref_area else None,
+            }
+        )
+    return tuple(out)
 
 
 def own_law(scene: Scene, spec, res: Result) -> dict | None:

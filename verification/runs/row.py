@@ -84,6 +84,10 @@ class Row:
     #: A re-adapting run (adaptive-tm on a dynamic scene): its tetrahedra first, largest and last, its
     #: checks and the changes among them, and (t, tetrahedra) at each check.
     adaptation: dict | None = None
+    #: A scene with rigid tools: each tool's contact area against the truth's (runs.compare.contact_areas):
+    #: {"tool", "area" m^2, "ref_area" m^2, "area_rel_err", "ref_area_bar" (relative)}; the area a model
+    #: gives none of is None, never zero.
+    contact: tuple = ()
     # a run that did not finish
     step: int | None = None
     message: str | None = None

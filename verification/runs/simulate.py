@@ -212,6 +212,8 @@ def _run_static(scene: Scene, sim: Simulation, dt, dt_fraction, rtol, max_steps,
     meta = _meta(scene, sim, solver, s.dt, s.dt_crit, build_s, timing)
     settle_ms = s.steps * timing["step_us"] * 1e-3 if timing["step_us"] else None
     meta.update(s.meta, static=s.static, settle_ms=settle_ms)
+    if scene.problem.contacts and hasattr(sim, "contact_area"):  # the seam's engines give none yet
+        meta["contact_area"] = np.asarray(sim.contact_area(), dtype=float).tolist()
     mesh = scene.mesh
     return Result(mesh.points, mesh.tets, np.zeros(1), u[None], reaction[None], meta)
 
