@@ -297,3 +297,19 @@ def test_the_reports_sweep_table_says_what_became_of_a_run_that_did_not_settle()
     assert "diverged at step 17" in page and "1 runs beyond their stable step" in page
     assert "not settled: reached 5.9e-03 in 50000 steps" in page and "1 runs that did not settle" in page
     assert "step None" not in page
+
+
+def test_the_sweeps_text_table_says_what_became_of_a_run_that_did_not_finish():
+    """tissuebench sweep printed every row that was not "ok" as diverged, and a model that cannot represent
+    the scene (precomputed beside a rigid tool: no step, dt None) crashed the table; each now says its
+    status and reason."""
+    from verification.runs.row import Row
+    from verification.studies.sweep import format_sweep
+
+    rows = [
+        Row("s", "stvk-tm", "symplectic-euler", "diverged", dt=2e-4, dt_crit=1e-4, step=17),
+        Row("s", "precomputed", "quasi-static", "not applicable", message="precomputed: the loading has 1 rigid tool"),
+    ]
+    table = format_sweep({"scene": "s", "reference": {}, "rows": rows, "pareto": [], "computed": 2, "cached": 0})
+    assert "diverged at step 17" in table
+    assert "not applicable: precomputed: the loading has 1 rigid tool" in table

@@ -222,8 +222,11 @@ def format_sweep(result: dict) -> str:
     head = f"{'model':<16} {'dt (s)':>10} {'dt/crit':>8} {'rel_l2':>10} {'reaction':>9} {'step us':>9} {'Hz':>9}"
     out.append(head + (f" {'f32 vs f64':>10} {'f32 us':>9}" if twins else "") + "  ")
     for r in result["rows"]:
-        if r.status != "ok":
+        if r.status == "diverged":
             out.append(f"{r.model:<16} {r.dt:>10.3g} {r.dt / r.dt_crit:>8.2f} diverged at step {r.step}")
+            continue
+        if r.status != "ok":  # not applicable, not settled, over budget: no step to show, the reason instead
+            out.append(f"{r.model:<16} {'-':>10} {'-':>8} {r.status}: {r.message}")
             continue
         ratio = "-" if r.dt is None or not r.dt_crit else f"{r.dt / r.dt_crit:.2f}"
         dt = "-" if r.dt is None else f"{r.dt:.3g}"
