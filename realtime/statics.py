@@ -101,12 +101,14 @@ def solve_static(
     dt = safety * dt_crit if adaptive else dt
     integ, damping = SymplecticEuler(alpha=0.0), _Damping(model, omega2, omega2_min)
     force = functools.partial(integ.static_force, model)  # as the steps see it (hybrid-tm's memory too)
+    path = _RigidPath(model)
     taken, residual, best, since_best = 0, np.inf, np.inf, 0
     fmag = float(np.linalg.norm(lo.external_force * free))
     while taken < max_steps:
         integ.alpha = damping.alpha
         good = state.copy()
         n = min(chunk, max_steps - taken)  # the budget is a number of steps, not of chunks
+        path.move(integ, model)
         try:
             integ.step(model, state, dt, n, dt_crit=dt_crit)
         except DivergenceError:
@@ -122,7 +124,7 @@ def solve_static(
         residual = float(np.linalg.norm((f + lo.external_force) * free)) / scale
         if progress is not None:
             progress(taken, residual)
-        if state.t >= arrived and steps is None:
+        if state.t >= arrived and path.done and steps is None:
             best, since_best = (residual, 0) if residual < 0.9 * best else (best, since_best + 1)
             if _converged(model, state.u, residual, rtol, scale, f, best, since_best, force):
                 break
@@ -135,6 +137,44 @@ def solve_static(
     state.v[:] = 0.0
     state.steps = taken
     return StaticResult(state=state, steps=taken, residual=residual, dt=dt)
+
+
+#: A static solve moves a rigid tool given no ramp (its whole travel at once) along a load path of its own,
+#: at most this fraction of the shortest edge at its candidate vertices between two chunks of steps: at
+#: once, a tool 1 mm into a block of 1 mm cells put the vertices it held on its surface in one step and
+#: inverted the cells beside them (neohookean-tm diverged at its second step; the truth steps its load).
+RIGID_PATH_FRACTION = 0.25
+
+
+class _RigidPath:
+    """The load path of the rigid tools with no ramp in a static solve: ``move`` before each chunk sets each
+    one's translation (Integrator.set_rigid_tool) a chunk further, until ``done``."""
+
+    def __init__(self, model: Model):
+        c = model.loading.contacts
+        self.tools, self.chunks, self.moved = [], 0, 0
+        if c is None:
+            return
+        for k in range(c.count):
+            mine = c.vertex[c.tool == k]
+            if c.ramp[k] > 0.0 or not len(mine):
+                continue
+            near = model.tets[np.isin(model.tets, mine).any(axis=1)]
+            x = model.points[near]
+            edge = min(float(np.linalg.norm(x[:, i] - x[:, j], axis=1).min()) for i in range(4) for j in range(i))
+            self.chunks = max(self.chunks, math.ceil(np.linalg.norm(c.travel[k]) / (RIGID_PATH_FRACTION * edge)))
+            self.tools.append((k, c.travel[k].copy()))
+
+    @property
+    def done(self) -> bool:
+        return self.moved >= self.chunks
+
+    def move(self, integ, model: Model) -> None:
+        if self.done:
+            return
+        self.moved += 1
+        for k, travel in self.tools:
+            integ.set_rigid_tool(model, k, travel * (self.moved / self.chunks))
 
 
 def _arrival(lo) -> float:
@@ -263,9 +303,11 @@ def solve_static_implicit(
     fmag = float(np.linalg.norm(lo.external_force * lo.free))
     residual = best = np.inf
     since_best = 0
+    path = _RigidPath(model)
     for k in range(1, max_steps + 1):
+        path.move(integ, model)
         integ.step(model, state, dt, 1)  # raises NotConvergedError when CG stops short (unless a budget)
-        if state.t < arrived:
+        if state.t < arrived or not path.done:
             if progress is not None:
                 progress(k, None)
             continue

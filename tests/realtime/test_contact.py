@@ -250,3 +250,25 @@ def test_a_rigid_tool_moved_between_frames_is_the_tool_built_there():
     assert np.array_equal(moved.rigid_forces(models[0]), built.rigid_forces(models[1]))
     with pytest.raises(InputError, match=r"set_rigid_tool: tool = 1: must be an index in 0..0"):
         moved.set_rigid_tool(models[0], 1, (0.0, 0.0, 0.0))
+
+
+def test_a_static_solve_steps_a_rigid_tool_given_no_ramp_along_a_load_path(monkeypatch):
+    """A sphere placed 1.2 mm into a block of 3 mm cells at once (ramp 0), neohookean-tm settled by damped
+    dynamics at 0.9 of its critical step (as a sweep settles it: a fixed step): along its load path (a
+    quarter of the shortest edge a chunk) it settles; at once (a path of one chunk) the vertices it holds
+    jump to its surface in one step, invert the cells beside them, and the run diverges (NaN at step 11),
+    as neohookean-tm's did on a graded block in a sweep before the path existed."""
+    from realtime import DivergenceError, max_eigenvalue, statics
+
+    points, tets = cube(0.003)
+    free = np.ones_like(points)
+    free[points[:, 2] < 1e-12] = 0.0
+    tool = Rigid("sphere", (0.01, 0.01, SIDE + 0.005), 0.005, travel=(0.0, 0.0, -0.0062))
+    loading = Loading(free=free, external_force=np.zeros_like(points), contacts=contacts(points, tets, [tool], E))
+    model = build_model("neohookean-tm", points, tets, MATERIAL, loading)
+    dt = 0.9 * 2.0 / np.sqrt(max_eigenvalue(model))
+    settled = solve_static(model, dt=dt, rtol=1e-8)
+    assert settled.residual < 1e-6 and model.rigid_reactions(settled.state.u)[0, 2] < 0.0
+    monkeypatch.setattr(statics, "RIGID_PATH_FRACTION", 1e9)
+    with pytest.raises(DivergenceError):
+        solve_static(model, dt=dt, rtol=1e-8)
