@@ -72,7 +72,8 @@ def solve_static(
     Symplectic Euler with mass damping alpha = 2 omega_1, critical for the slowest mode (``_Damping``:
     omega_1 at rest where it is cheap to know, else Underwood's estimate every ``chunk`` steps). The tools move
     along their ramps from t = 0 (a load path: a large displacement imposed in one step would crush
-    the elements beside the tool before the rest of the body can follow) and then hold. Converged
+    the elements beside the tool before the rest of the body can follow) and then hold; a rigid tool
+    given no ramp follows a path of its own (``_RigidPath``). Converged
     when every tool has arrived and the free components' residual |f_int + f_ext| is below rtol
     times the load scale (|f_ext| and the tools' reaction), or below FLOOR_FACTOR times its round-off
     floor where that is higher (``residual_floor``; up to 1000 rtol), or has stalled for 50 chunks on

@@ -272,3 +272,15 @@ def test_a_static_solve_steps_a_rigid_tool_given_no_ramp_along_a_load_path(monke
     monkeypatch.setattr(statics, "RIGID_PATH_FRACTION", 1e9)
     with pytest.raises(DivergenceError):
         solve_static(model, dt=dt, rtol=1e-8)
+
+
+def test_the_contact_area_of_a_triangle_is_where_its_interpolated_gap_is_negative():
+    """contact.areas' fraction of a triangle inside a tool, by the linear interpolant of its corner gaps:
+    one corner at -1 and two at +1 holds a quarter (the cut runs through the two edges' midpoints), two at
+    -1 three quarters, and the fractions of g and -g add to one (round-off: a few epsilon)."""
+    from realtime.contact import _inside_fraction
+
+    g = np.array([[-1.0, 1.0, 1.0], [-1.0, -1.0, 1.0], [-1.0, -2.0, -3.0], [1.0, 2.0, 3.0], [1.0, -3.0, 0.5]])
+    np.testing.assert_allclose(_inside_fraction(g)[:4], [0.25, 0.75, 1.0, 0.0], atol=4 * np.finfo(float).eps)
+    rng = np.random.default_rng(3).standard_normal((50, 3))
+    np.testing.assert_allclose(_inside_fraction(rng) + _inside_fraction(-rng), 1.0, atol=8 * np.finfo(float).eps)
