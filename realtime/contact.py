@@ -259,6 +259,16 @@ def _gap(c, k, t, y, n):
     return rho - c.radius[k]
 
 
+@nb.njit(inline="always", **_JIT)
+def _candidate_gap(c, j, points, u, t, y, n):
+    """(vertex, tool, gap m) of candidate j at u (N, 3) m and time t (s); writes its position y (3,) m and
+    the tool's unit normal n (3,) there (``_gap``)."""
+    i, k = c.vertex[j], c.tool[j]
+    for d in range(3):
+        y[d] = points[i, d] + u[i, d]
+    return i, k, _gap(c, k, t, y, n)
+
+
 @nb.njit(**_JIT)
 def contact_force(c, points, u, t, f, reaction):
     """Add each candidate vertex's contact force at time t (s) to f (N, 3) N, from u (N, 3) m and the rest
@@ -266,10 +276,7 @@ def contact_force(c, points, u, t, f, reaction):
     reaction[:] = 0.0
     y, n = np.empty(3), np.empty(3)
     for j in range(c.vertex.shape[0]):
-        i, k = c.vertex[j], c.tool[j]
-        for d in range(3):
-            y[d] = points[i, d] + u[i, d]
-        g = _gap(c, k, t, y, n)
+        i, k, g = _candidate_gap(c, j, points, u, t, y, n)
         if g < 0.0:
             push = -c.stiffness[j] * g
             for d in range(3):
@@ -297,10 +304,7 @@ def contact_kick(c, points, u, t, v, f, fext, free, mass, dt, damp, reaction):
     reaction[:] = 0.0
     y, n, p, w = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     for j in range(c.vertex.shape[0]):
-        i, k = c.vertex[j], c.tool[j]
-        for d in range(3):
-            y[d] = points[i, d] + u[i, d]
-        g = _gap(c, k, t, y, n)
+        i, k, g = _candidate_gap(c, j, points, u, t, y, n)
         if g >= 0.0:
             continue
         kj = c.stiffness[j]
@@ -322,16 +326,14 @@ def contact_kick(c, points, u, t, v, f, fext, free, mass, dt, damp, reaction):
 def contact_tangent(c, points, u, t, x, out):
     """Add K_c x to out (N, 3), x (N, 3), K_c = k n n^T per penetrated vertex at u (N, 3) m and time t
     (s): the normal part of the contact's tangent -d f_contact / d u. The whole tangent adds
-    k (g / rho)(I - n n^T - a a^T) (``_gap``), which is negative inside a curved tool: at a deep
+    k (g / rho)(I - n n^T - a a^T), rho the distance to the tool's centre or axis and a the capsule's axis
+    where the closest point lies inside its segment (else 0), which is negative inside a curved tool: at a deep
     penetration (a tool placed 1 mm into a coarse block at once, g / rho = -0.25) it made the kick's
     3 x 3 systems and implicit Euler's CG indefinite, and a run diverged at 0.9 of its step. Left out,
     both stay positive definite; a plane's tangent is exactly this."""
     y, n = np.empty(3), np.empty(3)
     for j in range(c.vertex.shape[0]):
-        i, k = c.vertex[j], c.tool[j]
-        for d in range(3):
-            y[d] = points[i, d] + u[i, d]
-        g = _gap(c, k, t, y, n)
+        i, k, g = _candidate_gap(c, j, points, u, t, y, n)
         if g < 0.0:
             nx = n[0] * x[i, 0] + n[1] * x[i, 1] + n[2] * x[i, 2]
             for d in range(3):

@@ -199,8 +199,13 @@ def plot_reaction(times, ref_reaction, runs: dict, title: str) -> str:
     ax.plot(times, ref_reaction[:, 2], "k-", lw=2, label="reference")
     for model, r in runs.items():
         ax.plot(times, r[:, 2], lw=1, label=model)
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("tool force, z (N)")
+    return _finished(fig, ax, "time (s)", "tool force, z (N)", title)
+
+
+def _finished(fig, ax, xlabel: str, ylabel: str, title: str) -> str:
+    """A one-axes figure's labels, title, grid and legend (beside it), as an embedded PNG."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
     legend_beside(ax)
@@ -219,12 +224,7 @@ def plot_contact_curve(travel, truth, bars, runs: dict, title: str) -> str:
         ax.plot(mm[~np.asarray(known)], np.asarray(truth)[~np.asarray(known)], "ko", mfc="none", label="reference")
     for k, (model, forces) in enumerate(runs.items()):
         ax.plot(mm, forces, MARKERS[k % len(MARKERS)] + "-", lw=1, ms=4, label=model)
-    ax.set_xlabel("tool travel (mm)")
-    ax.set_ylabel("tool's push along its travel (N)")
-    ax.set_title(title, fontsize=9)
-    ax.grid(alpha=0.3)
-    legend_beside(ax)
-    return png(fig)
+    return _finished(fig, ax, "tool travel (mm)", "tool's push along its travel (N)", title)
 
 
 def plot_convergence(res: dict, title: str, xlabel: str, ylabel: str) -> str:
