@@ -257,3 +257,23 @@ def test_the_reports_contact_curve_puts_each_model_beside_the_truths_stations(tm
     assert np.all(np.diff(truth) > 0) and np.all(np.diff(engine) > 0) and all(b > 0 for b in data["reference_bar"])
     ratio = engine / truth
     assert np.all(np.abs(ratio - 1.0) < 0.15) and np.ptp(ratio) < 1e-4 * ratio.mean(), ratio
+
+
+def test_a_runs_contact_area_is_its_equilibriums(tmp_path):
+    """A settled run's contact area (the row's, from the result's meta) is the one of the displacement it
+    returns, read with it before any timed step, and well below the rest shape's overlap with the tool at
+    the end of its travel (what a run that did not move would report)."""
+    from verification.engines.builtin import scene_model
+    from verification.runs.simulate import run_model
+    from verification.scene_file import load_scene
+
+    path = tmp_path / "press.toml"
+    path.write_text(
+        BLOCK + 'shape = "sphere"\ncenter = [0.02, 0.02, 0.025]\nradius = 0.005\ntravel = [0.0, 0.0, -0.002]\n'
+    )
+    scene = load_scene(path)
+    res = run_model(scene, "linear-tm")
+    model = scene_model(scene, "linear-tm")
+    (area,) = res.meta["contact_area"]
+    assert area == pytest.approx(model.rigid_areas(res.displacement[-1])[0], rel=1e-9)
+    assert area < 0.5 * model.rigid_areas(np.zeros_like(res.displacement[-1]))[0]

@@ -208,12 +208,14 @@ def _run_static(scene: Scene, sim: Simulation, dt, dt_fraction, rtol, max_steps,
     """Equilibrium, read, then the steps timed from it."""
     s = sim.settle(rtol, max_steps, dt, dt_fraction)
     u, reaction = sim.displacement().copy(), np.array(sim.tool_force(), dtype=float)
+    # read with them, before the timed steps move the state (the seam's engines give no area yet)
+    area = sim.contact_area() if scene.problem.contacts and hasattr(sim, "contact_area") else None
     timing = _timing(sim, *(sim.timing or (0, 0)))
     meta = _meta(scene, sim, solver, s.dt, s.dt_crit, build_s, timing)
     settle_ms = s.steps * timing["step_us"] * 1e-3 if timing["step_us"] else None
     meta.update(s.meta, static=s.static, settle_ms=settle_ms)
-    if scene.problem.contacts and hasattr(sim, "contact_area"):  # the seam's engines give none yet
-        meta["contact_area"] = np.asarray(sim.contact_area(), dtype=float).tolist()
+    if area is not None:
+        meta["contact_area"] = np.asarray(area, dtype=float).tolist()
     mesh = scene.mesh
     return Result(mesh.points, mesh.tets, np.zeros(1), u[None], reaction[None], meta)
 
