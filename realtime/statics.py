@@ -71,13 +71,12 @@ def solve_static(
 
     Symplectic Euler with mass damping alpha = 2 omega_1, critical for the slowest mode (``_Damping``:
     omega_1 at rest where it is cheap to know, else Underwood's estimate every ``chunk`` steps). The tools move
-    along their ramps from t = 0 (a load path: a large displacement imposed in one step would crush
-    the elements beside the tool before the rest of the body can follow) and then hold; a rigid tool
-    given no ramp follows a path of its own (``_RigidPath``). Converged
-    when every tool has arrived and the free components' residual |f_int + f_ext| is below rtol
-    times the load scale (|f_ext| and the tools' reaction), or below FLOOR_FACTOR times its round-off
-    floor where that is higher (``residual_floor``; up to 1000 rtol), or has stalled for 50 chunks on
-    a plateau below 1000 rtol (``StaticResult.residual`` says which).
+    along their ramps from t = 0 (a load path: a large displacement imposed in one step would crush the
+    elements beside the tool before the rest of the body can follow; a rigid tool given no ramp follows
+    ``_RigidPath``) and then hold. Converged when every tool has arrived and the free components' residual
+    |f_int + f_ext| is below rtol times the load scale (|f_ext| and the tools' reaction), or below
+    FLOOR_FACTOR times its round-off floor where that is higher (``residual_floor``; up to 1000 rtol), or
+    has stalled for 50 chunks on a plateau below 1000 rtol (``StaticResult.residual`` says which).
 
     With ``dt`` given, every step uses it, and a dt above the critical one raises DivergenceError as
     any explicit run does. With dt = None the step adapts: ``safety`` x dt_crit at rest, and when a
@@ -85,12 +84,10 @@ def solve_static(
     last good chunk, re-estimates omega_max there and goes on at ``safety`` times the new critical step.
     ``StaticResult.dt`` is the step in use at the end.
 
-    ``steps``: take exactly that many steps and return, whatever the residual (``_step_budget``: a
-    float32 model needs it). ``progress``: called as progress(steps taken, relative residual) after
-    every chunk, for a caller that reports to a user who waits (the engine itself prints nothing).
+    ``steps``: take exactly that many steps and return, whatever the residual (``_step_budget``: a float32
+    model needs it). ``progress``: called as progress(steps taken, relative residual) after every chunk.
     ``omega2``: omega_max^2 (1/s^2) at rest (``spectra.max_eigenvalue``), where the caller knows it.
-    ``omega2_min``: omega_1^2 (1/s^2) at rest, where the caller knows it; 0: take Underwood's estimate
-    (``_Damping``).
+    ``omega2_min``: omega_1^2 (1/s^2) at rest, where the caller knows it; 0: Underwood's (``_Damping``).
     """
     max_steps = _step_budget(model, steps, max_steps)
     state, lo = model.rest_state(), model.loading

@@ -132,7 +132,7 @@ class Row:
         if unknown:
             raise ValueError(f"not a row's field: {sorted(unknown)[0]}")
         try:
-            tuples = {k: tuple(data.get(k) or ()) for k in ("unrepresented", "merged_dt", "states")}
+            tuples = {k: tuple(data.get(k) or ()) for k in ("unrepresented", "merged_dt", "states", "contact")}
             return cls(**{**data, **tuples})
         except TypeError as exc:
             raise ValueError(f"not a row: {exc}") from None
