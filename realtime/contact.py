@@ -274,6 +274,8 @@ def contact_force(c, points, u, t, f, reaction):
     """Add each candidate vertex's contact force at time t (s) to f (N, 3) N, from u (N, 3) m and the rest
     points (N, 3) float64 m; reaction (K, 3) N receives each tool's force on the body (their sum)."""
     reaction[:] = 0.0
+    if c.vertex.shape[0] == 0:  # no rigid tool: no allocation in a step loop's every step
+        return
     y, n = np.empty(3), np.empty(3)
     for j in range(c.vertex.shape[0]):
         i, k, g = _candidate_gap(c, j, points, u, t, y, n)
@@ -302,6 +304,8 @@ def contact_kick(c, points, u, t, v, f, fext, free, mass, dt, damp, reaction):
     any step (its own amplification has determinant 1 / (1 + dt^2 k / m)), and the step is the elements'
     alone."""
     reaction[:] = 0.0
+    if c.vertex.shape[0] == 0:  # no rigid tool: no allocation in a step loop's every step
+        return
     y, n, p, w = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     for j in range(c.vertex.shape[0]):
         i, k, g = _candidate_gap(c, j, points, u, t, y, n)
@@ -331,6 +335,8 @@ def contact_tangent(c, points, u, t, x, out):
     penetration (a tool placed 1 mm into a coarse block at once, g / rho = -0.25) it made the kick's
     3 x 3 systems and implicit Euler's CG indefinite, and a run diverged at 0.9 of its step. Left out,
     both stay positive definite; a plane's tangent is exactly this."""
+    if c.vertex.shape[0] == 0:  # no rigid tool: nothing to add in every CG iteration
+        return
     y, n = np.empty(3), np.empty(3)
     for j in range(c.vertex.shape[0]):
         i, k, g = _candidate_gap(c, j, points, u, t, y, n)
