@@ -362,8 +362,9 @@ def _precondition(factored, fac, cm, mass, r, z):
 @nb.njit(**_JIT)
 def _implicit_cg(force, data, scratch, u, linear, cm, ck, cg, fac, mass, free, cgw, contacts, points, t):
     """Preconditioned CG for implicit Euler's step: (cm M + ck K) x = r on the free components, K the
-    tangent at ``u`` (N, 3) m (the rigid tools' ``contacts`` at time t s included), from x = 0 (``cgw``'s r holds the right-hand side, its x the answer),
-    to ``cg.tol`` of the first preconditioned residual or ``cg.maxit`` iterations. Returns (the
+    tangent at ``u`` (N, 3) m (the rigid tools' ``contacts`` at time t s included), from x = 0 (``cgw``'s
+    r holds the right-hand side, its x the answer), to ``cg.tol`` of the first preconditioned residual or
+    ``cg.maxit`` iterations. Returns (the
     iterations, the last preconditioned residual rr, the first one's square root r0)."""
     f, kv, r, z, p, ap, x, t1, t2 = cgw
     nv = u.shape[0]
@@ -405,14 +406,14 @@ def _run_implicit_euler(n, dt, t0, force, work, linear, alpha, beta, cg, fac, u,
     taken; the loop stops after it unless ``budget``, a fixed iteration budget as real-time simulators
     run CG).
 
-    (M (1 + dt alpha) + (dt beta + dt^2) K) dv = dt (f(u) + f_ext - alpha M v - (beta + dt) K v), K the
-    tangent at u_n (the rigid tools' contact at t_n included: their force and stiffness), solved by preconditioned CG on the free components to a relative residual
-    ``tol`` (the preconditioner: the factored system with the rest stiffness if ``factored``, else
-    the mass term); then v += dv, u += dt v. ``reaction`` (L, 3) N: the tools' force on the body in the
-    last step, from the same equation on their components: m (v_new - v_old) / dt + alpha m v_new +
-    (beta + dt) K v - f(u_old) - f_ext, with K v one more tangent product (at the step's u_old) of the
-    velocities the solve used (the new ones on the free components, the tools' old ones: the solve
-    moved the tools' neighbours with those), so that the body's momentum balance closes.
+    (M (1 + dt alpha) + (dt beta + dt^2) K) dv = dt (f(u) + f_ext - alpha M v - (beta + dt) K v), K the tangent at
+    u_n (the rigid tools' contact at t_n included: their force and stiffness), solved by preconditioned CG on the
+    free components to a relative residual ``tol`` (the preconditioner: the factored system with the rest stiffness
+    if ``factored``, else the mass term); then v += dv, u += dt v. ``reaction`` (L, 3) N: the tools' force on the
+    body in the last step, from the same equation on their components: m (v_new - v_old) / dt + alpha m v_new +
+    (beta + dt) K v - f(u_old) - f_ext, with K v one more tangent product (at the step's u_old) of the velocities
+    the solve used (the new ones on the free components, the tools' old ones: the solve moved the tools' neighbours
+    with those), so that the body's momentum balance closes.
     """
     data, scratch, points, mass = work.data, work.scratch, work.points, work.mass
     free, fext, tools, bound = work.free, work.fext, work.tools, work.bound
