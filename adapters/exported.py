@@ -17,8 +17,14 @@ from rest and must stay where it is (``HOLD``). A dynamic scene is run
 from rest to its end, and sampled at its output instants; the tools' prescribed displacements come from
 the export at those instants, linearly interpolated in between.
 
+A scene's rigid tools (``scene.json`` ``rigid_tools``: a sphere, a capsule or a plane, frictionless) are the
+engine's own contact: the adapter builds each as its engine's shape, the driver moves it along its travel with
+the vertex tools (``Stepper.set_rigid``), and its force on the body is what the engine's contact exerts
+(``Stepper.rigid_force``). Only static scenes have them (the truth solves no dynamic contact).
+
 The result's keys: ``displacement`` (T, N, 3) m at the scene's vertices; ``reaction`` (T, 3) N, the tools'
-force on the body, where the engine gives its internal force (``tool_force``); ``step_us`` (us per step of the
+force on the body, where the engine gives its internal force (``tool_force``), the rigid tools' contact
+force added; ``rigid_force`` (K, 3) N, each rigid tool's; ``step_us`` (us per step of the
 engine's own step call, median over the run's batches); ``dt`` s; ``steps``; ``diverged`` (1 when the run
 blew up, and ``diverged_at`` s); ``settled`` (0 when a static run hit its step limit); ``law`` (the
 engine's law the scene's was mapped to, in words); ``engine`` (name and version).
@@ -135,6 +141,15 @@ class Exported:
         largest = np.max([0.5 * np.linalg.norm(f, axis=1) for f in faces], axis=0)
         return float(np.min(3.0 * self.volumes() / largest / np.sqrt(modulus / rho)))
 
+    @property
+    def rigid(self) -> list[dict]:
+        """The rigid tools, as ``scene.json`` lists them (``rigid_tools``; none in an older export)."""
+        return list(self.spec.get("rigid_tools") or [])
+
+    def rigid_travel(self) -> np.ndarray:
+        """(K, 3) m: each rigid tool's whole translation (a static scene's answer is at its end)."""
+        return np.array([t["travel_m"] for t in self.rigid], dtype=float).reshape(-1, 3)
+
     def held(self) -> np.ndarray:
         """(N, 3) bool: the components held at zero or prescribed by a tool."""
         return self.free == 0.0
@@ -185,6 +200,16 @@ class Stepper:
         """(N, 3) N: the engine's elastic force on each vertex at its present state (minus its energy's
         gradient), for the tools' force; None where the engine does not give its own law's."""
         return None
+
+    def set_rigid(self, offset: np.ndarray, velocity: np.ndarray) -> None:
+        """Put each rigid tool at ``offset`` (K, 3) m from its place at t = 0, moving at ``velocity`` (K, 3)
+        m/s. An engine without a contact of its own raises AdapterError (it has no rigid tool to move)."""
+        raise AdapterError("this adapter does not model a rigid tool's contact")
+
+    def rigid_force(self) -> np.ndarray:
+        """(K, 3) N: each rigid tool's force on the body, as the engine's contact exerts it at the present
+        state."""
+        raise AdapterError("this adapter does not model a rigid tool's contact")
 
     def unstable(self) -> bool:
         """Whether the engine itself found its state unstable (MuJoCo resets to rest when it does, which
@@ -251,10 +276,27 @@ def tool_force(engine: Stepper, scene: Exported) -> np.ndarray | None:
 
 
 def _ramped(engine: Stepper, scene: Exported, held, final: np.ndarray, n: int, ramp_steps: int, dt: float) -> None:
-    """Before step ``n``: the tools at n / ramp_steps of their travel to ``final`` (N, 3) m, moving at the
-    ramp's speed through its last step, then still there."""
-    speed = final / (ramp_steps * dt) if n <= ramp_steps else np.zeros_like(final)
+    """Before step ``n``: the tools at n / ramp_steps of their travel to ``final`` (N, 3) m, the rigid
+    ones of theirs, moving at the ramp's speed through its last step, then still there."""
+    moving = n <= ramp_steps
+    speed = final / (ramp_steps * dt) if moving else np.zeros_like(final)
     _impose(engine, scene, held, min(n / ramp_steps, 1.0) * final, speed)
+    if scene.rigid:
+        travel = scene.rigid_travel()
+        engine.set_rigid(min(n / ramp_steps, 1.0) * travel, travel / (ramp_steps * dt) if moving else 0.0 * travel)
+
+
+def reaction(engine: Stepper, scene: Exported) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The tools' force on the body (3,) N at the present state (``tool_force``, plus every rigid tool's
+    contact force), and each rigid tool's (K, 3) N (None without any). The sum is None where vertex
+    tools' force is unknown (no internal force from the engine)."""
+    vertex = tool_force(engine, scene)
+    if not scene.rigid:
+        return vertex, None
+    rigid = np.asarray(engine.rigid_force(), dtype=float).reshape(-1, 3)
+    if len(scene.tool_vertex) and vertex is None:
+        return None, rigid
+    return rigid.sum(axis=0) + (0.0 if vertex is None else vertex), rigid
 
 
 def _blown(u: np.ndarray, size: float, engine: Stepper) -> bool:
@@ -371,7 +413,8 @@ def _held(engine: Stepper, scene: Exported, u: np.ndarray, dt: float, run: dict)
     out = {"u": u, **run, "settled": int(drift <= HOLD), "hold_drift": drift, "hold_steps": HOLD_STEPS}
     engine.set_positions(scene.points + u)  # the relaxed state, for its tools' force
     engine.set_velocities(np.zeros_like(u))
-    return {**out, "reaction": tool_force(engine, scene)}
+    total, rigid = reaction(engine, scene)
+    return {**out, "reaction": total, "rigid_force": rigid}
 
 
 def probe(engine: Stepper, scene: Exported, dt: float, steps: int, progress) -> dict:
@@ -472,6 +515,8 @@ def main(run, description: str, solvers: tuple[str, ...], argv=None) -> int:
 def drive(engine: Stepper, scene: Exported, args, dt: float, progress) -> dict:
     """The scene run on ``engine`` at ``dt`` (split into ``args.substeps``): relaxed if static, a trajectory
     if dynamic; with ``args.probe``, only the stability probe."""
+    if scene.rigid and not scene.static:
+        raise AdapterError("a rigid tool in a dynamic scene: the adapters move rigid tools in static scenes only")
     if args.probe:
         return probe(engine, scene, dt, args.probe, progress)
     if scene.static:

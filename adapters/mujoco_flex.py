@@ -18,7 +18,12 @@ when it is StVK; a linear scene is mapped to it (the same at small strain), and 
   (documented as Rayleigh's coefficient, in seconds); the mass-proportional part is applied after every
   step (v / (1 + alpha dt), implicit), MuJoCo refusing joint damping on a flex's vertex bodies;
 - gravity and loads arrive as the exported nodal forces (``xfrc_applied`` on each vertex's body); MuJoCo's
-  gravity is off, and so are contacts (none acts in a scene);
+  gravity is off;
+- a rigid tool is a mocap body with its geom (a sphere, a capsule, a plane), moved along its travel; its
+  contact with the flex is MuJoCo's own (the flex's outer layer of tetrahedra against the geom, a soft
+  constraint, frictionless: ``condim`` 1), as stiff as MuJoCo advises: ``solref`` with a time constant of two
+  steps (``CONTACT_TIMECONST``), critically damped, MuJoCo's default ``solimp``. Its force on the body is
+  what the constraint solver applies (``mj_contactForce``). Without rigid tools, contact is off;
 - the solver knob is MuJoCo's integrator: ``discrete`` (MuJoCo 4's velocity-stepping integrator, the one
   in which flex elasticity is implicit; ``implicit`` and ``implicitfast`` no longer take it) or ``Euler``
   (semi-implicit, explicit in the elasticity); ``--dt`` its timestep.
@@ -35,6 +40,40 @@ SOLVERS = ("discrete", "Euler")
 #: step, and its place and velocity are the tool's again before the next (MuJoCo takes no mocap body in
 #: an elastic flex, nor joint damping on a flex's bodies).
 DRIVEN_MASS = 1e4
+
+#: A contact's ``solref`` time constant, in steps: MuJoCo's documentation asks at least two for a stable soft
+#: constraint, and the fewer, the stiffer the contact (its penetration at rest scales with its square).
+CONTACT_TIMECONST = 2.0
+#: A contact's ``solimp`` impedance, the same at every depth: a soft constraint's penetration at rest is
+#: (1 - d) / d^2 times its time constant squared over the effective mass, per unit force, so 0.99 sinks a
+#: tool 12 times less than MuJoCo's default 0.9 to 0.95 (its documentation's advice for hard contacts).
+CONTACT_IMPEDANCE = 0.99
+
+
+def contact_attributes(h: float) -> str:
+    """The contact attributes of the flex and of every tool's geom, the same on both (MuJoCo mixes the two
+    sides' ``solref`` and ``solimp``); ``h`` the step, s."""
+    d = CONTACT_IMPEDANCE
+    return f'contype="1" conaffinity="1" condim="1" solref="{CONTACT_TIMECONST * h:.17g} 1" solimp="{d} {d} 0.001"'
+
+
+def tool_bodies(scene: Exported, h: float) -> str:
+    """Each rigid tool as a mocap body at its place at t = 0, with its geom; ``h`` the step, s."""
+    contact = contact_attributes(h)
+    out = []
+    for k, tool in enumerate(scene.rigid):
+        pos = " ".join(f"{c:.17g}" for c in tool["center_m"])
+        if tool["shape"] == "sphere":
+            geom = f'type="sphere" size="{tool["radius_m"]:.17g}"'
+        elif tool["shape"] == "capsule":
+            axis = np.asarray(tool["end_m"], dtype=float) - np.asarray(tool["center_m"], dtype=float)
+            geom = f'type="capsule" size="{tool["radius_m"]:.17g}" fromto="0 0 0 {" ".join(f"{c:.17g}" for c in axis)}"'
+        elif tool["shape"] == "plane":  # a MuJoCo plane's solid side is below its local z: z is the normal
+            geom = f'type="plane" size="0 0 1" zaxis="{" ".join(f"{c:.17g}" for c in tool["normal"])}"'
+        else:
+            raise AdapterError(f"rigid tool {k}: shape {tool['shape']!r} has no MuJoCo geom here")
+        out.append(f'<body name="tool{k}" mocap="true" pos="{pos}"><geom name="tool{k}" {geom} {contact}/></body>')
+    return "".join(out)
 
 
 def mjcf(scene: Exported, solver: str, dt: float) -> tuple[str, list, list]:
@@ -74,14 +113,15 @@ def mjcf(scene: Exported, solver: str, dt: float) -> tuple[str, list, list]:
     )
     element = " ".join(str(int(k)) for k in scene.tets.ravel())
     mat = mats[0]
+    flex_contact = contact_attributes(dt) + ' selfcollide="none"' if scene.rigid else 'contype="0" conaffinity="0"'
     xml = f"""<mujoco model="{scene.spec["scene"]}">
   <option timestep="{dt:.17g}" integrator="{solver}" gravity="0 0 0">
-    <flag contact="disable"/>
+    {"" if scene.rigid else '<flag contact="disable"/>'}
   </option>
-  <worldbody>{"".join(bodies)}</worldbody>
+  <worldbody>{"".join(bodies)}{tool_bodies(scene, dt)}</worldbody>
   <deformable>
     <flex name="body" dim="3" radius="0" body="{" ".join(names)}" vertex="{vertex}" element="{element}">
-      <contact contype="0" conaffinity="0"/>
+      <contact {flex_contact}/>
       <elasticity young="{mat["young_pa"]:.17g}" poisson="{mat["poisson"]:.17g}" damping="{beta:.17g}"/>
     </flex>
   </deformable>
@@ -120,6 +160,10 @@ class MujocoStepper(Stepper):
         self.alpha = scene.damping[0]
         self.x = scene.points.copy()
         self.v = np.zeros_like(scene.points)
+        self.tool_geom = [
+            mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, f"tool{k}") for k in range(len(scene.rigid))
+        ]
+        self.tool_place = np.array([t["center_m"] for t in scene.rigid], dtype=float).reshape(-1, 3)
         mujoco.mj_forward(self.model, self.data)
 
     def step(self, dt: float) -> None:
@@ -140,6 +184,26 @@ class MujocoStepper(Stepper):
         i, c, _, da = self.joints.T
         f[i, c] = self.data.qfrc_passive[da]
         return f
+
+    def set_rigid(self, offset: np.ndarray, velocity: np.ndarray) -> None:
+        """A mocap body's place is set, not integrated: its velocity is MuJoCo's finite difference."""
+        self.data.mocap_pos[: len(self.tool_place)] = self.tool_place + offset
+
+    def rigid_force(self) -> np.ndarray:
+        """Each tool's force on the flex: the constraint solver's normal force of every contact of its geom
+        (``mj_contactForce``, in the contact frame whose first axis points from geom[0] to geom[1]) at the
+        present state."""
+        self.mj.mj_forward(self.model, self.data)
+        out = np.zeros((len(self.tool_geom), 3))
+        f6 = np.zeros(6)
+        for i in range(self.data.ncon):
+            con = self.data.contact[i]
+            for k, g in enumerate(self.tool_geom):
+                if g in (con.geom[0], con.geom[1]):
+                    self.mj.mj_contactForce(self.model, self.data, i, f6)
+                    on_second = con.frame.reshape(3, 3).T @ f6[:3]  # the force on geom[1], world frame
+                    out[k] += on_second if con.geom[0] == g else -on_second
+        return out
 
     def unstable(self) -> bool:
         """MuJoCo's own verdict: a bad acceleration, position or velocity makes it warn and reset the state

@@ -25,6 +25,15 @@ left out, which the result's law says.
 Held vertices are made inactive (newton keeps them where they are); vertices held in some components only
 are put back in those after every step. The scene's gravity and loads come as the exported nodal forces
 (newton's own gravity is off). The engine runs in float32, as newton does.
+
+A rigid tool is newton's own particle-shape contact, as its examples drive it: a kinematic body
+(``add_body(is_kinematic=True)``) with the tool's shape, moved along its travel (``body_q``, ``body_qd``),
+a ``CollisionPipeline`` that finds the vertices within ``soft_contact_gap`` of it before every step, and the
+solver's penalty ke times the penetration on each (frictionless: mu, kd and kf 0). ke is one number in
+newton; the adapter passes the penalty the truth and the built-in models use, gamma E A_i / h_i at a
+vertex, as gamma E h with h the mean boundary edge (``contact_stiffness``). The tool's force is the
+semi-implicit solver's contact force on the vertices at the present state (``eval_particle_body_contact_forces``), the
+penalty VBD integrates too; XPBD projects its contacts and states no force.
 """
 
 from __future__ import annotations
@@ -34,6 +43,61 @@ import numpy as np
 from exported import RELAX_FRACTION, AdapterError, Exported, Stepper, drive, main
 
 SOLVERS = ("semi-implicit", "vbd", "xpbd")
+
+#: The contact penalty's gamma: the truth's and the built-in models' (realtime.contact.GAMMA).
+GAMMA = 100.0
+
+
+def boundary_edge(scene: Exported) -> float:
+    """The mean edge length of the body's boundary triangles, m."""
+    faces = np.sort(scene.tets[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]].reshape(-1, 3), axis=1)
+    uniq, count = np.unique(faces, axis=0, return_counts=True)
+    tri = scene.points[uniq[count == 1]]
+    edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
+    return float(edges.mean())
+
+
+def contact_stiffness(scene: Exported) -> float:
+    """newton's one ke, N/m: GAMMA E h, the built-in models' gamma E A_i / h_i with A_i / h_i about h."""
+    return GAMMA * max(m["young_pa"] for m in scene.spec["materials"]) * boundary_edge(scene)
+
+
+def _quat_z_to(wp, d) -> object:
+    """The rotation taking the z axis to the direction ``d`` (3,)."""
+    d = np.asarray(d, dtype=float) / np.linalg.norm(d)
+    axis = np.cross([0.0, 0.0, 1.0], d)
+    s, c = float(np.linalg.norm(axis)), float(d[2])
+    if s < 1e-12:
+        return wp.quat_identity() if c > 0 else wp.quat_from_axis_angle(wp.vec3(1.0, 0.0, 0.0), float(np.pi))
+    return wp.quat_from_axis_angle(wp.vec3(*(axis / s)), float(np.arctan2(s, c)))
+
+
+def add_tools(builder, newton, wp, scene: Exported, origin: np.ndarray, ke: float) -> list:
+    """Each rigid tool as a kinematic body with its shape, frictionless; returns (body, its rotation)."""
+    if len(scene.rigid) > 1:
+        raise AdapterError("newton's adapter moves one rigid tool; this scene has several")
+    cfg = newton.ModelBuilder.ShapeConfig(ke=ke, kd=0.0, kf=0.0, mu=0.0)
+    out = []
+    for tool in scene.rigid:
+        center = np.asarray(tool["center_m"], dtype=float) - origin
+        if tool["shape"] == "capsule":
+            axis = np.asarray(tool["end_m"], dtype=float) - np.asarray(tool["center_m"], dtype=float)
+            place, rot = center + 0.5 * axis, _quat_z_to(wp, axis)
+        elif tool["shape"] == "plane":
+            place, rot = center, _quat_z_to(wp, tool["normal"])
+        else:
+            place, rot = center, wp.quat_identity()
+        body = builder.add_body(xform=wp.transform(wp.vec3(*place), rot), is_kinematic=True)
+        if tool["shape"] == "sphere":
+            builder.add_shape_sphere(body, radius=tool["radius_m"], cfg=cfg)
+        elif tool["shape"] == "capsule":
+            builder.add_shape_capsule(
+                body, radius=tool["radius_m"], half_height=0.5 * float(np.linalg.norm(axis)), cfg=cfg
+            )
+        else:
+            builder.add_shape_plane(body=body, width=0.0, length=0.0, cfg=cfg)
+        out.append((body, place, rot))
+    return out
 
 
 class NewtonStepper(Stepper):
@@ -77,9 +141,20 @@ class NewtonStepper(Stepper):
         for i in fixed:
             builder.particle_mass[i] = 0.0
         self.partial = scene.held() & ~scene.held().all(axis=1, keepdims=True)
+        self.ke = contact_stiffness(scene) if scene.rigid else 0.0
+        self.tools = add_tools(builder, newton, wp, scene, self.origin, self.ke)
         if solver == "vbd":
             builder.color()
         model = builder.finalize(device="cpu")
+        if self.tools:
+            model.soft_contact_ke, model.soft_contact_kd, model.soft_contact_kf, model.soft_contact_mu = (
+                self.ke,
+                0.0,
+                0.0,
+                0.0,
+            )
+            self.pipeline = newton.CollisionPipeline(model, soft_contact_gap=boundary_edge(scene))
+            self.contacts = self.pipeline.contacts()
         if solver == "semi-implicit":
             self.solver = newton.solvers.SolverSemiImplicit(model, enable_tri_contact=False)
         elif solver == "vbd":
@@ -99,7 +174,13 @@ class NewtonStepper(Stepper):
             s0, s1 = self.states
             s0.clear_forces()
             s0.particle_f.assign(self.force)
-            self.solver.step(s0, s1, self.control, None, h)
+            contacts = None
+            if self.tools:
+                self.wp.copy(s1.body_q, s0.body_q)
+                self.wp.copy(s1.body_qd, s0.body_qd)
+                self.pipeline.collide(s0, self.contacts)
+                contacts = self.contacts
+            self.solver.step(s0, s1, self.control, contacts, h)
             self.states.reverse()
             if self.alpha:  # the scene's mass-proportional damping, implicit: v / (1 + alpha h)
                 self.set_velocities(self.velocities() / (1.0 + self.alpha * h))
@@ -121,6 +202,34 @@ class NewtonStepper(Stepper):
         eval_tetrahedra_forces(self.model, state, self.control, f)
         return f.numpy().astype(float)
 
+    def set_rigid(self, offset: np.ndarray, velocity: np.ndarray) -> None:
+        """The kinematic bodies' place and velocity (newton's spatial velocity: linear, then angular)."""
+        wp = self.wp
+        q = [wp.transform(wp.vec3(*(place + offset[k])), rot) for k, (_, place, rot) in enumerate(self.tools)]
+        qd = [wp.spatial_vector(*velocity[k], 0.0, 0.0, 0.0) for k in range(len(self.tools))]
+        for state in self.states:
+            bq, bqd = state.body_q.numpy(), state.body_qd.numpy()
+            for k, (body, _, _) in enumerate(self.tools):
+                bq[body], bqd[body] = np.array(q[k]), np.array(qd[k])
+            state.body_q.assign(bq)
+            state.body_qd.assign(bqd)
+
+    def rigid_force(self) -> np.ndarray:
+        """The tool's force on the body: newton's particle-shape contact force on the vertices
+        (``eval_particle_body_contact_forces``, the semi-implicit solver's; VBD integrates the same penalty)
+        at the present state, summed. XPBD projects its contacts: AdapterError, no force to report."""
+        if self.kind == "xpbd":
+            return np.full((len(self.tools), 3), np.nan)
+        from newton._src.solvers.semi_implicit.kernels_contact import eval_particle_body_contact_forces
+
+        state = self.states[0]
+        state.particle_qd.zero_()
+        self.pipeline.collide(state, self.contacts)
+        f = self.wp.zeros_like(state.particle_f)
+        body_f = self.wp.zeros_like(state.body_f)
+        eval_particle_body_contact_forces(self.model, state, self.contacts, f, body_f)
+        return f.numpy().astype(float).sum(axis=0)[None]
+
     def positions(self) -> np.ndarray:
         return self.states[0].particle_q.numpy().astype(float) + self.origin
 
@@ -140,12 +249,17 @@ class NewtonStepper(Stepper):
 
 def stable_guess(scene: Exported, solver: str) -> float:
     """A time step, s: for the semi-implicit solver, RELAX_FRACTION of the explicit wave step
-    (``Exported.wave_step``) with the Neo-Hookean constants it runs with; for the implicit ones (VBD, XPBD), 1 ms, the step newton's
+    (``Exported.wave_step``) with the Neo-Hookean constants it runs with, or of the contact's explicit step
+    where that is smaller; for the implicit ones (VBD, XPBD), 1 ms, the step newton's
     examples take at 60 Hz with substeps."""
     if solver != "semi-implicit":
         return 1e-3
     lam, mu, _ = scene.lame()
-    return RELAX_FRACTION * scene.wave_step(lam + 5.0 / 6.0 * mu + 2.0 * 4.0 / 3.0 * mu)
+    dt = scene.wave_step(lam + 5.0 / 6.0 * mu + 2.0 * 4.0 / 3.0 * mu)
+    if scene.rigid:  # the explicit contact spring on the lightest vertex: 2 sqrt(m / ke)
+        m = scene.lumped_masses()
+        dt = min(dt, 2.0 * float(np.sqrt(m[m > 0].min() / contact_stiffness(scene))))
+    return RELAX_FRACTION * dt
 
 
 def run(scene: Exported, args, progress):

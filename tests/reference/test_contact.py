@@ -4,6 +4,9 @@ scene cannot use is one line."""
 
 from __future__ import annotations
 
+import json
+import sys
+
 import numpy as np
 import pytest
 import ufl
@@ -19,6 +22,7 @@ from reference.contact import gap
 from reference.fem import ElasticityProblem
 from reference.problem import Fixed, Problem, RigidTool
 from tests.verification.test_input_errors import assert_one_line, run
+from verification.scene_file import load_scene
 
 TOOLS = {
     "sphere": RigidTool("sphere", (0.3, 0.2, 0.9), radius=0.25, travel=(0.1, -0.2, -0.3)),
@@ -162,17 +166,18 @@ def test_a_tool_the_scene_cannot_use_is_one_line_and_exit_2(tmp_path, capsys, to
     assert_one_line(err, str(path), *needles)
 
 
-def test_a_plug_in_engine_on_a_contact_scene_says_the_seam_has_no_contact_in_one_line(tmp_path, capsys):
-    """The built-in models take a rigid tool (realtime.contact); the seam does not carry one to a plug-in
-    engine yet, so a command naming one is refused by name, before any truth is solved, not run without
-    its tool."""
+def test_a_python_plug_in_on_a_contact_scene_is_refused_in_one_line(tmp_path, capsys):
+    """The export carries a rigid tool to the adapters and to a command engine (``rigid_tools``); a Python
+    plug-in's Simulation has no call for its force yet, so a command naming one is refused by name, before
+    any truth is solved, not run without its tool."""
     path = tmp_path / "press.toml"
     path.write_text(
         BLOCK + 'shape = "sphere"\ncenter = [0.02, 0.02, 0.025]\nradius = 0.005\ntravel = [0.0, 0.0, -0.001]\n'
     )
-    code, _, err = run(["compare", str(path), "--model", "x", "--engine-cmd", "true"], capsys)
+    plug_in = "tests.verification.test_engine_seam:DirectP1"
+    code, _, err = run(["compare", str(path), "--model", "direct-p1", "--engine", plug_in], capsys)
     assert code == 2
-    assert_one_line(err, str(path), "tool", "no plug-in engine models")
+    assert_one_line(err, str(path), "tool", plug_in, "is not given a rigid tool")
 
 
 def test_the_reference_command_states_each_tools_force_and_area_with_their_bars(tmp_path, capsys):
@@ -277,3 +282,24 @@ def test_a_runs_contact_area_is_its_equilibriums(tmp_path):
     (area,) = res.meta["contact_area"]
     assert area == pytest.approx(model.rigid_areas(res.displacement[-1])[0], rel=1e-9)
     assert area < 0.5 * model.rigid_areas(np.zeros_like(res.displacement[-1]))[0]
+
+
+def test_a_command_engine_on_a_contact_scene_states_each_rigid_tools_force(tmp_path, capsys):
+    """The export carries the rigid tool to a command engine (scene.json ``rigid_tools``); its result must
+    state the tool's force (``rigid_force``, (K, 3) N), the sign that it met the tool. A command that
+    answers without it, as one that never read the tool would, is one line and exit 2; with it, the answer
+    is judged (here a body left where it was: every error 1)."""
+    path = tmp_path / "press.toml"
+    path.write_text(BLOCK + PLANE)
+    n = len(load_scene(path).mesh.points)
+    write = "import numpy as n, sys; n.savez(sys.argv[1], displacement=n.zeros(({n}, 3)){extra})"
+    args = ["compare", str(path), "--degree", "1", "--json", "--model", "still"]
+    silent = f"{sys.executable} -c '{write.format(n=n, extra='')}' {{result}}"
+    code, _, err = run([*args, "--engine-cmd", silent], capsys)
+    assert code == 2
+    assert_one_line(err, "rigid tool", "states no rigid_force", "(1, 3) N")
+    stated = f"{sys.executable} -c '{write.format(n=n, extra=', rigid_force=n.zeros((1, 3))')}' {{result}}"
+    code, out, err = run([*args, "--engine-cmd", stated], capsys)
+    assert code == 0, err
+    row = json.loads(out)
+    assert row["rel_l2"] == pytest.approx(1.0) and row["reaction_rel_err"] is None

@@ -93,15 +93,24 @@ def _uniaxial_export(directory, law="linear"):
     return p
 
 
-def _adapter(tmp_path, script, solver, *extra):
-    scene = tmp_path / "scene"
-    points = _uniaxial_export(scene)
+def run_adapter(tmp_path, script, solver, *extra):
+    """The adapter ``script`` on the scene exported in ``tmp_path / "scene"``: the displacement (N, 3) m,
+    the result's scalars and its arrays (the other keys)."""
     result = tmp_path / "result.npz"
-    args = [str(engines_python()), str(ADAPTERS_DIR / script), str(scene), str(result), "--solver", solver]
-    done = subprocess.run(args + list(extra), capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    args = [str(engines_python()), str(ADAPTERS_DIR / script), str(tmp_path / "scene"), str(result)]
+    done = subprocess.run(
+        args + ["--solver", solver, *extra], capture_output=True, text=True, timeout=600, cwd=tmp_path
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     with np.load(result) as z:
-        return points, z["displacement"][0], {k: z[k].item() for k in z.files if z[k].ndim == 0}
+        scalars = {k: z[k].item() for k in z.files if z[k].ndim == 0}
+        return z["displacement"][0], scalars, {k: z[k] for k in z.files if z[k].ndim > 0}
+
+
+def _adapter(tmp_path, script, solver, *extra):
+    points = _uniaxial_export(tmp_path / "scene")
+    u, scalars, _ = run_adapter(tmp_path, script, solver, *extra)
+    return points, u, scalars
 
 
 @needs_engines

@@ -68,13 +68,13 @@ def _scene(args, warn: bool = True, solves: bool = True):
         )
     check_held(scene)
     check_tools(scene)
-    plug_ins = (
-        getattr(args, "engine", None) or getattr(args, "engine_cmd", None) or getattr(args, "command", "") == "engines"
-    )
+    from verification.engines.adapters import ADAPTERS
+
+    plug_ins = [e for e in getattr(args, "engine", None) or () if e not in ADAPTERS]
     if scene.problem.contacts and plug_ins:  # refused in one line before any truth is solved for them
         raise SceneError(
-            f"{scene.path}: tool: no plug-in engine models a rigid tool's contact yet (the built-in models do: "
-            "drop --engine/--engine-cmd)"
+            f"{scene.path}: tool: the plug-in engine {plug_ins[0]} is not given a rigid tool (the export carries "
+            f"one to the adapters, {', '.join(ADAPTERS)}, and to --engine-cmd; the built-in models model it)"
         )
     if scene.events:  # each state's body must be held too: a cut right through frees a piece
         from verification.events import states

@@ -42,7 +42,8 @@ class AdapterEngine:
     defines it with the constants the adapter passes; ``knobs`` are the options its command line takes
     besides ``dt``; ``explicit`` names
     the models explicit in the elasticity (their steps are bound by the critical one), ``iterative``
-    those with an iteration count."""
+    those with an iteration count; ``rigid`` those whose adapter meets a scene's rigid tools with the
+    engine's own contact (``Stepper.set_rigid``); the others are not applicable on a contact scene."""
 
     name: str
     script: str
@@ -51,6 +52,10 @@ class AdapterEngine:
     laws: dict = field(default_factory=dict)
     explicit: tuple = ()
     iterative: tuple = ()
+    rigid: tuple = ()
+    #: the models whose contact acts at the vertices (as the built-in models'): their contact area is
+    #: measured from their vertices' gaps to the tool, as the built-in models' (``realtime.contact.areas``)
+    vertex_contact: tuple = ()
     timeout: float = TIMEOUT
     cacheable: bool = True
     isolated: bool = True  # its adapter runs in a process of its own
@@ -90,6 +95,8 @@ ADAPTERS = {
         laws={"newton-semi-implicit": "stable-neo-hookean", "newton-vbd": "stable-neo-hookean-no-log"},
         explicit=("newton-semi-implicit",),
         iterative=("newton-vbd", "newton-xpbd"),
+        rigid=("newton-semi-implicit", "newton-vbd", "newton-xpbd"),
+        vertex_contact=("newton-semi-implicit", "newton-vbd", "newton-xpbd"),  # particle-shape contact
         known_warnings=(
             (
                 r"^Warp CUDA warning: Could not find or load the NVIDIA CUDA driver",
@@ -105,6 +112,7 @@ ADAPTERS = {
         knobs=("substeps",),
         laws={"mujoco-flex": "stvk", "mujoco-flex-euler": "stvk"},  # its flex's elasticity is StVK
         explicit=("mujoco-flex-euler",),
+        rigid=("mujoco-flex", "mujoco-flex-euler"),  # its outer tetrahedra against the geom: no vertex gap to measure
         known_warnings=(
             (
                 r"^WARNING: flex '.*' is not rigid and has no equality constraints or passive forces",
@@ -227,6 +235,16 @@ class AdapterSimulation(CommandSimulation):
     @property
     def dt(self) -> float | None:
         return self.report.get("dt")
+
+    def contact_area(self) -> np.ndarray | None:
+        """(K,) m^2: each rigid tool's contact area on the answer, where the engine's contact acts at the
+        vertices (``AdapterEngine.vertex_contact``), measured as the built-in models' is; None (unknown)
+        where it acts on elements, whose vertices a tool touches without entering (MuJoCo's flex)."""
+        if self.model not in self.engine.vertex_contact:
+            return None
+        from realtime.contact import areas
+
+        return areas(self.inputs.loading.contacts, self.inputs.points, self.displacement(), np.inf)
 
     @property
     def info(self) -> dict:

@@ -51,6 +51,7 @@ class CommandEngine:
         self.command, self.timeout = command, timeout
         self.name = f"command {shlex.split(command)[0]}"
         self.models = {model: foreign_spec(model, f"what {shlex.split(command)[0]} runs")}
+        self.rigid = (model,)  # a scene's rigid tools reach it in the export; its result must state their force
 
     def build(self, inputs: SceneInputs, model: str, integrator: str, options: dict):
         return CommandSimulation(self, inputs, model)
@@ -126,7 +127,24 @@ class CommandSimulation:
             step_us = float(z["step_us"]) if "step_us" in z.files else None
             settled = self._settled(path, {k: z[k] for k in ("steps", "dt") if k in z.files})
         reaction = res.reaction if res.reaction is not None else np.full((expected, 3), np.nan)  # none given
+        self._rigid_stated(path)
         return res.displacement, reaction, step_us, settled
+
+    def _rigid_stated(self, path: Path) -> None:
+        """A scene with rigid tools: the result states each one's force on the body (``rigid_force`` (K, 3)
+        N, NaN where the engine has none to give), the sign that the engine met them (an engine that read
+        the export without them would answer as if they were not there); else CommandError."""
+        c = self.inputs.loading.contacts
+        if c is None or not c.count:
+            return
+        with np.load(path) as z:
+            given = np.asarray(z["rigid_force"], dtype=float) if "rigid_force" in z.files else None
+        if given is None or given.shape[-2:] != (c.count, 3):
+            got = "no rigid_force" if given is None else f"rigid_force of shape {given.shape}"
+            raise CommandError(
+                f"{self.label}: the scene has {c.count} rigid tool(s) (scene.json rigid_tools) and its result "
+                f"states {got}: an engine that meets them writes each one's force on the body, ({c.count}, 3) N"
+            )
 
     def _settled(self, path: Path, given: dict) -> dict:
         """The steps (a whole number >= 1) a static answer took, and their dt (s), where the result file

@@ -12,6 +12,9 @@ DIR receives, each written whole (a temporary file, then a rename):
   prescribed), external_force (N, 3) N (the P1 nodal load vector of gravity, forces and tractions, what
   the reference applies), the tools' vertices, components and the prescribed displacement of each at
   every output time (T, P, 3) m, so that an engine need not implement the ramp;
+- a scene with rigid tools (``[[tool]] shape``) lists them in ``scene.json`` under ``rigid_tools``: each
+  one's shape (sphere, capsule, plane), its place at t = 0, its size and its translation along its ramp,
+  for the engine's own contact to meet (``rigid_tools``);
 - ``mesh.vtu`` and ``mesh.msh`` (gmsh 2.2 ASCII): the mesh, with the material index per tetrahedron.
 
 A scene with events (a cut) is one static problem per state: DIR holds the body as meshed, and
@@ -27,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from meshes.io import atomic_savez, atomic_write
+from realtime.contact import SHAPES
 from realtime.material import Materials
 from realtime.model import RAMP_SHAPES, TOOL_TRANSLATION, _tool_displacements
 
@@ -80,6 +84,30 @@ def tool_motions(inputs: SceneInputs) -> tuple[list[dict], np.ndarray]:
     return tools, out
 
 
+def rigid_tools(inputs: SceneInputs) -> list[dict]:
+    """Each rigid tool in SI units: ``shape``; ``center_m`` (the sphere's centre, the capsule's first end,
+    a point of the plane, at t = 0); ``end_m`` (the capsule's second end); ``normal`` (the plane's unit
+    normal, out of the tool toward the body); ``radius_m``; ``travel_m``, the translation reached at
+    ``ramp_s`` along ``ramp_shape`` and then held (a static scene's answer is at the end of the travel).
+    The truth's contact is frictionless."""
+    c = inputs.loading.contacts
+    if c is None:
+        return []
+    out = []
+    for k in range(c.count):
+        tool = {"shape": SHAPES[int(c.shape[k])], "center_m": c.center[k].tolist()}
+        if tool["shape"] == "capsule":
+            tool["end_m"] = c.end[k].tolist()
+        if tool["shape"] == "plane":
+            tool["normal"] = c.normal[k].tolist()
+        else:
+            tool["radius_m"] = float(c.radius[k])
+        tool.update(travel_m=c.travel[k].tolist(), ramp_s=float(c.ramp[k]))
+        tool.update(ramp_shape=RAMP_SHAPES[int(c.ramp_shape[k])], friction=0.0)
+        out.append(tool)
+    return out
+
+
 def describe(inputs: SceneInputs) -> dict:
     """``scene.json``'s content."""
     mats = Materials.of(inputs.material, len(inputs.tets))
@@ -102,6 +130,7 @@ def describe(inputs: SceneInputs) -> dict:
         },
         "gravity_m_s2": list(inputs.gravity),
         "tools": tools,
+        "rigid_tools": rigid_tools(inputs),
         "mesh": {"vtu": "mesh.vtu", "gmsh22": "mesh.msh", "n_vertices": len(inputs.points), "n_tets": len(inputs.tets)},
         "arrays": {
             "file": "arrays.npz",

@@ -48,7 +48,8 @@ def contact_html(scene, ref, rows: list[Row]) -> tuple[str, dict]:
         log(f"report: {scene.name}: {model} at {len(fractions)} stations of the tool's travel")
         forces = []
         for f in fractions:
-            res = run_model(at_fraction(scene, f), model, dt_fraction=r.fraction, integrator=r.integrator)
+            step = {"dt_fraction": r.fraction} if r.fraction is not None else {"dt": r.dt}  # an engine's: its own step
+            res = run_model(at_fraction(scene, f), model, integrator=r.integrator, **step)
             forces.append(float(np.dot(res.reaction[-1], along)))
         models[model] = forces
     areas = _areas_html(summary[0], rows)
@@ -74,11 +75,13 @@ def _areas_html(truth: dict, rows: list[Row]) -> str:
     for model in sorted({r.model for r in rows if r.status == "ok" and r.contact}):
         r = max((r for r in rows if r.model == model and r.status == "ok" and r.contact), key=lambda r: r.dt or 0.0)
         c = r.contact[0]
-        if c["area"] is not None:
-            err = "-" if c["area_rel_err"] is None else f"{c['area_rel_err']:.3g}"
-            cells.append(f"<tr><td>{html.escape(model)}</td><td>{c['area']:.3g}</td><td>{err}</td></tr>")
+        area = "unknown" if c["area"] is None else f"{c['area']:.3g}"
+        err = "-" if c["area_rel_err"] is None else f"{c['area_rel_err']:.3g}"
+        cells.append(f"<tr><td>{html.escape(model)}</td><td>{area}</td><td>{err}</td></tr>")
     return (
         f"<p>Contact area at the end of the travel: the reference's {truth['area']:.3g} m&sup2; (bar {bar}); "
-        "the models' are their penetrated vertices' lumped boundary areas.</p><table><tr><th>model</th>"
+        "a model's is the part of its boundary triangles, in the rest shape, where the interpolated gap to the tool "
+        "is negative. An engine whose contact acts on its elements (MuJoCo's flex) keeps its vertices out of the "
+        "tool, and its area is unknown.</p><table><tr><th>model</th>"
         "<th>area (m&sup2;)</th><th>relative to the reference's</th></tr>" + "".join(cells) + "</table>"
     )

@@ -100,10 +100,10 @@ def run_model(
             scene, lambda s: run_model(s, model_name, dt, dt_fraction, integrator, rtol, max_steps, options, engine)
         )
     if engine is not BUILTIN:
-        if scene.problem.contacts:
+        if scene.problem.contacts and model_name not in getattr(engine, "rigid", ()):
             raise ModelRestriction(
-                f"{scene.path}: tool: {model_name} ({engine.name}) is given the scene through the seam, which does "
-                "not carry a rigid tool's contact yet; the built-in models model it"
+                f"{scene.path}: tool: {model_name} ({engine.name}) is not given a rigid tool: its adapter or plug-in "
+                "does not meet one with a contact of its own (docs/engines.md)"
             )
         return _plug_in(scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options)
     return _run(scene, engine, model_name, dt, dt_fraction, integrator, rtol, max_steps, options)
