@@ -201,6 +201,12 @@ class Stepper:
         gradient), for the tools' force; None where the engine does not give its own law's."""
         return None
 
+    def net_force(self) -> np.ndarray | None:
+        """(N, 3) N: the net static force on each vertex at the present state (elastic, external and
+        contact, what equilibrium zeroes), where the engine gives all of it; None elsewhere (the relaxation
+        then stops on the displacement's change)."""
+        return None
+
     def set_rigid(self, offset: np.ndarray, velocity: np.ndarray) -> None:
         """Put each rigid tool at ``offset`` (K, 3) m from its place at t = 0, moving at ``velocity`` (K, 3)
         m/s. An engine without a contact of its own raises AdapterError (it has no rigid tool to move)."""
@@ -304,13 +310,30 @@ def _blown(u: np.ndarray, size: float, engine: Stepper) -> bool:
     return not np.all(np.isfinite(u)) or float(np.abs(u).max()) > 10.0 * size or engine.unstable()
 
 
+def residual(engine: Stepper, scene: Exported) -> float | None:
+    """The net force on the free components (``Stepper.net_force``) relative to the larger of the load's
+    norm and the elastic force's on the vertices not held (the tools' reaction where there is no load): the
+    harness's ``rtol`` measure. None where the engine does not give its net force."""
+    net = engine.net_force()
+    if net is None:
+        return None
+    free = scene.free != 0.0
+    f = engine.internal_force()
+    moving = ~scene.held().all(axis=1)
+    scale = max(float(np.linalg.norm(scene.external_force[free])), float(np.linalg.norm(f[moving])), 1e-300)
+    return float(np.linalg.norm(net[free])) / scale
+
+
 def relax(
     engine: Stepper, scene: Exported, dt: float, rtol: float, max_steps: int, progress, max_wall: float = 300.0
 ) -> dict:
-    """A static scene's equilibrium by kinetic-damped dynamic relaxation (the module docstring). The
-    displacement change is measured over the last quarter of the run (at least ``check`` steps), so that
-    a slow mode still on its way is seen however few steps one of its cycles takes. It stops unsettled
-    after ``max_steps`` steps or ``max_wall`` seconds, whichever comes first."""
+    """A static scene's equilibrium by kinetic-damped dynamic relaxation (the module docstring). Where the
+    engine gives its net force, it stops when the residual (``residual``) is below ``rtol``, the harness's
+    own measure, twice in a row; elsewhere when the displacement change, measured over the last quarter of
+    the run (at least ``check`` steps, so that a slow mode still on its way is seen however few steps one
+    of its cycles takes), is. Either stops first at round-off: the change stalled below ``STALLED``, or
+    the residual no lower over the last half of the run (``stalled_at``, ``residual`` in the result). It
+    stops unsettled after ``max_steps`` steps or ``max_wall`` seconds, whichever comes first."""
     held, final = scene.held(), scene.prescribed(0.0)
     t_start = time.perf_counter()
     ramp_steps = max(1, min(max_steps // 10, 200))
@@ -319,6 +342,7 @@ def relax(
     floor = 8.0 * engine.epsilon * float(np.abs(scene.points).max())  # the engine's round-off in a position
     past = []  # (step, displacement) every check steps, back to a quarter of the run
     changes = {}  # step: the relative change then
+    residuals = {}  # step: the residual then, where the engine gives its net force
     for n in range(1, max_steps + 1):
         _ramped(engine, scene, held, final, n, ramp_steps, dt)
         clock.timed(engine.step, dt)
@@ -336,10 +360,20 @@ def relax(
         past = [(k, p) for k, p in past if k >= (3 * n) // 4 - check] + [(n, u)]
         change = float(np.abs(u - past[0][1]).max())
         scale = max(float(np.abs(u).max()), 1e-300)
-        calm = calm + 1 if n > 2 * ramp_steps and change <= max(rtol * scale, floor) else 0
+        res = residual(engine, scene) if n > 2 * ramp_steps else None
+        if res is not None:
+            residuals[n] = res
+            calm = calm + 1 if res <= rtol else 0
+            earlier = [v for k, v in residuals.items() if k <= n // 2]
+            recent = min(v for k, v in residuals.items() if k > n // 2)
+            if n >= 40 * ramp_steps and earlier and recent > 0.5 * min(earlier) and res > rtol:
+                progress(f"step {n}: the residual stalled at {res:.2e} of the load, asked {rtol:g} (round-off)")
+                return _held(engine, scene, u, dt, {"steps": n, "dt": dt, "step_us": clock.us(), "residual": res})
+        else:
+            calm = calm + 1 if n > 2 * ramp_steps and change <= max(rtol * scale, floor) else 0
         changes[n] = change / scale
         then = changes.get(check * ((n // 2) // check))
-        if n >= 40 * ramp_steps and then is not None and STALLED > changes[n] > 0.5 * then:
+        if res is None and n >= 40 * ramp_steps and then is not None and STALLED > changes[n] > 0.5 * then:
             progress(f"step {n}: the change stalled at {changes[n]:.2e} of the largest displacement (round-off)")
             run = {"steps": n, "dt": dt, "step_us": clock.us(), "stalled_at": changes[n]}
             budget = min(max_steps - n, int((max_wall - (time.perf_counter() - t_start)) * 1e6 / (clock.us() or 1e6)))
@@ -350,9 +384,10 @@ def relax(
             progress(f"step {n}: still moving ({change / scale:.2e}) after {max_wall:g} s, stopped")
             return {"u": u, "steps": n, "dt": dt, "step_us": clock.us(), "settled": 0, "wall_limit": max_wall}
         if n % (check * 200) == 0:
-            progress(f"step {n}: displacement change {change / scale:.2e} of its largest value, asked {rtol:g}")
+            what = f"residual {res:.2e} of the load" if res is not None else f"displacement change {change / scale:.2e} of its largest value"
+            progress(f"step {n}: {what}, asked {rtol:g}")
         if calm >= 2:
-            return _held(engine, scene, u, dt, {"steps": n, "dt": dt, "step_us": clock.us()})
+            return _held(engine, scene, u, dt, {"steps": n, "dt": dt, "step_us": clock.us(), "residual": res})
     u = engine.positions() - scene.points
     return {"u": u, "steps": max_steps, "dt": dt, "step_us": clock.us(), "settled": 0}
 

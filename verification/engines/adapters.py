@@ -154,7 +154,7 @@ class AdapterSimulation(CommandSimulation):
 
     def __init__(self, engine: AdapterEngine, inputs: SceneInputs, model: str, options: dict):
         super().__init__(engine, inputs, model)
-        self.options, self.asked_dt, self.report = options, None, {}
+        self.options, self.asked_dt, self.report, self.budget = options, None, {}, None
         self._skip_next = False  # the element line after a known warning
         self.integrator = engine.solvers[model]
 
@@ -167,6 +167,8 @@ class AdapterSimulation(CommandSimulation):
         args += ["--solver", self.engine.solvers[self.model]]
         if self.asked_dt is not None:
             args += ["--dt", repr(float(self.asked_dt))]
+        if self.budget is not None:  # a static run: the harness's tolerance (of the load) and step budget
+            args += ["--rtol", repr(float(self.budget[0])), "--max-steps", str(int(self.budget[1]))]
         for k, v in sorted(self.options.items()):
             args += [f"--{k}", str(v)]
         return args
@@ -251,7 +253,8 @@ class AdapterSimulation(CommandSimulation):
         """What the run was: the engine and its version, the law the scene's was mapped to, the knobs."""
         self._run()
         r = self.report
-        keep = ("engine", "law", "iterations", "substeps", "stalled_at", "tail_omega", "tail_steps", "hold_drift")
+        keep = ("engine", "law", "iterations", "substeps", "stalled_at", "residual", "tail_omega", "tail_steps")
+        keep += ("hold_drift",)
         return {k: r[k] for k in keep if k in r}
 
     def start(self, dt) -> None:
@@ -264,6 +267,7 @@ class AdapterSimulation(CommandSimulation):
             self.asked_dt = dt
         if dt_fraction is not None:
             raise InputError(f"{self.label}: its steps are its own: give dt in seconds, not a fraction")
+        self.budget = (rtol, max_steps)
         s = super().settle(rtol, max_steps, dt, dt_fraction)
         r = self.report
         static = {
