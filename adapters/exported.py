@@ -10,10 +10,12 @@ positions and velocities of the vertices.
 A static scene is solved as these engines solve statics: by dynamic relaxation. The tools move to their
 final place over ``ramp_steps`` steps, then the run goes on with kinetic damping (every velocity set to
 zero when the kinetic energy passes a peak, Cundall's scheme for explicit relaxation, Topping & Khan,
-"Parallel finite element computations", 1996, ch. 4) until the largest displacement change over
-the last quarter of the run is below ``rtol`` times the largest displacement (or the engine's round-off in a position,
-8 ulp of the largest coordinate, if that is larger), twice in a row, or until that change stops shrinking below ``STALLED``; the state is then released
-from rest and must stay where it is (``HOLD``). A dynamic scene is run
+"Parallel finite element computations", 1996, ch. 4) until the harness's ``rtol`` is met twice in a row:
+by the residual of the load where the engine gives its net force (``residual``), else by the largest
+displacement change over the last quarter of the run against the largest displacement (or the engine's
+round-off in a position, 8 ulp of the largest coordinate, if that is larger); or until round-off stops it
+first (the residual no longer halves, the change stops shrinking below ``STALLED``). The state is then
+released from rest and must stay where it is (``HOLD``). A dynamic scene is run
 from rest to its end, and sampled at its output instants; the tools' prescribed displacements come from
 the export at those instants, linearly interpolated in between.
 
@@ -384,7 +386,11 @@ def relax(
             progress(f"step {n}: still moving ({change / scale:.2e}) after {max_wall:g} s, stopped")
             return {"u": u, "steps": n, "dt": dt, "step_us": clock.us(), "settled": 0, "wall_limit": max_wall}
         if n % (check * 200) == 0:
-            what = f"residual {res:.2e} of the load" if res is not None else f"displacement change {change / scale:.2e} of its largest value"
+            what = (
+                f"residual {res:.2e} of the load"
+                if res is not None
+                else f"displacement change {change / scale:.2e} of its largest value"
+            )
             progress(f"step {n}: {what}, asked {rtol:g}")
         if calm >= 2:
             return _held(engine, scene, u, dt, {"steps": n, "dt": dt, "step_us": clock.us(), "residual": res})
