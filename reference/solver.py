@@ -249,6 +249,21 @@ def configure(ksp, options: dict) -> None:
         table.delValue(f"{prefix}{key}")
 
 
+#: ``roundoff_floor``'s multiple of machine epsilon.
+ROUNDOFF = 10.0
+
+
+def roundoff_floor(modulus: float, length: float) -> float:
+    """The residual (N) a stress-free rest state may show in floating point: ROUNDOFF eps times the
+    largest P-wave modulus ``modulus`` (Pa) times the body's extent ``length`` (m) squared. A law whose
+    rest stress cancels only to round-off (the stable neo-Hookean's k_mu - k_mu/4 + k_lam (1 - alpha)) leaves
+    about eps k h^2 on each vertex; where nothing loads the body yet (a contact scene before its tool
+    touches) every force scale is that round-off, which rtol times it can never reach (the liver under a
+    sphere: Newton failed at every load down to 6e-5 of the travel). On the liver 5e-12 N, against
+    rtol times its tool force, 1e-10 N: a loaded solve is untouched."""
+    return ROUNDOFF * float(np.finfo(float).eps) * modulus * length * length
+
+
 class Newton:
     """Newton's method on a residual form with a test on the residual itself.
 
@@ -276,6 +291,7 @@ class Newton:
         dynamic: bool = False,
         external=None,
         linear_part=None,
+        modulus: float = 0.0,
     ):
         self.comm, self.u, self.bcs, self.reuse, self.options = comm, u, bcs, reuse, dict(petsc_options)
         self.dynamic = dynamic  # Newmark steps: SLOW_DYNAMIC instead of SLOW
@@ -317,6 +333,9 @@ class Newton:
         # a held value of zero would otherwise make relative to the round-off an iterative solve leaves
         x = V.mesh.geometry.x
         self.length = comm.allreduce(float(np.ptp(x, axis=0).max()) if len(x) else 0.0, op=MPI.MAX)
+        # N: a free residual at or below it is round-off, accepted whatever the scale (``modulus``, Pa: the
+        # largest P-wave modulus of the body, which a Newton on another residual leaves 0)
+        self.floor = roundoff_floor(modulus, self.length)
 
     def _norms(self, vec) -> tuple[float, float]:
         """MPI-reduced norms of the free and the constrained owned components of a PETSc vector."""
@@ -428,7 +447,7 @@ class Newton:
             scale = max(load, held, first, 1e-300)
             ok = np.isfinite(free) and np.isfinite(gap)
             out = {"iterations": it, "factorisations": self.factorisations - start, "scale": scale}
-            if ok and free <= rtol * scale and gap <= 1e-12 * size:
+            if ok and free <= max(rtol * scale, self.floor) and gap <= 1e-12 * size:
                 return {**out, "converged": True, "residual": free}
             if diverged:
                 return {**out, "converged": False, "residual": free, "diverged": True}

@@ -151,7 +151,8 @@ class StaticSolves:
         """The static residual's Newton with these PETSc options (GAMG given the rigid-body modes)."""
         jacobian = ufl.derivative(self.residual, self.u, ufl.TrialFunction(self.V))
         modes = self.rigid_body_modes() if opts.get("pc_type") == "gamg" else None
-        return Newton(self.comm, self.residual, self.u, self.bcs, jacobian, opts, near_nullspace=modes)
+        modulus = max(m.lam + 2.0 * m.mu for m, _ in self.parts)
+        return Newton(self.comm, self.residual, self.u, self.bcs, jacobian, opts, near_nullspace=modes, modulus=modulus)
 
     def _tighten(self, solver: Newton, rtol: float, max_it: int) -> dict:
         """The rigid tools' penalty made TIGHTEN and TIGHTEN^2 times stiffer, Newton solved again from the

@@ -303,3 +303,18 @@ def test_a_command_engine_on_a_contact_scene_states_each_rigid_tools_force(tmp_p
     assert code == 0, err
     row = json.loads(out)
     assert row["rel_l2"] == pytest.approx(1.0) and row["reaction_rel_err"] is None
+
+
+def test_a_law_whose_rest_stress_is_round_off_solves_before_its_tool_touches(tmp_path, capsys):
+    """The stable neo-Hookean's rest stress cancels to round-off only (k_mu - k_mu/4 + k_lam (1 - alpha)).
+    Before a rigid tool touches, nothing else loads the body: every force scale of Newton's test is that
+    round-off, which rtol times it never reaches, and the reference failed at every load down to 6e-5 of
+    the travel (the liver under a sphere, newton's own law). The residual's round-off floor
+    (reference.solver.roundoff_floor) accepts it there; the pressed block then solves like the others. Its
+    eight load steps keep the tool off the block for the first two (it starts 0.5 mm above, travels 2 mm)."""
+    path = tmp_path / "press.toml"
+    sphere = 'shape = "sphere"\ncenter = [0.02, 0.02, 0.0255]\nradius = 0.005\ntravel = [0.0, 0.0, -0.002]\n'
+    path.write_text(BLOCK.replace('law = "linear"', 'law = "stable-neo-hookean"') + sphere)
+    code, out, err = run(["reference", str(path), "--degree", "1", "--no-estimate", "--load-steps", "8"], capsys)
+    assert code == 0, err
+    assert "tool[0]: force" in out
