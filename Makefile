@@ -1,5 +1,5 @@
 # tissuebench: the two commands of the README, and their helpers.
-#   make report   install what is missing, then write the default report under reports/
+#   make report   install what is missing (the engines' venv too), then write the default report under reports/
 #   make test     install what is missing (the engines' venv too), then lint and run the test suite
 #   make check    lint and the suite without the slow tests or the engines' venv: a contributor's loop
 # Both first compile the engine's kernels ahead (realtime.precompile) when they are not cached yet.
@@ -49,8 +49,11 @@ $(STAMP): pyproject.toml | apt $(VENV)/bin/python
 precompile: apt $(STAMP)
 	$(PY) -m realtime.precompile
 
-report: setup
-	$(VENV)/bin/tissuebench report
+# The default report puts the engines users pick (newton and MuJoCo, through their adapters) beside the
+# built-in models on every scene, the contact scene's force along the travel included (docs/engines.md).
+report:
+	$(MAKE) --no-print-directory -j2 setup engines
+	$(VENV)/bin/tissuebench report --engine newton --engine mujoco
 
 lint: setup
 	$(VENV)/bin/ruff check .
