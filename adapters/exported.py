@@ -370,7 +370,10 @@ def relax(
             recent = min(v for k, v in residuals.items() if k > n // 2)
             if n >= 40 * ramp_steps and earlier and recent > 0.5 * min(earlier) and res > rtol:
                 progress(f"step {n}: the residual stalled at {res:.2e} of the load, asked {rtol:g} (round-off)")
-                return _held(engine, scene, u, dt, {"steps": n, "dt": dt, "step_us": clock.us(), "residual": res})
+                run = {"steps": n, "dt": dt, "step_us": clock.us(), "residual": res}
+                return _stalled(
+                    engine, scene, dt, run, max_steps - n, max_wall - (time.perf_counter() - t_start), progress
+                )
         else:
             calm = calm + 1 if n > 2 * ramp_steps and change <= max(rtol * scale, floor) else 0
         changes[n] = change / scale
@@ -378,10 +381,7 @@ def relax(
         if res is None and n >= 40 * ramp_steps and then is not None and STALLED > changes[n] > 0.5 * then:
             progress(f"step {n}: the change stalled at {changes[n]:.2e} of the largest displacement (round-off)")
             run = {"steps": n, "dt": dt, "step_us": clock.us(), "stalled_at": changes[n]}
-            budget = min(max_steps - n, int((max_wall - (time.perf_counter() - t_start)) * 1e6 / (clock.us() or 1e6)))
-            u, tail = _damped_tail(engine, scene, dt, budget, progress)
-            run.update({f"tail_{k}": v for k, v in tail.items()}, steps=n + tail["steps"])
-            return _held(engine, scene, u, dt, run)
+            return _stalled(engine, scene, dt, run, max_steps - n, max_wall - (time.perf_counter() - t_start), progress)
         if time.perf_counter() - t_start > max_wall:
             progress(f"step {n}: still moving ({change / scale:.2e}) after {max_wall:g} s, stopped")
             return {"u": u, "steps": n, "dt": dt, "step_us": clock.us(), "settled": 0, "wall_limit": max_wall}
@@ -396,6 +396,17 @@ def relax(
             return _held(engine, scene, u, dt, {"steps": n, "dt": dt, "step_us": clock.us(), "residual": res})
     u = engine.positions() - scene.points
     return {"u": u, "steps": max_steps, "dt": dt, "step_us": clock.us(), "settled": 0}
+
+
+def _stalled(engine: Stepper, scene: Exported, dt: float, run: dict, steps: int, wall: float, progress) -> dict:
+    """A relaxation that round-off stopped (``run``: its steps, dt, step time, where it stalled): the
+    damped tail within what is left of the step and time budgets (``steps``, ``wall`` s), then the hold."""
+    budget = min(steps, int(wall * 1e6 / (run["step_us"] or 1e6)))
+    u, tail = _damped_tail(engine, scene, dt, budget, progress)
+    run.update({f"tail_{k}": v for k, v in tail.items()}, steps=run["steps"] + tail["steps"])
+    if tail["steps"] and run.get("residual") is not None:
+        run["residual"] = residual(engine, scene)
+    return _held(engine, scene, u, dt, run)
 
 
 #: A damped tail runs this many of its slowest mode's time constants 1 / omega.

@@ -417,7 +417,7 @@ def cmd_engines(args) -> int:
     from verification.engines.adapters import ADAPTERS
     from verification.studies.engines import engines_study, format_engines, run_line
 
-    for name in args.engine or ADAPTERS:  # every adapter unless some are named
+    for name in args.engine or [n for n, a in ADAPTERS.items() if a.default]:  # those named, else the default ones
         load_engine(name)
     scene = _scene(args)
     comm = _mpi_comm()

@@ -30,7 +30,7 @@ from verification.cli.commands import (
 )
 
 ENGINE_HELP = (
-    "an engine whose models --model may name: an adapter (newton, mujoco) or a plug-in (package.module:Class or "
+    "an engine whose models --model may name: an adapter (newton, mujoco, mujoco-warp) or a plug-in (package.module:Class or "
     "file.py:Class); repeatable"
 )
 ENGINE_CMD_HELP = (
@@ -445,7 +445,12 @@ def _engines(sub) -> None:
     )
     s.add_argument("scene")
     s.add_argument("--mesh-refine", type=_level, default=0, metavar="K", help=MESH_REFINE_HELP)
-    s.add_argument("--engine", action="append", metavar="NAME", help="an adapter (newton, mujoco; default: both)")
+    s.add_argument(
+        "--engine",
+        action="append",
+        metavar="NAME",
+        help="an adapter (newton, mujoco, mujoco-warp; default: newton and mujoco)",
+    )
     s.add_argument("--models", nargs="+", help="only these of the adapters' models (newton-vbd, mujoco-flex, ...)")
     s.add_argument(
         "--engine-timeout", type=_positive, default=600.0, metavar="S", help="seconds one of their runs may take"

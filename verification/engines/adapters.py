@@ -1,5 +1,5 @@
-"""The engines users pick, through the seam: NVIDIA newton and MuJoCo, each run by its adapter in the
-engines' own venv (docs/engines.md).
+"""The engines users pick, through the seam: NVIDIA newton, MuJoCo and MuJoCo Warp, each run by its adapter
+in the engines' own venv (docs/engines.md).
 
 ``--engine newton`` or ``--engine mujoco`` registers one (``load_engine``); its models are then named like
 the built-in ones (``newton-vbd``, ``mujoco-flex``). An adapter is a script in ``adapters/`` that reads the
@@ -56,6 +56,9 @@ class AdapterEngine:
     #: the models whose contact acts at the vertices (as the built-in models'): their contact area is
     #: measured from their vertices' gaps to the tool, as the built-in models' (``realtime.contact.areas``)
     vertex_contact: tuple = ()
+    #: in ``tissuebench engines`` when no --engine names the adapters (an engine too slow on this machine's
+    #: device for a study of many runs is asked for by name)
+    default: bool = True
     timeout: float = TIMEOUT
     cacheable: bool = True
     isolated: bool = True  # its adapter runs in a process of its own
@@ -124,6 +127,30 @@ ADAPTERS = {
                 r"^WARNING: Nan, Inf or huge value in Q",
                 "MuJoCo warns of NaN, Inf or huge values when a run blows up (its step above the stable one): "
                 "the harness stops that run there and its row says diverged",
+            ),
+        ),
+    ),
+    "mujoco-warp": AdapterEngine(
+        "mujoco-warp",
+        "mujoco_warp_flex.py",
+        {"mujoco-warp-flex": "discrete", "mujoco-warp-flex-euler": "Euler"},
+        knobs=("substeps",),
+        laws={"mujoco-warp-flex": "stvk", "mujoco-warp-flex-euler": "stvk"},  # MuJoCo's flex, in warp
+        explicit=("mujoco-warp-flex-euler",),
+        # on warp's CPU device a step took 3 ms (Euler) and 60 ms (discrete, CG) on 48 tetrahedra: a study
+        # of many runs asks for it by name
+        default=False,
+        known_warnings=(
+            (
+                r"^WARNING: flex '.*' is not rigid and has no equality constraints or passive forces",
+                "MuJoCo's compiler warns that the flex is 'not rigid and has no equality constraints or "
+                "passive forces' before MuJoCo Warp takes the model: the flex's own <elasticity> holds it; nothing "
+                "is wrong",
+            ),
+            (
+                r"^Warp CUDA warning: Could not find or load the NVIDIA CUDA driver",
+                "warp finds no CUDA driver on this machine, so MuJoCo Warp runs on warp's CPU device: its step "
+                "times here are CPU times, not those of the GPU it is built for; its answers are the same",
             ),
         ),
     ),

@@ -1,0 +1,158 @@
+"""MuJoCo Warp's 3D flex on an exported scene, on warp's CPU device.
+
+    .venv-engines/bin/python adapters/mujoco_warp_flex.py SCENE_DIR RESULT.npz --solver discrete --dt 1e-3
+
+MuJoCo Warp (``mujoco_warp``) is MuJoCo's physics rewritten in NVIDIA warp, for GPUs: the same model,
+compiled by MuJoCo from the same MJCF (``mujoco_flex.mjcf``: one body per vertex, a ``<flex dim="3">``
+with ``<elasticity>``, StVK on linear tetrahedra), put on warp's device (``put_model``, ``put_data``) and
+stepped by ``mujoco_warp.step`` as its own examples step it, in float32 (with the ``discrete`` integrator,
+the CG solver, which MuJoCo Warp requires of a flex on bodies). Here the device is warp's CPU,
+where its kernels run one thread each: its step times say nothing of a GPU's.
+
+The loads, held vertices, tools and damping are MuJoCo's adapter's: the loads as ``xfrc_applied`` on each
+vertex's body, a tool's vertex a heavy body put at the tool's place before every step, the mass-proportional
+damping applied after every step. A rigid tool is not taken here (its contact's force is not read back
+from MuJoCo Warp's contacts yet): a contact scene is not applicable.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from exported import AdapterError, Exported, Stepper, drive, main
+from mujoco_flex import SOLVERS, mjcf, stable_guess
+
+
+class MujocoWarpStepper(Stepper):
+    """MuJoCo Warp's model and data on warp's CPU device behind the driver's calls: a vertex's position
+    and velocity are its body's joints' (qpos, qvel), as in MuJoCo's adapter."""
+
+    epsilon = float(np.finfo(np.float32).eps)
+
+    def __init__(self, scene: Exported, solver: str, dt: float, substeps: int):
+        import mujoco
+        import warp as wp
+
+        wp.config.quiet = True
+        import mujoco_warp as mjw
+
+        if scene.rigid:
+            raise AdapterError("MuJoCo Warp's adapter does not take a rigid tool yet")
+        self.wp, self.mjw, self.substeps = wp, mjw, substeps
+        xml, kinds, names = mjcf(scene, solver, dt / substeps)
+        try:
+            mjm = mujoco.MjModel.from_xml_string(xml)
+        except ValueError as exc:
+            raise AdapterError(f"MuJoCo refused the model: {' '.join(str(exc).split())}") from None
+        if solver == "discrete":  # MuJoCo Warp takes a flex whose vertices are bodies only with CG there
+            mjm.opt.solver = mujoco.mjtSolver.mjSOL_CG
+        mjd = mujoco.MjData(mjm)
+        self.rest, self.kinds = scene.points, np.array(kinds)
+        body = np.array([mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_BODY, n) if n != "world" else 0 for n in names])
+        joints = []  # each moving vertex's joints: (vertex, component, qpos address, dof address)
+        for i in np.flatnonzero(self.kinds != "world"):
+            b = body[i]
+            for j in range(mjm.body_jntadr[b], mjm.body_jntadr[b] + mjm.body_jntnum[b]):
+                c = int(np.argmax(np.abs(mjm.jnt_axis[j])))
+                joints.append((i, c, mjm.jnt_qposadr[j], mjm.jnt_dofadr[j]))
+        self.joints = np.array(joints, dtype=np.int64).reshape(-1, 4)
+        free = np.flatnonzero(self.kinds == "free")
+        mjd.xfrc_applied[body[free], :3] = scene.external_force[free]
+        self.device = wp.get_device("cpu")
+        with wp.ScopedDevice(self.device):
+            try:
+                self.model = mjw.put_model(mjm)
+                self.data = mjw.put_data(mjm, mjd)
+            except (NotImplementedError, ValueError) as exc:
+                raise AdapterError(f"MuJoCo Warp does not take this model: {exc}") from None
+        self.mass = scene.lumped_masses()
+        self.alpha = scene.damping[0]
+        self.x = scene.points.copy()
+        self.v = np.zeros_like(scene.points)
+
+    def _read(self) -> None:
+        i, c, qa, da = self.joints.T
+        self.x[i, c] = self.rest[i, c] + self.data.qpos.numpy()[0, qa]
+        self.v[i, c] = self.data.qvel.numpy()[0, da]
+
+    def step(self, dt: float) -> None:
+        h = dt / self.substeps
+        with self.wp.ScopedDevice(self.device):
+            for _ in range(self.substeps):
+                self.mjw.step(self.model, self.data)
+                if self.alpha:
+                    qvel = self.data.qvel.numpy()
+                    qvel[0, self.joints[:, 3]] /= 1.0 + self.alpha * h
+                    self.data.qvel.assign(qvel)
+        self._read()
+
+    def _forward(self) -> None:
+        with self.wp.ScopedDevice(self.device):
+            self.mjw.forward(self.model, self.data)
+
+    def internal_force(self) -> np.ndarray:
+        """The flex's elastic force on each vertex: its joints' passive force at the present state."""
+        self._forward()
+        f = np.zeros_like(self.rest)
+        i, c, _, da = self.joints.T
+        f[i, c] = self.data.qfrc_passive.numpy()[0, da]
+        return f
+
+    def net_force(self) -> np.ndarray:
+        """The net force on each free vertex: the smooth force plus the constraint force, per slide joint."""
+        self._forward()
+        f = np.zeros_like(self.rest)
+        i, c, _, da = self.joints.T
+        free = self.kinds[i] == "free"
+        net = self.data.qfrc_smooth.numpy()[0] + self.data.qfrc_constraint.numpy()[0]
+        f[i[free], c[free]] = net[da[free]]
+        return f
+
+    def positions(self) -> np.ndarray:
+        return self.x.copy()
+
+    def set_positions(self, x: np.ndarray) -> None:
+        i, c, qa, _ = self.joints.T
+        qpos = self.data.qpos.numpy()
+        qpos[0, qa] = x[i, c] - self.rest[i, c]
+        self.data.qpos.assign(qpos)
+        self.x = x.copy()
+
+    def velocities(self) -> np.ndarray:
+        return self.v.copy()
+
+    def set_velocities(self, v: np.ndarray) -> None:
+        i, c, _, da = self.joints.T
+        qvel = self.data.qvel.numpy()
+        qvel[0, da] = v[i, c]
+        self.data.qvel.assign(qvel)
+        self.v = v.copy()
+
+    def masses(self) -> np.ndarray:
+        return self.mass
+
+
+def run(scene: Exported, args, progress):
+    import mujoco_warp
+    import warp
+
+    dt = args.dt if args.dt else stable_guess(scene, args.solver)
+    engine = MujocoWarpStepper(scene, args.solver, dt, args.substeps)
+    progress(f"{len(scene.points)} vertices, {len(scene.tets)} tetrahedra, dt = {dt:.3g} s (warp's CPU device)")
+    law = scene.spec["law"]
+    mapped = "StVK, as the scene's" if law == "stvk" else f"StVK for the scene's {law} law (equal at small strain)"
+    result = drive(engine, scene, args, dt, progress)
+    result["substeps"] = args.substeps
+    version = getattr(mujoco_warp, "__version__", None) or _version("mujoco-warp")
+    engine_name = f"MuJoCo Warp {version} flex, {args.solver} (warp {warp.__version__} CPU, float32)"
+    return result, f"MuJoCo Warp flex elasticity: {mapped}", engine_name
+
+
+def _version(dist: str) -> str:
+    from importlib.metadata import version
+
+    return version(dist)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(run, "MuJoCo Warp's 3D flex on an exported scene", SOLVERS))
