@@ -322,7 +322,8 @@ def residual(engine: Stepper, scene: Exported) -> float | None:
     free = scene.free != 0.0
     f = engine.internal_force()
     moving = ~scene.held().all(axis=1)
-    scale = max(float(np.linalg.norm(scene.external_force[free])), float(np.linalg.norm(f[moving])), 1e-300)
+    elastic = 0.0 if f is None else float(np.linalg.norm(f[moving]))
+    scale = max(float(np.linalg.norm(scene.external_force[free])), elastic, 1e-300)
     return float(np.linalg.norm(net[free])) / scale
 
 
@@ -334,7 +335,8 @@ def relax(
     own measure, twice in a row; elsewhere when the displacement change, measured over the last quarter of
     the run (at least ``check`` steps, so that a slow mode still on its way is seen however few steps one
     of its cycles takes), is. Either stops first at round-off: the change stalled below ``STALLED``, or
-    the residual no lower over the last half of the run (``stalled_at``, ``residual`` in the result). It
+    the residual no longer halving over the last half of the run (``stalled_at``, ``residual`` in the
+    result), and then runs the damped tail (``_stalled``). It
     stops unsettled after ``max_steps`` steps or ``max_wall`` seconds, whichever comes first."""
     held, final = scene.held(), scene.prescribed(0.0)
     t_start = time.perf_counter()

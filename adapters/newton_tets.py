@@ -73,7 +73,8 @@ def _quat_z_to(wp, d) -> object:
 
 
 def add_tools(builder, newton, wp, scene: Exported, origin: np.ndarray, ke: float) -> list:
-    """Each rigid tool as a kinematic body with its shape, frictionless; returns (body, its rotation)."""
+    """Each rigid tool as a kinematic body with its shape, frictionless; returns each one's (body index,
+    place (3,) m about ``origin`` at t = 0, rotation)."""
     if len(scene.rigid) > 1:
         raise AdapterError("newton's adapter moves one rigid tool; this scene has several")
     cfg = newton.ModelBuilder.ShapeConfig(ke=ke, kd=0.0, kf=0.0, mu=0.0)
@@ -147,12 +148,8 @@ class NewtonStepper(Stepper):
             builder.color()
         model = builder.finalize(device="cpu")
         if self.tools:
-            model.soft_contact_ke, model.soft_contact_kd, model.soft_contact_kf, model.soft_contact_mu = (
-                self.ke,
-                0.0,
-                0.0,
-                0.0,
-            )
+            model.soft_contact_ke = self.ke  # frictionless and undamped, as the truth's contact
+            model.soft_contact_kd = model.soft_contact_kf = model.soft_contact_mu = 0.0
             self.pipeline = newton.CollisionPipeline(model, soft_contact_gap=boundary_edge(scene))
             self.contacts = self.pipeline.contacts()
         if solver == "semi-implicit":
@@ -217,13 +214,13 @@ class NewtonStepper(Stepper):
     def rigid_force(self) -> np.ndarray:
         """The tool's force on the body: newton's particle-shape contact force on the vertices
         (``eval_particle_body_contact_forces``, the semi-implicit solver's; VBD integrates the same penalty)
-        at the present state, summed. XPBD projects its contacts: AdapterError, no force to report."""
+        at the present state, summed (its damping kd is 0: the velocities do not enter). XPBD projects its
+        contacts and has no such force: NaN, unknown."""
         if self.kind == "xpbd":
             return np.full((len(self.tools), 3), np.nan)
         from newton._src.solvers.semi_implicit.kernels_contact import eval_particle_body_contact_forces
 
         state = self.states[0]
-        state.particle_qd.zero_()
         self.pipeline.collide(state, self.contacts)
         f = self.wp.zeros_like(state.particle_f)
         body_f = self.wp.zeros_like(state.body_f)
