@@ -17,6 +17,7 @@ from petsc4py import PETSc
 
 from meshes.generators import box
 from meshes.regions import TagRegion
+from realtime import DivergenceError
 from realtime.material import Material
 from reference.contact import gap
 from reference.fem import ElasticityProblem
@@ -243,7 +244,9 @@ def test_the_reports_contact_curve_puts_each_model_beside_the_truths_stations(tm
     rising; linear-tm settled at each station, rising with it, 8.8 % above it at each (P1 on the scene's
     coarse mesh against the truth's refined level: the bound is 15 %) and by the same factor at every
     station to 1e-4 (once the plane touches the whole top, the problem is linear: the ratio measured equal
-    to eight digits); the plot drawn."""
+    to eight digits); the plot drawn. A model with no curve is named with why: a row that diverged, and
+    an engine whose station runs state no tool force (newton's XPBD) or fail (one that diverges there)."""
+    from verification.report import contact
     from verification.report.contact import contact_html
     from verification.runs.reference import reference_result
     from verification.runs.row import Row
@@ -255,13 +258,35 @@ def test_the_reports_contact_curve_puts_each_model_beside_the_truths_stations(tm
     ref = reference_result(scene, degree=1)
     area = {"tool": 0, "area": 4.2e-4, "ref_area": 4e-4, "area_rel_err": 0.05, "ref_area_bar": 0.01}
     row = Row("press", "linear-tm", "symplectic-euler", "ok", dt=1e-4, fraction=0.9, contact=(area,))
-    text, data = contact_html(scene, ref, [row])
+    blown = Row("press", "stvk-tm", "symplectic-euler", "diverged", dt=1e-3, fraction=4.0)
+    text, data = contact_html(scene, ref, [row, blown])
     assert "data:image/png;base64," in text and data["travel_m"] == pytest.approx([1.25e-4, 2.5e-4, 3.75e-4, 5e-4])
+    assert data["not_drawn"] == {"stvk-tm": "diverged"} and "stvk-tm (diverged)" in text
     assert "<td>linear-tm</td><td>0.00042</td><td>0.05</td>" in text  # the row's area beside the truth's
     truth, engine = np.array(data["reference"]), np.array(data["models"]["linear-tm"])
     assert np.all(np.diff(truth) > 0) and np.all(np.diff(engine) > 0) and all(b > 0 for b in data["reference_bar"])
     ratio = engine / truth
     assert np.all(np.abs(ratio - 1.0) < 0.15) and np.ptp(ratio) < 1e-4 * ratio.mean(), ratio
+
+    def silent(*args, **kwargs):  # an engine that states no tool force: NaN
+        res = run_model(*args, **kwargs)
+        res.reaction[:] = np.nan
+        return res
+
+    def failing(*args, **kwargs):
+        raise DivergenceError("newton-xpbd", 7, 1e-3, 2e-4, "xpbd")
+
+    run_model = contact.run_model
+    for stub, why in (
+        (silent, "its engine states no tool force"),
+        (failing, "at 0.25 of the travel: newton-xpbd with xpbd diverged"),
+    ):
+        contact.run_model = stub
+        try:
+            _, data = contact_html(scene, ref, [row])
+        finally:
+            contact.run_model = run_model
+        assert data["models"] == {} and data["not_drawn"]["linear-tm"].startswith(why), data["not_drawn"]
 
 
 def test_a_runs_contact_area_is_its_equilibriums(tmp_path):

@@ -42,16 +42,17 @@ def contact_html(scene, ref, rows: list[Row]) -> tuple[str, dict]:
     fractions = [c["fraction"] for c in curve]
     truth = [float(np.dot(c["force"], along)) for c in curve]  # the tool's push on the body
     bars = [c["force_bar"] for c in curve]
-    models = {}
+    models, missing = {}, {}
     for model in sorted({r.model for r in rows if r.status == "ok" and r.dt is not None}):
         r = max((r for r in rows if r.model == model and r.status == "ok" and r.dt is not None), key=lambda r: r.dt)
         log(f"report: {scene.name}: {model} at {len(fractions)} stations of the tool's travel")
-        forces = []
-        for f in fractions:
-            step = {"dt_fraction": r.fraction} if r.fraction is not None else {"dt": r.dt}  # an engine's: its own step
-            res = run_model(at_fraction(scene, f), model, integrator=r.integrator, **step)
-            forces.append(float(np.dot(res.reaction[-1], along)))
-        models[model] = forces
+        forces = _stations(scene, model, r, fractions, along)
+        if isinstance(forces, str):
+            missing[model] = forces
+        else:
+            models[model] = forces
+    for model in sorted({r.model for r in rows} - set(models) - set(missing)):
+        missing[model] = ", ".join(sorted({r.status for r in rows if r.model == model}))
     areas = _areas_html(summary[0], rows)
     distance = np.linalg.norm(travel) * np.asarray(fractions)
     plot = plot_contact_curve(distance, truth, bars, models, f"{scene.name}: the tool's force along its travel")
@@ -61,10 +62,37 @@ def contact_html(scene, ref, rows: list[Row]) -> tuple[str, dict]:
         "levels and the penalty; none drawn where one level was solved), and each time-stepping model settled "
         "with the tool at each station.</p>"
         + img(plot, f"tool force along the travel for {html.escape(scene.name)}")
+        + (
+            "<p>Not drawn: "
+            + "; ".join(f"{html.escape(m)} ({html.escape(why)})" for m, why in sorted(missing.items()))
+            + ".</p>"
+            if missing
+            else ""
+        )
         + areas
     )
     data = {"travel_m": distance.tolist(), "reference": truth, "reference_bar": bars, "models": models}
-    return text, data
+    return text, data | {"not_drawn": missing}
+
+
+def _stations(scene, model: str, row: Row, fractions: list, along: np.ndarray) -> list | str:
+    """``model`` settled with the tool at each of ``fractions`` of its travel, at its row's step: the tool's
+    push on the body along the travel (N) at each; or why it has no curve (a station that diverged or did
+    not settle, an engine that states no tool force)."""
+    from realtime import DivergenceError, NotConvergedError
+    from realtime.errors import InputError
+
+    step = {"dt_fraction": row.fraction} if row.fraction is not None else {"dt": row.dt}  # an engine's: its own
+    forces = []
+    for f in fractions:
+        try:
+            res = run_model(at_fraction(scene, f), model, integrator=row.integrator, **step)
+        except (DivergenceError, NotConvergedError, InputError) as exc:
+            return f"at {f:.3g} of the travel: {' '.join(str(exc).split())}"
+        forces.append(float(np.dot(res.reaction[-1], along)))
+    if not np.all(np.isfinite(forces)):
+        return "its engine states no tool force"
+    return forces
 
 
 def _areas_html(truth: dict, rows: list[Row]) -> str:
