@@ -252,17 +252,22 @@ def stable_guess(scene: Exported, solver: str) -> float:
     return RELAX_FRACTION * scene.wave_step(lam + 2.0 * mu)
 
 
+def mapped_law(scene: Exported) -> str:
+    """The scene's law as the flex's elasticity takes it, in words."""
+    law = scene.spec["law"]
+    return "StVK, as the scene's" if law == "stvk" else f"StVK for the scene's {law} law (equal at small strain)"
+
+
 def run(scene: Exported, args, progress):
     import mujoco
 
     dt = args.dt if args.dt else stable_guess(scene, args.solver)
     engine = MujocoStepper(scene, args.solver, dt, args.substeps)
     progress(f"{len(scene.points)} vertices, {len(scene.tets)} tetrahedra, {engine.model.nv} dofs, dt = {dt:.3g} s")
-    law = scene.spec["law"]
-    mapped = "StVK, as the scene's" if law == "stvk" else f"StVK for the scene's {law} law (equal at small strain)"
     result = drive(engine, scene, args, dt, progress)
     result["substeps"] = args.substeps
-    return result, f"MuJoCo flex elasticity: {mapped}", f"MuJoCo {mujoco.__version__} flex, {args.solver} (float64)"
+    law = f"MuJoCo flex elasticity: {mapped_law(scene)}"
+    return result, law, f"MuJoCo {mujoco.__version__} flex, {args.solver} (float64)"
 
 
 if __name__ == "__main__":

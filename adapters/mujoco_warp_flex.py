@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from exported import AdapterError, Exported, Stepper, drive, main
-from mujoco_flex import SOLVERS, mjcf, stable_guess
+from mujoco_flex import SOLVERS, mapped_law, mjcf, stable_guess
 
 
 class MujocoWarpStepper(Stepper):
@@ -139,13 +139,11 @@ def run(scene: Exported, args, progress):
     dt = args.dt if args.dt else stable_guess(scene, args.solver)
     engine = MujocoWarpStepper(scene, args.solver, dt, args.substeps)
     progress(f"{len(scene.points)} vertices, {len(scene.tets)} tetrahedra, dt = {dt:.3g} s (warp's CPU device)")
-    law = scene.spec["law"]
-    mapped = "StVK, as the scene's" if law == "stvk" else f"StVK for the scene's {law} law (equal at small strain)"
     result = drive(engine, scene, args, dt, progress)
     result["substeps"] = args.substeps
     version = getattr(mujoco_warp, "__version__", None) or _version("mujoco-warp")
     engine_name = f"MuJoCo Warp {version} flex, {args.solver} (warp {warp.__version__} CPU, float32)"
-    return result, f"MuJoCo Warp flex elasticity: {mapped}", engine_name
+    return result, f"MuJoCo Warp flex elasticity: {mapped_law(scene)}", engine_name
 
 
 def _version(dist: str) -> str:
