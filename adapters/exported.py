@@ -35,6 +35,7 @@ engine's law the scene's was mapped to, in words); ``engine`` (name and version)
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -155,8 +156,10 @@ class Exported:
         """The rigid tools, as ``scene.json`` lists them (``rigid_tools``; none in an older export)."""
         return list(self.spec.get("rigid_tools") or [])
 
+    @functools.cached_property
     def rigid_travel(self) -> np.ndarray:
-        """(K, 3) m: each rigid tool's whole translation (a static scene's answer is at its end)."""
+        """(K, 3) m: each rigid tool's whole translation (a static scene's answer is at its end), read once:
+        the driver asks for it before every step."""
         return np.array([t["travel_m"] for t in self.rigid], dtype=float).reshape(-1, 3)
 
     def held(self) -> np.ndarray:
@@ -296,8 +299,8 @@ def _ramped(engine: Stepper, scene: Exported, held, final: np.ndarray, n: int, r
     moving = n <= ramp_steps
     speed = final / (ramp_steps * dt) if moving else np.zeros_like(final)
     _impose(engine, scene, held, min(n / ramp_steps, 1.0) * final, speed)
-    if scene.rigid:
-        travel = scene.rigid_travel()
+    if scene.spec.get("rigid_tools"):
+        travel = scene.rigid_travel
         engine.set_rigid(min(n / ramp_steps, 1.0) * travel, travel / (ramp_steps * dt) if moving else 0.0 * travel)
 
 

@@ -130,6 +130,19 @@ def mjcf(scene: Exported, solver: str, dt: float) -> tuple[str, list, list]:
     return xml, kinds, names
 
 
+def vertex_joints(mujoco, model, kinds: np.ndarray, names: list) -> tuple[np.ndarray, np.ndarray]:
+    """Each vertex's body (N,) (0, the world's, for a held one) in ``model`` (an MjModel of ``mjcf``), and
+    each moving vertex's slide joints (J, 4) int64: vertex, component, qpos address, dof address."""
+    body = np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) if n != "world" else 0 for n in names])
+    joints = []
+    for i in np.flatnonzero(kinds != "world"):
+        b = body[i]
+        for j in range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b]):
+            c = int(np.argmax(np.abs(model.jnt_axis[j])))
+            joints.append((i, c, model.jnt_qposadr[j], model.jnt_dofadr[j]))
+    return body, np.array(joints, dtype=np.int64).reshape(-1, 4)
+
+
 class MujocoStepper(Stepper):
     """MuJoCo's model and data behind the driver's calls: a vertex's position and velocity are its body's
     joints' (qpos, qvel; the free and the driven vertices), the world's vertices stay where they are."""
@@ -145,16 +158,7 @@ class MujocoStepper(Stepper):
             raise AdapterError(f"MuJoCo refused the model: {' '.join(str(exc).split())}") from None
         self.data = mujoco.MjData(self.model)
         self.rest, self.kinds = scene.points, np.array(kinds)
-        body = [mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, n) if n != "world" else 0 for n in names]
-        self.body = np.array(body)
-        # each free vertex's joints: (vertex, component, qpos address, dof address)
-        self.joints = []
-        for i in np.flatnonzero(self.kinds != "world"):
-            b = self.body[i]
-            for j in range(self.model.body_jntadr[b], self.model.body_jntadr[b] + self.model.body_jntnum[b]):
-                c = int(np.argmax(np.abs(self.model.jnt_axis[j])))
-                self.joints.append((i, c, self.model.jnt_qposadr[j], self.model.jnt_dofadr[j]))
-        self.joints = np.array(self.joints, dtype=np.int64).reshape(-1, 4)
+        self.body, self.joints = vertex_joints(mujoco, self.model, self.kinds, names)
         free = np.flatnonzero(self.kinds == "free")
         self.data.xfrc_applied[self.body[free], :3] = scene.external_force[free]
         self.mass = scene.lumped_masses()

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from exported import AdapterError, Exported, Stepper, drive, main
-from mujoco_flex import SOLVERS, mapped_law, mjcf, stable_guess
+from mujoco_flex import SOLVERS, mapped_law, mjcf, stable_guess, vertex_joints
 
 
 class MujocoWarpStepper(Stepper):
@@ -48,14 +48,7 @@ class MujocoWarpStepper(Stepper):
             mjm.opt.solver = mujoco.mjtSolver.mjSOL_CG
         mjd = mujoco.MjData(mjm)
         self.rest, self.kinds = scene.points, np.array(kinds)
-        body = np.array([mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_BODY, n) if n != "world" else 0 for n in names])
-        joints = []  # each moving vertex's joints: (vertex, component, qpos address, dof address)
-        for i in np.flatnonzero(self.kinds != "world"):
-            b = body[i]
-            for j in range(mjm.body_jntadr[b], mjm.body_jntadr[b] + mjm.body_jntnum[b]):
-                c = int(np.argmax(np.abs(mjm.jnt_axis[j])))
-                joints.append((i, c, mjm.jnt_qposadr[j], mjm.jnt_dofadr[j]))
-        self.joints = np.array(joints, dtype=np.int64).reshape(-1, 4)
+        body, self.joints = vertex_joints(mujoco, mjm, self.kinds, names)
         free = np.flatnonzero(self.kinds == "free")
         mjd.xfrc_applied[body[free], :3] = scene.external_force[free]
         self.device = wp.get_device("cpu")

@@ -126,19 +126,18 @@ class CommandSimulation:
         with np.load(path) as z:
             step_us = float(z["step_us"]) if "step_us" in z.files else None
             settled = self._settled(path, {k: z[k] for k in ("steps", "dt") if k in z.files})
+            self._rigid_stated(np.asarray(z["rigid_force"], dtype=float) if "rigid_force" in z.files else None)
         reaction = res.reaction if res.reaction is not None else np.full((expected, 3), np.nan)  # none given
-        self._rigid_stated(path)
         return res.displacement, reaction, step_us, settled
 
-    def _rigid_stated(self, path: Path) -> None:
+    def _rigid_stated(self, given: np.ndarray | None) -> None:
         """A scene with rigid tools: the result states each one's force on the body (``rigid_force`` (K, 3)
-        N, NaN where the engine has none to give), the sign that the engine met them (an engine that read
-        the export without them would answer as if they were not there); else CommandError."""
+        N, NaN where the engine has none to give; ``given``, None where it states none), the sign that the
+        engine met them (an engine that read the export without them would answer as if they were not
+        there); else CommandError."""
         c = self.inputs.loading.contacts
         if c is None or not c.count:
             return
-        with np.load(path) as z:
-            given = np.asarray(z["rigid_force"], dtype=float) if "rigid_force" in z.files else None
         if given is None or given.shape[-2:] != (c.count, 3):
             got = "no rigid_force" if given is None else f"rigid_force of shape {given.shape}"
             raise CommandError(
