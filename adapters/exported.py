@@ -80,6 +80,16 @@ class AdapterError(Exception):
     """A scene an adapter cannot run; the message is printed as the adapter's one line, exit 2."""
 
 
+def warp_device(wp, name: str):
+    """warp's device ``name`` (``cpu``, ``cuda``, ``cuda:N``), where this machine has it; AdapterError
+    naming the devices it has where not (a machine without a CUDA driver has ``cpu`` alone)."""
+    have = [d.alias for d in wp.get_devices()]
+    alias = "cuda:0" if name == "cuda" else name
+    if alias not in have:
+        raise AdapterError(f"device {name}: warp finds no such device on this machine (it has {', '.join(have)})")
+    return wp.get_device(alias)
+
+
 @dataclass(frozen=True)
 class Exported:
     """An exported scene: ``spec`` is ``scene.json``; arrays as in its "arrays" entry (points (N, 3) m,
@@ -558,6 +568,7 @@ def arguments(description: str, solvers: tuple[str, ...]) -> argparse.ArgumentPa
     ap.add_argument("--max-steps", type=int, default=100_000, help="a static run's most steps")
     ap.add_argument("--max-wall", type=float, default=300.0, help="a static run's most seconds")
     ap.add_argument("--probe", type=int, default=0, help="only test dt's stability: this many plain steps from rest")
+    ap.add_argument("--device", default="cpu", help="warp's device a warp engine runs on (cpu, cuda, cuda:N)")
     return ap
 
 

@@ -1,4 +1,5 @@
-"""MuJoCo Warp's 3D flex on an exported scene, on warp's CPU device.
+"""MuJoCo Warp's 3D flex on an exported scene, on warp's device (``--device``: its CPU unless a user with a GPU
+asks for ``cuda:0``).
 
     .venv-engines/bin/python adapters/mujoco_warp_flex.py SCENE_DIR RESULT.npz --solver discrete --dt 1e-3
 
@@ -6,8 +7,8 @@ MuJoCo Warp (``mujoco_warp``) is MuJoCo's physics rewritten in NVIDIA warp, for 
 compiled by MuJoCo from the same MJCF (``mujoco_flex.mjcf``: one body per vertex, a ``<flex dim="3">``
 with ``<elasticity>``, StVK on linear tetrahedra), put on warp's device (``put_model``, ``put_data``) and
 stepped by ``mujoco_warp.step`` as its own examples step it, in float32 (with the ``discrete`` integrator,
-the CG solver, which MuJoCo Warp requires of a flex on bodies). Here the device is warp's CPU,
-where its kernels run one thread each: its step times say nothing of a GPU's.
+the CG solver, which MuJoCo Warp requires of a flex on bodies). On warp's CPU device its kernels run one
+thread each: its step times there say nothing of a GPU's.
 
 The loads, held vertices, tools and damping are MuJoCo's adapter's: the loads as ``xfrc_applied`` on each
 vertex's body, a tool's vertex a heavy body put at the tool's place before every step, the mass-proportional
@@ -19,21 +20,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from exported import AdapterError, Exported, Stepper, drive, main
+from exported import AdapterError, Exported, Stepper, drive, main, warp_device
 from mujoco_flex import SOLVERS, mapped_law, mjcf, stable_guess, vertex_joints
 
 
 class MujocoWarpStepper(Stepper):
-    """MuJoCo Warp's model and data on warp's CPU device behind the driver's calls: a vertex's position
+    """MuJoCo Warp's model and data on warp's ``device`` behind the driver's calls: a vertex's position
     and velocity are its body's joints' (qpos, qvel), as in MuJoCo's adapter."""
 
     epsilon = float(np.finfo(np.float32).eps)
 
-    def __init__(self, scene: Exported, solver: str, dt: float, substeps: int):
+    def __init__(self, scene: Exported, solver: str, dt: float, substeps: int, device):
         import mujoco
         import warp as wp
-
-        wp.config.quiet = True
         import mujoco_warp as mjw
 
         if scene.rigid:
@@ -51,7 +50,7 @@ class MujocoWarpStepper(Stepper):
         body, self.joints = vertex_joints(mujoco, mjm, self.kinds, names)
         free = np.flatnonzero(self.kinds == "free")
         mjd.xfrc_applied[body[free], :3] = scene.external_force[free]
-        self.device = wp.get_device("cpu")
+        self.device = device
         with wp.ScopedDevice(self.device):
             try:
                 self.model = mjw.put_model(mjm)
@@ -126,16 +125,19 @@ class MujocoWarpStepper(Stepper):
 
 
 def run(scene: Exported, args, progress):
-    import mujoco_warp
     import warp
 
+    warp.config.quiet = True
+    import mujoco_warp
+
+    device = warp_device(warp, args.device)
     dt = args.dt if args.dt else stable_guess(scene, args.solver)
-    engine = MujocoWarpStepper(scene, args.solver, dt, args.substeps)
-    progress(f"{len(scene.points)} vertices, {len(scene.tets)} tetrahedra, dt = {dt:.3g} s (warp's CPU device)")
+    engine = MujocoWarpStepper(scene, args.solver, dt, args.substeps, device)
+    progress(f"{len(scene.points)} vertices, {len(scene.tets)} tetrahedra, dt = {dt:.3g} s (warp's {device.alias})")
     result = drive(engine, scene, args, dt, progress)
-    result["substeps"] = args.substeps
+    result["substeps"], result["device"] = args.substeps, device.alias
     version = getattr(mujoco_warp, "__version__", None) or _version("mujoco-warp")
-    engine_name = f"MuJoCo Warp {version} flex, {args.solver} (warp {warp.__version__} CPU, float32)"
+    engine_name = f"MuJoCo Warp {version} flex, {args.solver} (warp {warp.__version__} {device.alias}, float32)"
     return result, f"MuJoCo Warp flex elasticity: {mapped_law(scene)}", engine_name
 
 

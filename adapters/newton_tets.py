@@ -1,4 +1,5 @@
-"""NVIDIA newton's tetrahedral soft bodies on an exported scene, on the CPU (warp's CPU device).
+"""NVIDIA newton's tetrahedral soft bodies on an exported scene, on warp's device (``--device``: its CPU unless a
+user with a GPU asks for ``cuda:0``).
 
     .venv-engines/bin/python adapters/newton_tets.py SCENE_DIR RESULT.npz --solver vbd --iterations 10
 
@@ -40,7 +41,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from exported import RELAX_FRACTION, AdapterError, Exported, Stepper, drive, main
+from exported import RELAX_FRACTION, AdapterError, Exported, Stepper, drive, main, warp_device
 
 SOLVERS = ("semi-implicit", "vbd", "xpbd")
 
@@ -106,10 +107,9 @@ class NewtonStepper(Stepper):
 
     epsilon = float(np.finfo(np.float32).eps)
 
-    def __init__(self, scene: Exported, solver: str, iterations: int, substeps: int):
+    def __init__(self, scene: Exported, solver: str, iterations: int, substeps: int, device):
         import warp as wp
 
-        wp.config.quiet = True
         import newton
 
         self.wp, self.substeps, self.kind = wp, substeps, solver
@@ -146,7 +146,7 @@ class NewtonStepper(Stepper):
         self.tools = add_tools(builder, newton, wp, scene, self.origin, self.ke)
         if solver == "vbd":
             builder.color()
-        model = builder.finalize(device="cpu")
+        model = builder.finalize(device=device)
         if self.tools:
             model.soft_contact_ke = self.ke  # frictionless and undamped, as the truth's contact
             model.soft_contact_kd = model.soft_contact_kf = model.soft_contact_mu = 0.0
@@ -260,11 +260,15 @@ def stable_guess(scene: Exported, solver: str) -> float:
 
 
 def run(scene: Exported, args, progress):
+    import warp as wp
+
+    wp.config.quiet = True
     import newton
 
-    engine = NewtonStepper(scene, args.solver, args.iterations, args.substeps)
+    device = warp_device(wp, args.device)
+    engine = NewtonStepper(scene, args.solver, args.iterations, args.substeps, device)
     dt = args.dt if args.dt else stable_guess(scene, args.solver)
-    progress(f"{len(scene.points)} vertices, {len(scene.tets)} tetrahedra, dt = {dt:.3g} s")
+    progress(f"{len(scene.points)} vertices, {len(scene.tets)} tetrahedra, dt = {dt:.3g} s (warp's {device.alias})")
     law = {
         "semi-implicit": "stable Neo-Hookean with log term (Smith et al. 2018), k_mu = 4/3 mu, k_lambda = lambda + 5/6 mu",
         "vbd": "stable Neo-Hookean (Smith et al. 2018) with the Lame constants",
@@ -274,8 +278,8 @@ def run(scene: Exported, args, progress):
         law += "; the scene's stiffness-proportional damping left out"
     result = drive(engine, scene, args, dt, progress)
     result["iterations"] = args.iterations if args.solver != "semi-implicit" else None
-    result["substeps"] = args.substeps
-    return result, law, f"newton {newton.__version__} {args.solver} (warp CPU, float32)"
+    result["substeps"], result["device"] = args.substeps, device.alias
+    return result, law, f"newton {newton.__version__} {args.solver} (warp {device.alias}, float32)"
 
 
 if __name__ == "__main__":

@@ -231,6 +231,48 @@ def test_newton_semi_implicit_is_near_p1_stvk(capsys):
     assert "Neo-Hookean" in row["engine"]["law"]
 
 
+def _cuda_devices() -> int:
+    """How many CUDA devices warp finds in the engines' venv (none on a machine without a CUDA driver)."""
+    code = "import warp; warp.config.quiet = True; print(warp.get_cuda_device_count())"
+    out = subprocess.run([str(engines_python()), "-c", code], capture_output=True, text=True, timeout=300)
+    return int(out.stdout.strip().splitlines()[-1])
+
+
+@needs_engines
+@pytest.mark.parametrize("script, solver", [("newton_tets.py", "semi-implicit"), ("mujoco_warp_flex.py", "Euler")])
+def test_a_warp_engine_runs_on_the_device_asked_or_names_the_ones_it_has(tmp_path, script, solver):
+    """``--device cuda:0`` (warp's device): where warp finds a CUDA device the run is on it, and says so;
+    where it finds none (CI, a laptop without a driver) the adapter refuses in one line naming the device
+    asked and the ones it has, before it builds anything."""
+    _uniaxial_export(tmp_path / "scene")
+    result = tmp_path / "result.npz"
+    args = [str(engines_python()), str(ADAPTERS_DIR / script), str(tmp_path / "scene"), str(result)]
+    done = subprocess.run(
+        args + ["--solver", solver, "--device", "cuda:0"], capture_output=True, text=True, timeout=900
+    )
+    if _cuda_devices():
+        assert done.returncode == 0, done.stderr[-2000:]
+        with np.load(result) as z:
+            assert z["device"].item() == "cuda:0" and "cuda:0" in z["engine"].item()
+    else:
+        last = done.stderr.strip().splitlines()[-1]
+        assert done.returncode == 2 and not result.exists()
+        assert "device cuda:0" in last and "(it has cpu)" in last, done.stderr
+
+
+def test_a_device_is_warps_and_only_a_warp_engine_takes_one(capsys):
+    """A device that is no warp device, or a device given to MuJoCo (a CPU engine), is one line before any
+    run."""
+    assert main(["compare", "cantilever", "--engine", "mujoco", "--model", "mujoco-flex", "--engine-option",
+                 "device=cuda:0"]) == 2  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no option 'device'" in err
+    assert main(["compare", "cantilever", "--engine", "newton", "--model", "newton-vbd", "--engine-option",
+                 "device=gpu"]) == 2  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "device = 'gpu'" in err
+
+
 def test_an_adapter_without_its_venv_is_one_line(monkeypatch, capsys):
     monkeypatch.setenv("TISSUEBENCH_ENGINES_PYTHON", "/nonexistent/python")
     code = main(["compare", "cantilever", "--engine", "newton", "--model", "newton-vbd"])

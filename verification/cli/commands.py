@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from realtime.models import linear_tm, stvk_tm
+from verification.engines import engine_for
 from verification.inputs import check_held
 from verification.metrics import METRICS
 from verification.scene import SceneError, check_tools, implausible
@@ -68,6 +69,11 @@ def _scene(args, warn: bool = True, solves: bool = True):
         )
     check_held(scene)
     check_tools(scene)
+    model, options = getattr(args, "model", None), getattr(args, "engine_option", None)
+    if isinstance(model, str) and options:  # an adapter's knobs, refused before any truth is solved for them
+        check = getattr(engine_for(model), "check_options", None)
+        if check is not None:
+            check(model, options)
     from verification.engines.adapters import ADAPTERS
 
     plug_ins = [e for e in getattr(args, "engine", None) or () if e not in ADAPTERS]

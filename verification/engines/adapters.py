@@ -6,7 +6,7 @@ the built-in ones (``newton-vbd``, ``mujoco-flex``). An adapter is a script in `
 exported scene and writes its answer; it runs in ``.venv-engines`` (``make engines``: newton, warp and
 MuJoCo from PyPI with their own numpy, so that the project's stays Debian's), or in the Python
 ``TISSUEBENCH_ENGINES_PYTHON`` names. The harness passes the knobs a run asks for (``dt``, and in
-``options``: ``iterations``, ``substeps``) on its command line, and reads back what the adapter reports:
+``options``: ``iterations``, ``substeps``, warp's ``device``) on its command line, and reads back what the adapter reports:
 the step it took, its steps, its own step time, whether it diverged or did not settle, and which of the
 engine's laws it mapped the scene's to (the row's ``engine``).
 
@@ -56,6 +56,9 @@ class AdapterEngine:
     #: the models whose contact acts at the vertices (as the built-in models'): their contact area is
     #: measured from their vertices' gaps to the tool, as the built-in models' (``realtime.contact.areas``)
     vertex_contact: tuple = ()
+    #: the device its engine is built for ("cuda": newton and MuJoCo Warp are GPU engines; "cpu": MuJoCo);
+    #: a run elsewhere (warp's CPU here, where no CUDA device exists) is said so in its row and on the page
+    home_device: str = "cpu"
     #: in ``tissuebench engines`` when no --engine names the adapters (an engine too slow on this machine's
     #: device for a study of many runs is asked for by name)
     default: bool = True
@@ -76,13 +79,22 @@ class AdapterEngine:
         self.spec = self.name
 
     def build(self, inputs: SceneInputs, model: str, integrator: str, options: dict):
+        self.check_options(model, options)
+        return AdapterSimulation(self, inputs, model, dict(options))
+
+    def check_options(self, model: str, options: dict) -> None:
+        """InputError naming the option and its value where ``options`` are not the knobs this engine takes
+        with the values they take (a command refuses them before any truth is solved)."""
         unknown = sorted(set(options) - set(self.knobs) - {"probe"})  # probe: studies.engines' stability test
         if unknown:
             raise InputError(f"{model}: no option {unknown[0]!r}; it takes {', '.join(self.knobs) or 'none'}")
         for key, value in options.items():
+            if key == "device" and not (isinstance(value, str) and re.fullmatch(r"cpu|cuda(:\d+)?", value)):
+                raise InputError(f"{model}: device = {value!r}: warp's device, cpu, cuda or cuda:N")
+            if key == "device":
+                continue
             if key in self.knobs and not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
                 raise InputError(f"{model}: {key} = {value!r}: a whole number >= 1")
-        return AdapterSimulation(self, inputs, model, dict(options))
 
 
 #: The adapters, by the name ``--engine`` takes.
@@ -91,7 +103,8 @@ ADAPTERS = {
         "newton",
         "newton_tets.py",
         {"newton-semi-implicit": "semi-implicit", "newton-vbd": "vbd", "newton-xpbd": "xpbd"},
-        knobs=("iterations", "substeps"),
+        knobs=("iterations", "substeps", "device"),
+        home_device="cuda",
         # newton's tetrahedra (adapters/newton_tets.py): the stable neo-Hookean with its log term (semi-implicit,
         # kernels_particle.eval_tetrahedra) and without it (VBD, particle_vbd_kernels); XPBD's constraints
         # are no hyperelastic law
@@ -103,8 +116,8 @@ ADAPTERS = {
         known_warnings=(
             (
                 r"^Warp CUDA warning: Could not find or load the NVIDIA CUDA driver",
-                "warp finds no CUDA driver on this machine, so newton runs on warp's CPU device: its step times "
-                "here are CPU times, not those of the GPU newton is built for; its answers are the same",
+                "warp finds no CUDA driver on this machine, so newton runs on warp's CPU device only: its step "
+                "times here are CPU times, not those of the GPU newton is built for; its answers are the same",
             ),
         ),
     ),
@@ -134,7 +147,8 @@ ADAPTERS = {
         "mujoco-warp",
         "mujoco_warp_flex.py",
         {"mujoco-warp-flex": "discrete", "mujoco-warp-flex-euler": "Euler"},
-        knobs=("substeps",),
+        knobs=("substeps", "device"),
+        home_device="cuda",
         laws={"mujoco-warp-flex": "stvk", "mujoco-warp-flex-euler": "stvk"},  # MuJoCo's flex, in warp
         explicit=("mujoco-warp-flex-euler",),
         # on warp's CPU device a step took 3 ms (Euler) and 60 ms (discrete, CG) on 48 tetrahedra: a study
@@ -149,8 +163,8 @@ ADAPTERS = {
             ),
             (
                 r"^Warp CUDA warning: Could not find or load the NVIDIA CUDA driver",
-                "warp finds no CUDA driver on this machine, so MuJoCo Warp runs on warp's CPU device: its step "
-                "times here are CPU times, not those of the GPU it is built for; its answers are the same",
+                "warp finds no CUDA driver on this machine, so MuJoCo Warp runs on warp's CPU device only: its "
+                "step times here are CPU times, not those of the GPU it is built for; its answers are the same",
             ),
         ),
     ),
@@ -281,7 +295,7 @@ class AdapterSimulation(CommandSimulation):
         self._run()
         r = self.report
         keep = ("engine", "law", "iterations", "substeps", "stalled_at", "residual", "tail_omega", "tail_steps")
-        keep += ("hold_drift",)
+        keep += ("hold_drift", "device")
         return {k: r[k] for k in keep if k in r}
 
     def start(self, dt) -> None:
