@@ -266,7 +266,9 @@ def run(scene: Exported, args, progress):
     import mujoco
 
     if args.device != "cpu":
-        raise AdapterError(f"device {args.device}: MuJoCo runs on the CPU (a GPU is MuJoCo Warp's: --engine mujoco-warp)")
+        raise AdapterError(
+            f"device {args.device}: MuJoCo runs on the CPU (a GPU is MuJoCo Warp's: --engine mujoco-warp)"
+        )
     dt = args.dt if args.dt else stable_guess(scene, args.solver)
     engine = MujocoStepper(scene, args.solver, dt, args.substeps)
     progress(f"{len(scene.points)} vertices, {len(scene.tets)} tetrahedra, {engine.model.nv} dofs, dt = {dt:.3g} s")

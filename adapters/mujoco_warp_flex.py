@@ -32,8 +32,8 @@ class MujocoWarpStepper(Stepper):
 
     def __init__(self, scene: Exported, solver: str, dt: float, substeps: int, device):
         import mujoco
-        import warp as wp
         import mujoco_warp as mjw
+        import warp as wp
 
         if scene.rigid:
             raise AdapterError("MuJoCo Warp's adapter does not take a rigid tool yet")

@@ -108,9 +108,8 @@ class NewtonStepper(Stepper):
     epsilon = float(np.finfo(np.float32).eps)
 
     def __init__(self, scene: Exported, solver: str, iterations: int, substeps: int, device):
-        import warp as wp
-
         import newton
+        import warp as wp
 
         self.wp, self.substeps, self.kind = wp, substeps, solver
         # the body about its centre: newton holds positions in float32, whose unit grows with the

@@ -537,6 +537,58 @@ def test_the_engines_plot_shows_every_model(monkeypatch):
     assert "newton-vbd: no answer to draw (not settled)" in labels
 
 
+def test_the_engines_page_shows_each_scene_device_and_verdict_and_loads_in_a_browser(monkeypatch, tmp_path):
+    """The engines page of two scenes from made-up runs: each scene's plot decodes in headless Chromium,
+    each solver's row names the device it ran on and says when that is off its engine's home device (a
+    GPU engine on warp's CPU), a model with no answer says so, and data.json holds the studies."""
+    from tests.browser import images_in_browser
+    from verification.report.engines_page import off_home, write_engines_page
+    from verification.scene_file import load_scene
+
+    engines = _study_with_fake_runs(monkeypatch, stop_at=None)
+    studies = [engines.engines_study(load_scene(name)) for name in ("cantilever", "cantilever-pull")]
+    for study in studies:  # the adapters' own words on where they ran (AdapterSimulation.info)
+        for r in study["runs"]:
+            r["engine"] = {"engine": "made up", "device": "cpu"}
+    page = write_engines_page(studies, tmp_path / "page")
+    text = page.read_text()
+    assert "cantilever-pull" in text and "no run reached an answer" in text
+    assert off_home(studies) == ["newton-vbd ran on cpu, its engine is built for cuda"]
+    assert "Off their home device" in text and "(off its home device, cuda)" in text
+    images, broken, err = images_in_browser(page, tmp_path)
+    assert (images, broken) == (2, 0), err
+    data = json.loads((tmp_path / "page" / "data.json").read_text())
+    assert [s["scene"] for s in data["studies"]] == ["cantilever", "cantilever-pull"]
+    assert set(data["meta"]["engines"]) == {"newton", "warp-lang", "mujoco", "mujoco-warp"}
+
+
+def test_the_study_runs_its_plan_at_once_on_the_workers_asked_and_keeps_its_order(monkeypatch):
+    """``jobs`` runs go at once (each an engine's process); the rows come back in the plan's order whatever
+    order they finished in."""
+    import threading
+    import time
+
+    from verification.scene_file import load_scene
+
+    engines = _study_with_fake_runs(monkeypatch, stop_at=None)
+    fake, busy, most = engines._run, [0], [0]
+    lock = threading.Lock()
+
+    def slow(scene, item, ref, use_cache):
+        with lock:
+            busy[0] += 1
+            most[0] = max(most[0], busy[0])
+        time.sleep(0.01 if item["knob"] == "stability" else 0.03)  # later runs finish first
+        with lock:
+            busy[0] -= 1
+        return fake(scene, item, ref, use_cache)
+
+    monkeypatch.setattr(engines, "_run", slow)
+    out = engines.engines_study(load_scene("cantilever"), jobs=3)
+    assert most[0] == 3
+    assert [r["plan_index"] for r in out["runs"]] == sorted(r["plan_index"] for r in out["runs"])
+
+
 def test_an_engine_that_cannot_represent_the_scene_is_not_applicable_not_unsettled(monkeypatch):
     """MuJoCo's flex on a two-material liver: its adapter exits 2 with the reason (one elasticity per
     flex). The study read that as "not settled" ten times, each run a process, and its summary said every

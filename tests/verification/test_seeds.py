@@ -6,12 +6,11 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
-import subprocess
 
 import numpy as np
 import pytest
 
+from tests.browser import images_in_browser
 from verification.engines.builtin import scene_model
 from verification.metrics import rel_l2
 from verification.runs.reference import reference_result
@@ -204,39 +203,13 @@ def test_report_seeds_fails_on_a_bad_directory_before_running(tmp_path, capsys):
 def test_seeds_page_images_load_in_a_headless_browser(tmp_path):
     from verification.report.seeds_page import write_seeds_report
 
-    browser = shutil.which("chromium") or shutil.which("chromium-browser")
-    assert browser, "chromium is not installed: `make setup` installs it (Debian package chromium)"
     for k in seeds.EXPERIMENTS:
         finding(k)
     res = {"experiments": [_RUNS[k] for k in seeds.EXPERIMENTS], "meta": {"size": "small", "wall_s": 0.0}}
     page = write_seeds_report(res, out=str(tmp_path / "seeds"))
-    # the page plus a script that, once everything has loaded, writes how many images decoded
-    probe = tmp_path / "probe.html"
-    probe.write_text(
-        page.read_text().replace(
-            "</body>",
-            "<script>window.addEventListener('load', () => { const im = [...document.images];"
-            "document.title = 'images ' + im.length + ' broken ' +"
-            " im.filter(i => !i.complete || i.naturalWidth === 0).length; });</script></body>",
-        )
-    )
-    out = subprocess.run(
-        [
-            browser,
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu",
-            "--virtual-time-budget=5000",
-            "--dump-dom",
-            probe.as_uri(),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    title = out.stdout.split("<title>", 1)[1].split("</title>", 1)[0]
+    images, broken, err = images_in_browser(page, tmp_path)
     n_plots = sum(len(f["plots"]) for f in res["experiments"])
-    assert title == f"images {n_plots} broken 0", out.stderr[-2000:]
+    assert (images, broken) == (n_plots, 0), err
 
 
 def test_a_rates_row_whose_run_does_not_settle_says_so_with_its_step_time(monkeypatch, tmp_path):

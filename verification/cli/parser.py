@@ -443,7 +443,7 @@ def _engines(sub) -> None:
         help="the engines users pick (newton, MuJoCo) against the reference: error by their own knobs, largest stable "
         "step, whether the answer depends on the iteration count",
     )
-    s.add_argument("scene")
+    s.add_argument("scenes", nargs="+", metavar="scene")
     s.add_argument("--mesh-refine", type=_level, default=0, metavar="K", help=MESH_REFINE_HELP)
     s.add_argument(
         "--engine",
@@ -451,12 +451,24 @@ def _engines(sub) -> None:
         metavar="NAME",
         help="an adapter (newton, mujoco, mujoco-warp; default: newton and mujoco)",
     )
+    s.add_argument(
+        "--device",
+        metavar="DEVICE",
+        help="warp's device for the engines built on it (newton, MuJoCo Warp): cpu (default), cuda or cuda:N",
+    )
+    s.add_argument(
+        "--jobs",
+        type=int,
+        metavar="N",
+        help="runs at once, each an engine's process (default: the cores this process may use, over the MPI ranks)",
+    )
+    s.add_argument("--report", metavar="DIR", help="also write the engines page (DIR/index.html, DIR/data.json)")
     s.add_argument("--models", nargs="+", help="only these of the adapters' models (newton-vbd, mujoco-flex, ...)")
     s.add_argument(
         "--engine-timeout", type=_positive, default=600.0, metavar="S", help="seconds one of their runs may take"
     )
     s.add_argument("--builtin", action="store_true", help="the built-in models beside them, measured in the same run")
-    s.add_argument("--plot", help="also write the error-against-step-time plot here (.png)")
+    s.add_argument("--plot", help="also write the error-against-step-time plot here (.png; one scene)")
     s.add_argument("--no-cache", action="store_true")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_engines)

@@ -23,6 +23,8 @@ reference's norm.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor, as_completed
+
 import numpy as np
 
 from realtime.models import linear_tm
@@ -59,20 +61,34 @@ def adapter_models(models=None) -> list[tuple[AdapterEngine, str]]:
     return [(e, m) for e, m in pairs if models is None or m in models]
 
 
-def engines_plan(scene: Scene, pairs) -> list[dict]:
-    """Every run of the study: model, dt (s), options, and the knob it varies ("dt" or "iterations")."""
+def engines_plan(scene: Scene, pairs, device: str | None = None) -> list[dict]:
+    """Every run of the study: model, dt (s), options, and the knob it varies ("dt" or "iterations");
+    ``device``, warp's device, goes in the options of every model whose engine takes one (newton's, MuJoCo
+    Warp's)."""
     dt_crit = BUILTIN.build(scene_inputs(scene), linear_tm.NAME, "symplectic-euler", {}).critical_dt()
     plan = []
     for engine, model in pairs:
+        base = {"device": device} if device is not None and "device" in engine.knobs else {}
         steps = [f * dt_crit for f in EXPLICIT_FRACTIONS] if model in engine.explicit else list(IMPLICIT_STEPS)
-        plan += [{"model": model, "dt": float(dt), "options": {}, "knob": "dt"} for dt in steps]
-        plan += [{"model": model, "dt": float(dt), "options": {}, "knob": "stability"} for dt in steps]
+        plan += [{"model": model, "dt": float(dt), "options": dict(base), "knob": "dt"} for dt in steps]
+        plan += [{"model": model, "dt": float(dt), "options": dict(base), "knob": "stability"} for dt in steps]
         if model in engine.iterative:
             plan += [
-                {"model": model, "dt": ITERATION_DT, "options": {"iterations": k}, "knob": "iterations"}
+                {"model": model, "dt": ITERATION_DT, "options": {**base, "iterations": k}, "knob": "iterations"}
                 for k in ITERATIONS
             ]
     return plan
+
+
+def _own_law_truths(scene: Scene, pairs) -> None:
+    """The P1 truths of the engines' own laws on the scene's mesh, solved before the runs: the runs go
+    in threads (``engines_study``), and dolfinx's solves are not for two threads at once; each run then
+    reads its own law's truth from the cache. One that cannot solve is the runs' to report (``own_law``)."""
+    for law in sorted({e.laws[m] for e, m in pairs if m in e.laws}):
+        try:
+            reference_result(scene.with_material(law=law), **P1_OWN_MESH)
+        except ReferenceSolveError:
+            pass
 
 
 def _run(scene: Scene, item: dict, ref, use_cache: bool) -> Row:
@@ -144,14 +160,23 @@ def builtin_beside(scene: Scene, ref, use_cache: bool) -> list[dict]:
 
 
 def engines_study(
-    scene: Scene, models=None, use_cache: bool = True, comm=None, builtin: bool = False, on_run=None
+    scene: Scene,
+    models=None,
+    use_cache: bool = True,
+    comm=None,
+    builtin: bool = False,
+    on_run=None,
+    jobs: int = 1,
+    device: str | None = None,
 ) -> dict:
     """The study (module docstring): its rows, each model's summary, the mesh's own error (the P1 solution
     of the scene's law on its mesh against the reference: what every engine on this mesh pays); with
     ``builtin``, the built-in models measured in the same run (``builtin_beside``). ``on_run(run)`` is
-    called with each run's entry of "runs" as it finishes (the command prints it). Stopped by Ctrl-C,
-    the study returns what had finished, with ``stopped`` saying how far it came (every finished run is
-    in the cache: the same command resumes)."""
+    called with each run's entry of "runs" as it finishes (the command prints it). ``jobs`` runs go at
+    once (each an adapter's process: one a core), on every MPI rank of ``comm``; ``device`` is warp's
+    device for the engines that take one (``engines_plan``). Stopped by Ctrl-C, the study returns what
+    had finished, with ``stopped`` saying how far it came (every finished run is in the cache: the same
+    command resumes)."""
     pairs = adapter_models(models)
     rank, size = (comm.rank, comm.size) if comm is not None else (0, 1)
     ref = reference_result(scene, **REFERENCE_DEFAULTS)
@@ -160,28 +185,37 @@ def engines_study(
         mesh_part = float(np.linalg.norm(p1.displacement - ref.displacement) / np.linalg.norm(ref.displacement))
     except ReferenceSolveError:
         mesh_part = None
+    _own_law_truths(scene, pairs)
     scale = float(np.linalg.norm(ref.displacement))
-    plan = engines_plan(scene, pairs)
-    rows, stopped, refused = [], None, {}
+    plan = engines_plan(scene, pairs, device)
+    mine = [(k, item) for k, item in enumerate(plan) if k % size == rank]
+    rows, refused, stopped = [], {}, None
+    who = f" (rank {rank})" if size > 1 else ""
+
+    def one(k: int, item: dict) -> tuple[dict, Row]:
+        if item["model"] in refused:  # the engine cannot represent the scene: no run of it will
+            row = refused[item["model"]].replace(dt=item["dt"], plan_index=k)
+        else:
+            row = _run(scene, item, ref, use_cache).replace(plan_index=k)
+        if row.status == "not applicable":
+            refused[item["model"]] = row
+        # every rank and worker says what it finished: the runs are each a process of their own, minutes long
+        line(f"engines {scene.name}{who}: run {k + 1} of {len(plan)}, {item['model']} {item['knob']} "
+             f"{_knob_value(item)}: {_state(row)}")  # fmt: skip
+        return item, row
+
+    pool = ThreadPoolExecutor(max_workers=max(1, jobs))
     try:
-        for k, item in enumerate(plan):
-            if k % size != rank:
-                continue
-            if item["model"] in refused:  # the engine cannot represent the scene: no run of it will
-                row = refused[item["model"]].replace(dt=item["dt"], plan_index=k)
-            else:
-                row = _run(scene, item, ref, use_cache).replace(plan_index=k)
-            if row.status == "not applicable":
-                refused[item["model"]] = row
+        for done in as_completed([pool.submit(one, k, item) for k, item in mine]):
+            item, row = done.result()
             rows.append((item, row))
-            # every rank says what it finished: the runs are each a process of their own, minutes long
-            who = f" (rank {rank})" if size > 1 else ""
-            line(f"engines {scene.name}{who}: run {k + 1} of {len(plan)}, {item['model']} {item['knob']} "
-                 f"{_knob_value(item)}: {_state(row)}")  # fmt: skip
             if on_run is not None:
                 on_run(_entry(item, row))
     except KeyboardInterrupt:
         stopped = f"stopped after {len(rows)} of the {len(plan)} runs; the same command resumes from the cache"
+    finally:
+        pool.shutdown(wait=stopped is None, cancel_futures=True)
+    rows.sort(key=lambda ir: ir[1].plan_index)
     if comm is not None and size > 1:
         gathered = comm.gather(rows, root=0)
         if rank != 0:
