@@ -59,7 +59,7 @@ lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-# The engines users pick (NVIDIA newton with warp, MuJoCo, MuJoCo Warp), from PyPI at the versions adapters/requirements.txt
+# The engines users pick (NVIDIA newton with warp, MuJoCo, PyBullet, MuJoCo Warp), from PyPI at the versions adapters/requirements.txt
 # pins, in a venv of their own: its numpy is PyPI's, the project's stays Debian's. The adapters in adapters/ run
 # there (docs/engines.md); the project never imports them.
 ENGINES_VENV := .venv-engines
@@ -68,7 +68,7 @@ engines: $(ENGINES_STAMP)
 $(ENGINES_STAMP): adapters/requirements.txt | apt
 	[ -x $(ENGINES_VENV)/bin/python ] || /usr/bin/python3 -m venv $(ENGINES_VENV)
 	$(ENGINES_VENV)/bin/python -m pip install -q -r adapters/requirements.txt
-	$(ENGINES_VENV)/bin/python -c "import mujoco, mujoco_warp, newton, warp"
+	$(ENGINES_VENV)/bin/python -c "import mujoco, mujoco_warp, newton, pybullet, warp"
 	touch $@
 
 # One worker process per core this process may use (pytest-xdist; xdist's own "auto" counts physical

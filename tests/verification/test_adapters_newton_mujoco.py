@@ -34,7 +34,11 @@ def test_engines_venv_is_there_when_required():
     if os.environ.get("TISSUEBENCH_REQUIRE_ENGINES"):
         assert HAVE_ENGINES, f"{engines_python()} is missing: make engines did not build it"
         out = subprocess.run(
-            [str(engines_python()), "-c", "import mujoco, mujoco_warp, newton, warp, numpy; print(numpy.__version__)"],
+            [
+                str(engines_python()),
+                "-c",
+                "import mujoco, mujoco_warp, newton, pybullet, warp, numpy; print(numpy.__version__)",
+            ],
             capture_output=True,
             text=True,
         )
@@ -91,6 +95,99 @@ def _uniaxial_export(directory, law="linear"):
         tool_displacement=np.zeros((1, 0, 3)),
     )
     return p
+
+
+#: A bar hanging from its top under its own weight: 1 x 1 x 8 cm, cubes of 5 mm; its largest strain 8e-4.
+BAR, BAR_H, BAR_E, BAR_RHO = (0.01, 0.01, 0.08), 0.005, 1.0e6, 1000.0
+
+
+def _hanging_export(directory):
+    """The bar in the export format, held at its top face in every direction and loaded by gravity alone
+    (each vertex's lumped mass times g), numpy alone. Away from its ends its stress is uniaxial, the
+    weight below each section over the section's area."""
+    from meshes.generators import grid
+
+    mesh = grid(BAR, BAR_H)
+    p, t = mesh.points, mesh.tets
+    free = np.ones_like(p)
+    free[p[:, 2] > BAR[2] - 1e-12] = 0.0
+    x = p[t]
+    vol = np.abs(np.einsum("ij,ij->i", x[:, 1] - x[:, 0], np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]))) / 6
+    mass = np.zeros(len(p))
+    np.add.at(mass, t.ravel(), np.repeat(BAR_RHO * vol / 4, 4))
+    g = np.array([0.0, 0.0, -9.81])
+    lam, mu = BAR_E * NU / ((1 + NU) * (1 - 2 * NU)), BAR_E / (2 * (1 + NU))
+    spec = {
+        "format": "tissuebench-scene",
+        "version": 1,
+        "scene": "hanging-bar",
+        "law": "linear",
+        "materials": [
+            {"law": "linear", "young_pa": BAR_E, "poisson": NU, "density_kg_m3": BAR_RHO, "lambda_pa": lam, "mu_pa": mu}
+        ],  # fmt: skip
+        "time": {"mode": "static", "end_s": None, "output_times_s": [0.0]},
+        "gravity_m_s2": g.tolist(),
+        "tools": [],
+        "arrays": {"file": "arrays.npz"},
+    }
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / "scene.json").write_text(json.dumps(spec))
+    np.savez(
+        directory / "arrays.npz", points=p, tets=t, material_index=np.zeros(len(t), np.int64), free=free,
+        external_force=mass[:, None] * g, tool_vertex=np.zeros(0, np.int64), tool_mask=np.zeros((0, 3)),
+        tool_id=np.zeros(0, np.int64), tool_displacement=np.zeros((1, 0, 3)),
+    )  # fmt: skip
+    return p
+
+
+@needs_engines
+def test_pybullets_soft_body_has_the_young_modulus_and_poisson_ratio_asked(tmp_path):
+    """PyBullet takes no nodal force, so no traction: its constants are measured on a bar hanging under its
+    own weight. Each section's axial strain is the weight below it over E A, the weight being what PyBullet
+    applies: its loadSoftBody spreads the body's mass evenly over the nodes (here 1 / 17 of it on each of the
+    17 layers of 9 nodes, where the scene's lumped masses give the end layers half). The lateral strain is
+    -nu times the axial. Sections 4 to 12 layers from the free end, away from the anchored top; tolerance
+    1 %, as for the other engines (a strain of 8e-4 in a non-linear law)."""
+    points = _hanging_export(tmp_path / "scene")
+    u, report, _ = run_adapter(tmp_path, "pybullet_tets.py", "explicit")
+    assert report["settled"] == 1
+    layers = int(round(BAR[2] / BAR_H)) + 1
+    z = np.arange(layers) * BAR_H
+    at = [np.isclose(points[:, 2], zk) for zk in z]
+    uz = np.array([u[k, 2].mean() for k in at])
+    mass = BAR_RHO * np.prod(BAR)
+    for k in range(4, 12):  # the element layer between z[k] and z[k + 1] carries layers 0..k's weight
+        axial = (uz[k + 1] - uz[k]) / BAR_H
+        weight = (k + 1) / layers * mass * 9.81
+        assert weight / (BAR[0] * BAR[1] * axial) == pytest.approx(BAR_E, rel=0.01)
+        side = u[at[k] & (points[:, 0] > BAR[0] - 1e-12), 0].mean() - u[at[k] & (points[:, 0] < 1e-12), 0].mean()
+        strain_here = 0.5 * ((uz[k + 1] - uz[k]) + (uz[k] - uz[k - 1])) / BAR_H
+        assert -(side / BAR[0]) / strain_here == pytest.approx(NU, rel=0.01)
+
+
+@needs_engines
+def test_pybullet_is_refused_what_it_cannot_be_given(tmp_path):
+    """What PyBullet's API cannot be given is one line, exit 2, with the reason, and no result: a vertex held
+    in some directions only (the uniaxial block's symmetry planes), a load that is not gravity (a point
+    force on the hanging bar)."""
+
+    def refusal(directory) -> str:
+        result = directory / "result.npz"
+        args = [str(engines_python()), str(ADAPTERS_DIR / "pybullet_tets.py"), str(directory / "scene"), str(result)]
+        done = subprocess.run(args, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 2 and not result.exists(), done.stderr
+        return done.stderr.strip().splitlines()[-1]
+
+    _uniaxial_export(tmp_path / "block" / "scene")
+    assert "holds a node in all three directions" in refusal(tmp_path / "block")
+    _hanging_export(tmp_path / "bar" / "scene")
+    arrays = tmp_path / "bar" / "scene" / "arrays.npz"
+    with np.load(arrays) as z:
+        data = dict(z)
+    data["external_force"][0, 0] += 1e-3  # one vertex pushed sideways by 1 mN
+    np.savez(arrays, **data)
+    last = refusal(tmp_path / "bar")
+    assert last.startswith("pybullet_tets:") and "gravity as its only load" in last and "0.001 N" in last
 
 
 def run_adapter(tmp_path, script, solver, *extra):

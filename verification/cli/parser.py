@@ -30,7 +30,7 @@ from verification.cli.commands import (
 )
 
 ENGINE_HELP = (
-    "an engine whose models --model may name: an adapter (newton, mujoco, mujoco-warp) or a plug-in (package.module:Class or "
+    "an engine whose models --model may name: an adapter (newton, mujoco, pybullet, mujoco-warp) or a plug-in (package.module:Class or "
     "file.py:Class); repeatable"
 )
 ENGINE_CMD_HELP = (
@@ -449,7 +449,7 @@ def _engines(sub) -> None:
         "--engine",
         action="append",
         metavar="NAME",
-        help="an adapter (newton, mujoco, mujoco-warp; default: newton and mujoco)",
+        help="an adapter (newton, mujoco, pybullet, mujoco-warp; default: newton, mujoco and pybullet)",
     )
     s.add_argument(
         "--device",

@@ -1,5 +1,5 @@
-"""The engines users pick, through the seam: NVIDIA newton, MuJoCo and MuJoCo Warp, each run by its adapter
-in the engines' own venv (docs/engines.md).
+"""The engines users pick, through the seam: NVIDIA newton, MuJoCo, PyBullet and MuJoCo Warp, each run by its
+adapter in the engines' own venv (docs/engines.md).
 
 ``--engine newton`` or ``--engine mujoco`` registers one (``load_engine``); its models are then named like
 the built-in ones (``newton-vbd``, ``mujoco-flex``). An adapter is a script in ``adapters/`` that reads the
@@ -142,6 +142,15 @@ ADAPTERS = {
                 "the harness stops that run there and its row says diverged",
             ),
         ),
+    ),
+    "pybullet": AdapterEngine(
+        "pybullet",
+        "pybullet_tets.py",
+        {"pybullet-deformable": "explicit"},
+        knobs=("substeps",),
+        # Bullet's btDeformableNeoHookeanForce is Smith et al.'s law with its log term (adapters/pybullet_tets.py)
+        laws={"pybullet-deformable": "stable-neo-hookean"},
+        explicit=("pybullet-deformable",),
     ),
     "mujoco-warp": AdapterEngine(
         "mujoco-warp",
