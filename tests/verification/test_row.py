@@ -44,3 +44,24 @@ def test_what_is_not_a_row_is_refused(data, why):
     """A damaged or foreign cache entry raises ValueError (read_cached then computes the run again)."""
     with pytest.raises(ValueError, match=why):
         Row.from_json(data)
+
+
+def test_a_run_stopped_at_a_studys_step_budget_is_not_read_as_the_default_runs(monkeypatch):
+    """The engines study settles with a budget of its own (200 000 steps): its "not settled" row must not be
+    what compare, with the harness's budget, reads back from the cache for the same run, nor the reverse."""
+    from verification.runs import store
+    from verification.scene_file import load_scene
+
+    scene, made = load_scene("cantilever"), []
+
+    def compare(scene, model, max_steps, **kwargs):
+        made.append(max_steps)
+        return Row(scene.name, model, "symplectic-euler", "not settled" if max_steps < 10**6 else "ok", dt=1e-5)
+
+    monkeypatch.setattr(store, "compare", compare)
+    monkeypatch.setattr(store, "reference_result", lambda *a, **k: None)
+    for _ in range(2):  # the second round is read from the cache
+        study = store.cached_compare(scene, "linear-tm", dt=1e-5, max_steps=200_000)
+        default = store.cached_compare(scene, "linear-tm", dt=1e-5)
+    assert made == [200_000, store.SETTLE_MAX_STEPS]
+    assert (study.status, study.cached, default.status, default.cached) == ("not settled", True, "ok", True)

@@ -29,6 +29,7 @@ from verification.engines import engine_for, plug_in, spec_of
 from verification.runs.compare import compare
 from verification.runs.reference import REFERENCE_DEFAULTS, reference_result
 from verification.runs.row import Row, jsonable
+from verification.runs.simulate import SETTLE_MAX_STEPS
 from verification.scene import Scene
 
 
@@ -84,7 +85,7 @@ def cached_compare(
     reference=None,
     ref_opts=None,
     use_cache: bool = True,
-    max_steps: int = 2_000_000,
+    max_steps: int = SETTLE_MAX_STEPS,
     budget: bool = True,
     float32: bool = False,
     options: dict | None = None,
@@ -96,8 +97,7 @@ def cached_compare(
     the key; an adapter's are (the adapters and their pinned versions are, ``RUN_CODE``)."""
     ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
     use_cache = use_cache and (not plug_in(model) or getattr(engine_for(model), "cacheable", False))
-    extra = {**({"float32": True} if float32 else {}), **({"engine": options} if options else {})}
-    key = run_key(scene, model, integrator, dt, fraction, ref_opts, budget, extra or None)
+    key = run_key(scene, model, integrator, dt, fraction, ref_opts, budget, _how(float32, options, max_steps))
     path = entry("runs", scene.name, key, ".json")
     answer = answer_path(path) if keep_answer else None
     row = read_cached(path, _read_row) if use_cache else None
@@ -129,14 +129,25 @@ def answer_path(row_path: Path) -> Path:
     return row_path.with_name(row_path.stem + "-answer.npz")
 
 
-def cached_answer(scene: Scene, model: str, integrator: str, dt, fraction, ref_opts=None, budget=True, options=None):
+def _how(float32: bool, options: dict | None, max_steps: int) -> dict | None:
+    """What else makes a run besides its model, step and reference (``run_key``'s options): float32,
+    the engine's options, and a static run's step budget where it is not the harness's default (a run
+    stopped unsettled at a study's budget is not the answer the default would reach)."""
+    extra = {**({"float32": True} if float32 else {}), **({"engine": options} if options else {})}
+    if max_steps != SETTLE_MAX_STEPS:
+        extra["max_steps"] = int(max_steps)
+    return extra or None
+
+
+def cached_answer(
+    scene: Scene, model: str, integrator: str, dt, fraction, ref_opts=None, budget=True, options=None,
+    max_steps: int = SETTLE_MAX_STEPS,
+):  # fmt: skip
     """The displacements (T, N, 3) m of the run ``cached_compare`` with these arguments kept
     (``keep_answer``), or None where it kept none (a run that gave no answer, or a damaged entry)."""
     ref_opts = dict(REFERENCE_DEFAULTS if ref_opts is None else ref_opts)
-    extra = {"engine": options} if options else None
-    path = answer_path(
-        entry("runs", scene.name, run_key(scene, model, integrator, dt, fraction, ref_opts, budget, extra), ".json")
-    )
+    key = run_key(scene, model, integrator, dt, fraction, ref_opts, budget, _how(False, options, max_steps))
+    path = answer_path(entry("runs", scene.name, key, ".json"))
     return read_cached(path, lambda p: np.load(p)["displacement"])
 
 
