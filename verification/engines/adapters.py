@@ -304,7 +304,7 @@ class AdapterSimulation(CommandSimulation):
         self._run()
         r = self.report
         keep = ("engine", "law", "iterations", "substeps", "stalled_at", "residual", "tail_omega", "tail_steps")
-        keep += ("hold_drift", "device")
+        keep += ("hold_drift", "device", "budget_spent")
         return {k: r[k] for k in keep if k in r}
 
     def start(self, dt) -> None:

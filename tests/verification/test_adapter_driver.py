@@ -1,0 +1,94 @@
+"""The adapters' shared driver (adapters/exported.py: the relaxation, its stall and hold rules), on an
+engine made up in numpy: vertices on springs to their rest places, stepped by symplectic Euler, with a
+noise that stands for an engine's round-off. The driver needs numpy alone: it is loaded from its file here,
+as the adapters load it in the engines' venv."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+
+import numpy as np
+import pytest
+
+from verification.engines.adapters import ADAPTERS_DIR
+
+
+@pytest.fixture(scope="module")
+def driver():
+    spec = importlib.util.spec_from_file_location("exported", ADAPTERS_DIR / "exported.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("exported", module)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _scene(driver, load: float):
+    """Four vertices of a tetrahedron, vertex 0 held, the others pushed along z by ``load`` N each."""
+    points = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0], [0.0, 0.0, 0.01]])
+    free = np.ones_like(points)
+    free[0] = 0.0
+    force = np.zeros_like(points)
+    force[1:, 2] = load
+    spec = {"time": {"mode": "static", "output_times_s": [0.0]}, "materials": [{"density_kg_m3": 1000.0}]}
+    empty = np.zeros((0, 3))
+    return driver.Exported(spec, points, np.array([[0, 1, 2, 3]]), np.zeros(1, int), free, force,
+                           np.zeros(0, int), empty, np.zeros((1, 0, 3)))  # fmt: skip
+
+
+def _engine(driver, scene, noise: float, epsilon: float = 2.0**-52, seed: int = 0):
+    """Springs of 100 N/m from each vertex to its rest place, 1 g each; ``noise`` m of random position
+    error added at every step (an engine's round-off, or a relaxation that cycles when it is large), in an
+    arithmetic of machine epsilon ``epsilon``."""
+    rng = np.random.default_rng(seed)
+
+    class Springs(driver.Stepper):
+        def __init__(self):
+            self.epsilon = epsilon
+            self.x, self.v = scene.points.copy(), np.zeros_like(scene.points)
+
+        def step(self, dt):
+            f = -100.0 * (self.x - scene.points) + scene.external_force
+            self.v = np.where(scene.held(), 0.0, self.v + dt * f / 1e-3)
+            self.x = self.x + dt * self.v + np.where(scene.held(), 0.0, noise * rng.standard_normal(self.x.shape))
+
+        def positions(self):
+            return self.x.copy()
+
+        def set_positions(self, x):
+            self.x = x.copy()
+
+        def velocities(self):
+            return self.v.copy()
+
+        def set_velocities(self, v):
+            self.v = v.copy()
+
+        def masses(self):
+            return np.full(len(self.x), 1e-3)
+
+    return Springs()
+
+
+def test_an_unloaded_body_holds_at_its_round_off(driver):
+    """A body nothing loads yet (a rigid tool short of it) sits at rest to its engine's round-off: the hold
+    measured that noise against a displacement of nothing and read "no equilibrium" (newton's float32 on
+    the liver press, 0.21 of its displacement at a quarter of the travel). It holds."""
+    scene = _scene(driver, 0.0)
+    engine = _engine(driver, scene, noise=1e-10, epsilon=float(np.finfo(np.float32).eps))  # its floor: 9.5e-9 m
+    out = driver.relax(engine, scene, 1e-4, 1e-10, 20_000, lambda text: None)
+    assert out["settled"] == 1 and out["hold_drift"] <= driver.HOLD
+
+
+def test_a_budget_spent_at_round_off_is_a_stall_and_one_spent_far_from_it_is_not_settled(driver):
+    """The stall rules wait for 40 ramps (8000 steps); a budget that runs out before (the adapter's wall,
+    MuJoCo's 63 ms steps on the liver) left a run at its round-off "not settled". At the budget, the same
+    evidence decides: a change below STALLED failing to halve is a stall, said so (``budget_spent``); a
+    run still moving by more than that is not settled."""
+    scene = _scene(driver, 1e-3)  # 1 mN on 100 N/m: 10 um
+    quiet = driver.relax(_engine(driver, scene, noise=1e-12), scene, 1e-4, 1e-14, 3000, lambda text: None)
+    assert quiet["settled"] == 1 and quiet["budget_spent"] == 1
+    assert driver.STALLED > quiet["stalled_at"] > 0.0
+    np.testing.assert_allclose(quiet["u"][1:, 2], 1e-5, rtol=1e-5)
+    loud = driver.relax(_engine(driver, scene, noise=1e-6), scene, 1e-4, 1e-14, 3000, lambda text: None)
+    assert loud["settled"] == 0 and "budget_spent" not in loud
