@@ -467,7 +467,7 @@ def cmd_engines(args) -> int:
                 on_run=on_run,
                 jobs=jobs,
                 device=args.device,
-            )  # fmt: skip
+            )
         )
         if studies[-1].get("stopped"):
             break
