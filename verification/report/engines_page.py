@@ -36,11 +36,13 @@ def home_of(model: str) -> tuple[str, str]:
 
 
 def ran_on(study: dict, model: str) -> str | None:
-    """The device ``model``'s runs in ``study`` ran on, as its adapter said; None where none of its runs said."""
-    for r in study["runs"]:
-        if r["model"] == model and (r.get("engine") or {}).get("device"):
+    """The device ``model``'s runs in ``study`` ran on: as its adapter said, else as they asked (an adapter
+    runs on the device asked or refuses; on warp's CPU when none is asked); None where it has no run."""
+    runs = [r for r in study["runs"] if r["model"] == model]
+    for r in runs:
+        if (r.get("engine") or {}).get("device"):
             return r["engine"]["device"]
-    return None
+    return (runs[0].get("options") or {}).get("device", "cpu") if runs else None
 
 
 def off_home(studies: list[dict]) -> list[str]:
@@ -89,9 +91,10 @@ def _summary_table(study: dict) -> str:
                         f"{html.escape(s['not_applicable'])}</td></tr>")  # fmt: skip
             continue
         engine = s.get("engine") or {}
-        device = ran_on(study, s["model"]) or "unknown"
-        home = home_of(s["model"])[1]
-        where = html.escape(device) + ("" if device.startswith(home) else f" <b>(off its home device, {home})</b>")
+        device, home = ran_on(study, s["model"]), home_of(s["model"])[1]
+        where = "-" if device is None else html.escape(device)
+        if device is not None and not device.startswith(home):
+            where += f" <b>(off its home device, {home})</b>"
         b = s.get("best")
         if b is None:
             best, step, own_part, own_law = "no run reached an answer", "-", "-", "-"
