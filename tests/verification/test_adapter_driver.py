@@ -139,3 +139,16 @@ def test_a_budget_spent_within_its_tolerance_is_the_answer_however_it_still_fall
     np.testing.assert_allclose(done["u"][1:, 2], 1e-3 / k[1:, 0], rtol=1e-9)
     short = driver.relax(Soft(), scene, 1e-4, 1e-14, 6000, lambda text: None)
     assert short["settled"] == 0
+
+
+def test_a_relaxation_that_makes_no_progress_stops_not_settled_before_its_budget(driver):
+    """A run whose change stays far above round-off (here a noise of a tenth of the displacement, as a
+    relaxation cycling above its stable step) ran its whole budget: it stops once its change over the run's
+    second half is no smaller than over its first, from NO_PROGRESS_RAMPS ramps on, not settled. A run that
+    converges is never stopped so (the springs settle to their answer well before)."""
+    scene = _scene(driver, 1e-3)
+    ramps = driver.NO_PROGRESS_RAMPS * 200  # the driver's ramp: 200 steps when the budget allows
+    cycling = driver.relax(_engine(driver, scene, noise=1e-6), scene, 1e-4, 1e-14, 10 * ramps, lambda text: None)
+    assert cycling["settled"] == 0 and ramps <= cycling["no_progress"] < 10 * ramps
+    calm = driver.relax(_engine(driver, scene, noise=0.0), scene, 1e-4, 1e-14, 10 * ramps, lambda text: None)
+    assert calm["settled"] == 1 and "no_progress" not in calm
