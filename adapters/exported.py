@@ -514,8 +514,9 @@ def _damped_tail(engine: Stepper, scene: Exported, dt: float, budget: int, progr
 def _held(engine: Stepper, scene: Exported, u: np.ndarray, dt: float, run: dict) -> dict:
     """A relaxed state checked for what a static answer is: released from rest, the engine stays there.
     It runs HOLD_STEPS steps with no damping; if the displacement then moves by more than HOLD of its
-    largest value (or than the engine's round-off in a position, where that is larger), the state is no equilibrium of the engine at this step (an iterative solver that does
-    not converge per step can stall the relaxation away from it) and the run is "not settled"."""
+    largest value (or than the engine's round-off in a position, where that is larger), the state is no
+    equilibrium of the engine at this step (an iterative solver that does not converge per step can stall
+    the relaxation away from it) and the run is "not settled"."""
     held, still = scene.held(), np.zeros_like(u)
     engine.set_velocities(still)
     for _ in range(HOLD_STEPS):
