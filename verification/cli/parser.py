@@ -16,7 +16,6 @@ from verification.cli.commands import (
     cmd_compare,
     cmd_converge,
     cmd_effectivity,
-    cmd_engines,
     cmd_export,
     cmd_gate,
     cmd_judge,
@@ -28,6 +27,7 @@ from verification.cli.commands import (
     cmd_stability,
     cmd_sweep,
 )
+from verification.cli.engines import cmd_engines
 
 ENGINE_HELP = (
     "an engine whose models --model may name: an adapter (newton, mujoco, pybullet, mujoco-warp) or a plug-in (package.module:Class or "
