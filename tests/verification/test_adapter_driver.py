@@ -36,21 +36,12 @@ def _scene(driver, load: float):
                            np.zeros(0, int), empty, np.zeros((1, 0, 3)))  # fmt: skip
 
 
-def _engine(driver, scene, noise: float, epsilon: float = 2.0**-52, seed: int = 0):
-    """Springs of 100 N/m from each vertex to its rest place, 1 g each; ``noise`` m of random position
-    error added at every step (an engine's round-off, or a relaxation that cycles when it is large), in an
-    arithmetic of machine epsilon ``epsilon``."""
-    rng = np.random.default_rng(seed)
+def _numpy_stepper(driver, scene):
+    """The made-up engine's state and accessors: positions and velocities (N, 3) m, m/s, 1 g a vertex."""
 
-    class Springs(driver.Stepper):
+    class NumpyStepper(driver.Stepper):
         def __init__(self):
-            self.epsilon = epsilon
             self.x, self.v = scene.points.copy(), np.zeros_like(scene.points)
-
-        def step(self, dt):
-            f = -100.0 * (self.x - scene.points) + scene.external_force
-            self.v = np.where(scene.held(), 0.0, self.v + dt * f / 1e-3)
-            self.x = self.x + dt * self.v + np.where(scene.held(), 0.0, noise * rng.standard_normal(self.x.shape))
 
         def positions(self):
             return self.x.copy()
@@ -67,7 +58,24 @@ def _engine(driver, scene, noise: float, epsilon: float = 2.0**-52, seed: int = 
         def masses(self):
             return np.full(len(self.x), 1e-3)
 
-    return Springs()
+    return NumpyStepper
+
+
+def _engine(driver, scene, noise: float, epsilon: float = 2.0**-52, seed: int = 0):
+    """Springs of 100 N/m from each vertex to its rest place; ``noise`` m of random position error added at
+    every step (an engine's round-off, or a relaxation that cycles when it is large), in an arithmetic of
+    machine epsilon ``epsilon``."""
+    rng = np.random.default_rng(seed)
+
+    class Springs(_numpy_stepper(driver, scene)):
+        def step(self, dt):
+            f = -100.0 * (self.x - scene.points) + scene.external_force
+            self.v = np.where(scene.held(), 0.0, self.v + dt * f / 1e-3)
+            self.x = self.x + dt * self.v + np.where(scene.held(), 0.0, noise * rng.standard_normal(self.x.shape))
+
+    engine = Springs()
+    engine.epsilon = epsilon
+    return engine
 
 
 def test_an_unloaded_body_holds_at_its_round_off(driver):
@@ -103,29 +111,11 @@ def test_a_budget_spent_within_its_tolerance_is_the_answer_however_it_still_fall
     scene = _scene(driver, 1e-3)
     k = np.array([0.0, 100.0, 1.0, 0.05])[:, None]
 
-    class Soft(driver.Stepper):
-        def __init__(self):
-            self.x, self.v = scene.points.copy(), np.zeros_like(scene.points)
-
+    class Soft(_numpy_stepper(driver, scene)):
         def step(self, dt):
             f = -k * (self.x - scene.points) + scene.external_force
             self.v = np.where(scene.held(), 0.0, self.v + dt * f / 1e-3)
             self.x = self.x + dt * self.v
-
-        def positions(self):
-            return self.x.copy()
-
-        def set_positions(self, x):
-            self.x = x.copy()
-
-        def velocities(self):
-            return self.v.copy()
-
-        def set_velocities(self, v):
-            self.v = v.copy()
-
-        def masses(self):
-            return np.full(4, 1e-3)
 
         def internal_force(self):
             return -k * (self.x - scene.points)
