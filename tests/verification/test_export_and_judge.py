@@ -199,8 +199,9 @@ def test_a_result_that_does_not_match_its_scene_is_one_line_naming_the_likely_ca
 
 def test_a_held_vertex_at_float32_round_off_of_a_body_at_rest_is_held():
     """A body nothing loads yet (a rigid tool short of the liver) has no displacement to measure a held
-    vertex's gap against: newton's float32 positions put one 3.7e-9 m off and the station failed. A gap
-    within a float32 position's round-off holds; a millimetre does not."""
+    vertex's gap against: newton's float32 positions put one 3.7e-9 m off and the station failed, in the
+    judge's check and in the command engines' (which the adapters' runs go through). A gap within a
+    float32 position's round-off holds; a millimetre does not."""
     from verification.engines.foreign import EngineResultError
     from verification.inputs import scene_loading
     from verification.studies.consistency import check_held_and_tools
@@ -208,14 +209,21 @@ def test_a_held_vertex_at_float32_round_off_of_a_body_at_rest_is_held():
     scene = load_scene("cantilever")
     points, rest = scene.mesh.points, np.zeros((1, scene.mesh.n_vertices, 3))
     held = int(np.flatnonzero((scene_loading(scene).free == 0.0).all(axis=1))[0])
-    for gap, refused in ((3.7e-9, False), (1e-3, True)):
+    from verification.engines.command import CommandError, on_scene
+    from verification.inputs import scene_inputs
+
+    inputs = scene_inputs(scene)
+    for gap, refused in ((3.7e-9, False), (1e-3, True)):  # the judge's check, and a command engine's
         u = rest.copy()
         u[0, held, 1] = gap
         if refused:
             with pytest.raises(EngineResultError, match="which the scene holds at 0"):
                 check_held_and_tools(scene, "r.npz", points, u, rest, [0])
+            with pytest.raises(CommandError, match="which the scene holds at 0"):
+                on_scene(inputs, "engine", u)
         else:
             check_held_and_tools(scene, "r.npz", points, u, rest, [0])
+            on_scene(inputs, "engine", u)
 
 
 def test_a_tool_force_of_the_opposite_sign_is_told_so_with_both_numbers(tmp_path, capsys):

@@ -24,7 +24,7 @@ import numpy as np
 from realtime.errors import InputError
 
 from .export import export, output_times, tool_motions
-from .foreign import GAP, SHAPE_MATCH, UNITS, EngineResultError, read_result
+from .foreign import GAP, POSITION_ROUNDOFF, SHAPE_MATCH, UNITS, EngineResultError, read_result
 from .protocol import SceneInputs, Settling, foreign_spec
 
 #: Seconds a command may run before it is stopped (a hang is a failure, named).
@@ -203,11 +203,13 @@ def on_scene(inputs: SceneInputs, label: str, u: np.ndarray) -> None:
     constraints, before any score: its tool vertices 100 or 1000 times where the scene puts them (its
     lengths in cm or mm), or away from there (an export made before the tool moved, another tool path),
     or a held component that moved (another frame, other vertices held). A gap within GAP of the
-    largest displacement passes: a penalty tool holds its place to a few percent."""
+    largest displacement passes: a penalty tool holds its place to a few percent; so does one within a
+    float32 position's round-off (POSITION_ROUNDOFF)."""
     lo = inputs.loading
     _, wanted = tool_motions(inputs)  # (T, P, 3) m
     mask = lo.tool_mask != 0.0
     scale = max(float(np.abs(wanted).max(initial=0.0)), float(np.abs(u).max()), 1e-300)
+    limit = max(GAP * scale, POSITION_ROUNDOFF * float(np.abs(inputs.points).max()))
     if mask.any():
         got = u[:, lo.tool_vertex]
         size = max(float(np.linalg.norm(wanted * mask)), 1e-300)
@@ -218,7 +220,7 @@ def on_scene(inputs: SceneInputs, label: str, u: np.ndarray) -> None:
                     f"{unit}? write the answer in metres, as the export is"
                 )
         gap = np.abs(got - wanted) * mask
-        if gap.max() > GAP * scale:
+        if gap.max() > limit:
             t, p, c = np.unravel_index(int(np.argmax(gap)), gap.shape)
             v = int(lo.tool_vertex[p])
             raise CommandError(
@@ -228,7 +230,7 @@ def on_scene(inputs: SceneInputs, label: str, u: np.ndarray) -> None:
     held = lo.free == 0.0
     held[lo.tool_vertex] &= ~mask
     moved = np.abs(u) * held
-    if moved.max() > GAP * scale:
+    if moved.max() > limit:
         t, v, c = np.unravel_index(int(np.argmax(moved)), moved.shape)
         raise CommandError(
             f"{label}: vertex {v} moved {moved[t, v, c]:.3g} m in {'xyz'[c]} (output {t}), which the scene holds at "

@@ -19,15 +19,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from verification.engines.foreign import GAP, SHAPE_MATCH, UNITS, EngineResultError
+from verification.engines.foreign import GAP, POSITION_ROUNDOFF, SHAPE_MATCH, UNITS, EngineResultError
 from verification.metrics import rel_l2
 from verification.scene import Scene
 
 #: A result's point within this of a scene vertex (relative to the body's size) is that vertex.
 COINCIDE = 1e-9
-#: The round-off of a position written in float32 (an engine's own arithmetic, a VTK file), relative to
-#: the largest coordinate: eight of float32's machine epsilons.
-POSITION_ROUNDOFF = 8.0 * float(np.finfo(np.float32).eps)
 #: A tool force that matches the reference's at most this share of its error when negated has the
 #: opposite sign.
 FLIPPED = 0.5
@@ -65,9 +62,6 @@ def check_held_and_tools(scene: Scene, source: str, points, u, ref_u, which) -> 
     tool = np.zeros((scene.mesh.n_vertices, 3), dtype=bool)
     tool[lo.tool_vertex] = lo.tool_mask != 0.0
     held = (lo.free == 0.0) & ~tool
-    # relative to the displacement, and never below a float32 position's round-off: a body nothing loads
-    # yet (a rigid tool short of it) has none, and newton's held vertices, read back from float32, were
-    # 3.7e-9 m off on the liver press
     limit = max(GAP * float(np.abs(ref_u).max()), POSITION_ROUNDOFF * float(np.abs(scene.mesh.points).max()))
     for mask, what in ((held, "held"), (tool, "tool")):
         rows = np.flatnonzero(mask[vertices].any(axis=1))
