@@ -129,24 +129,3 @@ def test_a_budget_spent_within_its_tolerance_is_the_answer_however_it_still_fall
     np.testing.assert_allclose(done["u"][1:, 2], 1e-3 / k[1:, 0], rtol=1e-9)
     short = driver.relax(Soft(), scene, 1e-4, 1e-14, 6000, lambda text: None)
     assert short["settled"] == 0
-
-
-def test_a_relaxation_that_makes_no_progress_stops_not_settled_before_its_budget(driver):
-    """A run whose change stays far above round-off without once falling below its half-way value ran its
-    whole budget (newton's XPBD on the SOFA liver, its change growing): it stops from NO_PROGRESS_RAMPS
-    ramps on, not settled. Here one vertex has no spring: under its load it drifts for ever, its change a
-    constant share of its displacement. A run that converges is never stopped so."""
-    scene = _scene(driver, 1e-7)  # 0.1 uN on a free gram: 0.2 mm in 20 000 steps of 0.1 ms
-    ramps = driver.NO_PROGRESS_RAMPS * 200  # the driver's ramp: 200 steps when the budget allows
-
-    class Drifting(_numpy_stepper(driver, scene)):
-        def step(self, dt):
-            k = np.array([[0.0], [100.0], [100.0], [0.0]])  # vertex 3 on no spring
-            f = -k * (self.x - scene.points) + scene.external_force
-            self.v = np.where(scene.held(), 0.0, self.v + dt * f / 1e-3)
-            self.x = self.x + dt * self.v
-
-    drifting = driver.relax(Drifting(), scene, 1e-4, 1e-14, 10 * ramps, lambda text: None)
-    assert drifting["settled"] == 0 and ramps <= drifting["no_progress"] < 2 * ramps
-    calm = driver.relax(_engine(driver, scene, noise=0.0), scene, 1e-4, 1e-14, 10 * ramps, lambda text: None)
-    assert calm["settled"] == 1 and "no_progress" not in calm

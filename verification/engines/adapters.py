@@ -260,11 +260,6 @@ class AdapterSimulation(CommandSimulation):
             raise AdapterDivergence(self.model, int(r.get("steps", 0)), float(r["dt"]), self.integrator, t)
         if r.get("probe"):  # a stability probe's field is no answer
             return None, None, r.get("step_us"), {}
-        if r.get("settled") == 0 and r.get("no_progress"):
-            raise NotConvergedError(
-                f"{self.label}: not settling at dt = {float(r['dt']):.3g} s: after {int(r['no_progress'])} steps its "
-                "change is no smaller than it was half way (adapters/exported.py, NO_PROGRESS_RAMPS)"
-            )
         if r.get("settled") == 0 and r.get("hold_drift") is not None:
             raise NotConvergedError(
                 f"{self.label}: no equilibrium at dt = {float(r['dt']):.3g} s: its relaxed state, released from "
