@@ -660,29 +660,25 @@ def test_the_engines_page_shows_each_scene_device_and_verdict_and_loads_in_a_bro
 
 
 def test_the_study_runs_its_plan_at_once_on_the_workers_asked_and_keeps_its_order(monkeypatch):
-    """``jobs`` runs go at once (each an engine's process); the rows come back in the plan's order whatever
-    order they finished in."""
+    """``jobs`` runs go at once (each an engine's process): the first three runs meet at a barrier that only
+    three at once can pass (one or two workers leave it broken); the rows come back in the plan's order
+    whatever order they finished in."""
     import threading
-    import time
 
     from verification.scene_file import load_scene
 
     engines = _study_with_fake_runs(monkeypatch, stop_at=None)
-    fake, busy, most = engines._run, [0], [0]
-    lock = threading.Lock()
+    fake, meet, started = engines._run, threading.Barrier(3, timeout=60), []
 
-    def slow(scene, item, ref, use_cache):
-        with lock:
-            busy[0] += 1
-            most[0] = max(most[0], busy[0])
-        time.sleep(0.01 if item["knob"] == "stability" else 0.03)  # later runs finish first
-        with lock:
-            busy[0] -= 1
+    def together(scene, item, ref, use_cache):
+        started.append(item)
+        if len(started) <= 3:
+            meet.wait()  # BrokenBarrierError (the run's row an error) unless three runs are under way
         return fake(scene, item, ref, use_cache)
 
-    monkeypatch.setattr(engines, "_run", slow)
+    monkeypatch.setattr(engines, "_run", together)
     out = engines.engines_study(load_scene("cantilever"), jobs=3)
-    assert most[0] == 3
+    assert not meet.broken
     assert [r["plan_index"] for r in out["runs"]] == sorted(r["plan_index"] for r in out["runs"])
 
 

@@ -21,7 +21,7 @@ from verification.report.common import CSS, fmt
 from verification.report.plots import plot_engines
 from verification.runs.compare import cancelling
 from verification.runs.row import jsonable
-from verification.studies.engines import ITERATION_DT, run_line
+from verification.studies.engines import ITERATION_DT, run_line, stable_text
 
 #: The distributions of the engines' venv the page names (PyPI's names).
 ENGINE_DISTRIBUTIONS = ("newton", "warp-lang", "mujoco", "mujoco-warp")
@@ -55,12 +55,6 @@ def off_home(studies: list[dict]) -> list[str]:
             if device is not None and not device.startswith(home):
                 out[s["model"]] = f"{s['model']} ran on {device}, its engine is built for {home}"
     return list(out.values())
-
-
-def _stable(s: dict) -> str:
-    big, bad = s["largest_stable_dt"], s["first_diverged_dt"]
-    text = f"{big:.3g} s" if big else "none tried"
-    return text + (f" (diverged at {bad:.3g} s)" if bad else " (none tried diverged)")
 
 
 def _iterations(s: dict) -> str:
@@ -113,7 +107,7 @@ def _summary_table(study: dict) -> str:
         body.append(
             f"<tr><td>{name}</td><td style='text-align:left'>{fmt(engine.get('engine'))}</td><td>{where}</td>"
             f"<td style='text-align:left'>{fmt(engine.get('law'))}</td><td>{best}</td><td>{step}</td>"
-            f"<td>{own_part}</td><td>{own_law}</td><td>{_stable(s)}</td><td style='text-align:left'>{_iterations(s)}</td></tr>"
+            f"<td>{own_part}</td><td>{own_law}</td><td>{stable_text(s)}</td><td style='text-align:left'>{_iterations(s)}</td></tr>"
         )
     return f"<table>{head}{''.join(body)}</table>"
 

@@ -344,6 +344,13 @@ def _depends(done: list[tuple[int, Row, np.ndarray | None]], scale: float) -> di
     }
 
 
+def stable_text(s: dict) -> str:
+    """A model's summary's largest stable step, bracketed by the first step above it that diverged."""
+    big, bad = s["largest_stable_dt"], s["first_diverged_dt"]
+    text = f"{big:.3g} s" if big else "none of the steps tried"
+    return text + (f" (diverged at {bad:.3g} s)" if bad else " (none tried diverged)")
+
+
 def format_engines(out: dict) -> str:
     """The study as text: each model's summary, then every run."""
     est, mesh = out.get("reference_estimate"), out.get("mesh_error")
@@ -357,11 +364,9 @@ def format_engines(out: dict) -> str:
         lines.append(f"\n{s['model']}: {(s['engine'] or {}).get('engine', 'no run reached an answer')}")
         if s["engine"]:
             lines.append(f"  law: {s['engine'].get('law')}")
-        big, bad = s["largest_stable_dt"], s["first_diverged_dt"]
         lines.append(
             "  largest stable step: "
-            + (f"{big:.3g} s" if big else "none of the steps tried")
-            + (f" (diverged at {bad:.3g} s)" if bad else " (none tried diverged)")
+            + stable_text(s)
             + (
                 f"; its static answer reached up to {s['largest_settling_dt']:.3g} s"
                 if s["largest_settling_dt"]
