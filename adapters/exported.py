@@ -14,8 +14,8 @@ zero when the kinetic energy passes a peak, Cundall's scheme for explicit relaxa
 by the residual of the load where the engine gives its net force (``residual``), else by the largest
 displacement change over the last quarter of the run against the largest displacement (or the engine's
 round-off in a position, 8 ulp of the largest coordinate, if that is larger); or until round-off stops it
-first (the residual no longer halves, the change stops shrinking below ``STALLED``). The state is then
-released from rest and must stay where it is (``HOLD``). A dynamic scene is run
+first (the residual no longer halves, the change stops shrinking below ``STALLED`` or below ``WALK``
+round-offs). The state is then released from rest and must stay where it is (``HOLD``). A dynamic scene is run
 from rest to its end, and sampled at its output instants; the tools' prescribed displacements come from
 the export at those instants, linearly interpolated in between.
 
@@ -53,6 +53,14 @@ FORMAT, VERSIONS = "tissuebench-scene", (1,)
 #: this is settled at its engine's round-off (float32 engines random-walk at about 1e-4 of the
 #: displacement: measured 1.6e-4 with newton's semi-implicit solver on the built-in cantilever).
 STALLED = 1e-3
+
+#: A float32 engine's walk in the change is absolute, about 12 to 16 of its round-offs in a position
+#: (``round_off``): newton's semi-implicit solver, 1.6e-4 of the cantilever's 7.4 mm, and 1.1e-3 of the
+#: 2.2 mm the liver press's sphere pushes at half its travel, which ran into the adapter's 300 s wall with
+#: its change still above STALLED. A change below WALK of them (three times that) has stalled, halving or
+#: not: nothing finer can be seen (the same press at its full travel, its change still shrinking like
+#: 1 / n at 3 round-offs, ran into the wall too); one failing to halve below WALK of them, above STALLED.
+WALK = 48.0
 
 
 #: A residual that makes no progress at all over the last half of the run (its least value within 1 % of
@@ -366,9 +374,9 @@ def relax(
     engine gives its net force, it stops when the residual (``residual``) is below ``rtol``, the harness's
     own measure, twice in a row; elsewhere when the displacement change, measured over the last quarter of
     the run (at least ``check`` steps, so that a slow mode still on its way is seen however few steps one
-    of its cycles takes), is. Either stops first at round-off: the change stalled below ``STALLED``, or
-    the residual no longer halving over the last half of the run (``stalled_at``, ``residual`` in the
-    result), and then runs the damped tail (``_stalled``). When its budget (``max_steps`` steps or
+    of its cycles takes), is. Either stops first at round-off: the change stalled below ``STALLED`` (or
+    ``WALK`` round-offs), or the residual no longer halving over the last half of the run (``stalled_at``,
+    ``residual`` in the result), and then runs the damped tail (``_stalled``). When its budget (``max_steps`` steps or
     ``max_wall`` seconds, whichever comes first) runs out before the stall rules' windows, they act on the run
     it had: a change below ``STALLED`` that failed to halve, a residual below it that no longer halves, or
     either within ``BUDGET_TOLERANCE`` however it still falls, is a stall there too (``budget_spent`` 1 in
@@ -423,9 +431,10 @@ def relax(
             calm = calm + 1 if n > 2 * ramp_steps and change <= max(rtol * scale, floor) else 0
         changes[n] = change / scale
         then = changes.get(check * ((n // 2) // check))
-        slow = then is not None and STALLED > changes[n] > 0.5 * then
-        ends = spent and (changes[n] <= BUDGET_TOLERANCE or slow)
-        if res is None and calm < 2 and ((slow and n >= 40 * ramp_steps) or ends):
+        slow = then is not None and max(STALLED, WALK * floor / scale) > changes[n] > 0.5 * then
+        walked = change <= WALK * floor  # within the engine's round-off walk: nothing finer can be seen
+        ends = spent and (changes[n] <= BUDGET_TOLERANCE or slow or walked)
+        if res is None and calm < 2 and (((slow or walked) and n >= 40 * ramp_steps) or ends):
             progress(f"step {n}: the change stalled at {changes[n]:.2e} of the largest displacement{why}")
             run = {"steps": n, "dt": dt, "step_us": clock.us(), "stalled_at": changes[n], "budget_spent": int(spent)}
             return _stalled(engine, scene, dt, run, max_steps - n, max_wall - (time.perf_counter() - t_start), progress)
@@ -436,7 +445,7 @@ def relax(
             what = (
                 f"residual {res:.2e} of the load"
                 if res is not None
-                else f"displacement change {change / scale:.2e} of its largest value"
+                else f"displacement change {change / scale:.2e} of its largest value ({change:.2e} of {scale:.2e} m)"
             )
             progress(f"step {n}: {what}, asked {rtol:g}")
         if calm >= 2:

@@ -129,3 +129,41 @@ def test_a_budget_spent_within_its_tolerance_is_the_answer_however_it_still_fall
     np.testing.assert_allclose(done["u"][1:, 2], 1e-3 / k[1:, 0], rtol=1e-9)
     short = driver.relax(Soft(), scene, 1e-4, 1e-14, 6000, lambda text: None)
     assert short["settled"] == 0
+
+
+def test_a_float32_body_pressed_a_little_stalls_at_its_round_offs_walk(driver):
+    """A float32 engine's change walks by some round-offs in a position (``round_off``) whatever the
+    displacement: under a small one (a sphere just pressing) that walk is above STALLED of it, and the
+    run went to its budget unsettled (newton's semi-implicit solver at half the liver press's travel).
+    Below WALK round-offs the change has stalled: the run settles in the stall rules' 8000 steps, and its
+    state holds. Under the old rule (STALLED alone) this run is unsettled at 60 000 steps."""
+    scene = _scene(driver, 3e-3)  # 3 mN on 100 N/m: 30 um; its floor 9.5e-9 m
+    engine = _engine(driver, scene, noise=1e-8, epsilon=float(np.finfo(np.float32).eps))  # a walk of ~16 floors
+    out = driver.relax(engine, scene, 1e-4, 1e-10, 60_000, lambda text: None)
+    assert out["settled"] == 1 and out["budget_spent"] == 0 and out["steps"] < 10_000
+    assert driver.WALK * driver.round_off(engine, scene) / 3e-5 > out["stalled_at"] > driver.STALLED
+    np.testing.assert_allclose(out["u"][1:, 2], 3e-5, rtol=1e-2)  # the walk's size: a few 1e-3 of it
+
+
+def test_a_change_within_the_walk_has_stalled_though_it_still_halves(driver):
+    """A float32 run's change can still shrink like 1 / n below its round-off walk (the liver press at its full
+    travel: 3 round-offs and halving, into the 300 s wall). Below WALK round-offs nothing finer can be seen:
+    the run stalls there, halving or not. Made up: springs whose load creeps as 1 + 0.69 / n, a change over
+    the last quarter of 0.23 u / n, 3 round-offs at 8000 steps and halving with every doubling; under the
+    old rule it was still moving at its 60 000 steps."""
+    scene = _scene(driver, 0.1)  # 100 mN on 100 N/m: 1 mm; its floor 9.5e-9 m
+
+    class Creeping(_numpy_stepper(driver, scene)):
+        n = 0
+
+        def step(self, dt):
+            self.n += 1
+            f = -100.0 * (self.x - scene.points) + scene.external_force * (1.0 + 0.69 / self.n)
+            self.v = np.where(scene.held(), 0.0, self.v + dt * f / 1e-3)
+            self.x = self.x + dt * self.v
+
+    engine = Creeping()
+    engine.epsilon = float(np.finfo(np.float32).eps)
+    out = driver.relax(engine, scene, 1e-4, 1e-10, 60_000, lambda text: None)
+    assert out["settled"] == 1 and out["steps"] < 10_000 and out["budget_spent"] == 0
+    assert out["stalled_at"] * 1e-3 < driver.WALK * driver.round_off(engine, scene)
