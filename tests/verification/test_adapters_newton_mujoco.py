@@ -16,7 +16,7 @@ from meshes.generators import structured_cube
 from verification.cli import main
 from verification.engines.adapters import ADAPTERS_DIR, engines_python
 from verification.runs.row import Row
-from verification.studies.engines import DEPENDS, _depends, engines_plan
+from verification.studies.engines import DEPENDS, STUDY_MIN_STEPS, _depends, engines_plan
 
 HAVE_ENGINES = engines_python().exists()
 #: ``make check``, the contributor's fast loop, leaves the engines' venv out (TISSUEBENCH_NO_ENGINES=1).
@@ -436,12 +436,34 @@ def test_the_plan_gives_each_solver_its_knobs():
     plan = engines_plan(load_scene("cantilever"), pairs)
     explicit = [p for p in plan if p["model"] == "newton-semi-implicit"]
     vbd = [p for p in plan if p["model"] == "newton-vbd"]
-    # each step run for its answer and probed for its stability, on one grid
+    # each step run for its answer, and probed for its stability on the same grid from its largest step down
     steps = [p["dt"] for p in explicit if p["knob"] == "dt"]
-    assert steps == [p["dt"] for p in explicit if p["knob"] == "stability"] and len(explicit) == 10
+    (scan,) = [p for p in explicit if p["knob"] == "stability"]
+    assert scan["dts"] == sorted(steps, reverse=True) and len(explicit) == 6
     assert max(steps) / min(steps) == pytest.approx(16.0)
     assert {p["knob"] for p in vbd} == {"dt", "stability", "iterations"}
     assert [p["options"]["iterations"] for p in vbd if p["knob"] == "iterations"] == [1, 2, 5, 10, 20, 50]
+    # a static run's budget: 30 of the cantilever's slowest periods (0.121 s), within 20 000 to 200 000 steps
+    budget = {p["dt"]: p["max_steps"] for p in plan if p["knob"] == "dt"}
+    assert budget[steps[2]] == pytest.approx(30 * 0.1207 / steps[2], rel=1e-2)
+    assert budget[min(steps)] == 200_000 and budget[1e-2] == STUDY_MIN_STEPS
+
+
+def test_the_stability_scan_stops_at_the_first_step_that_holds_and_finds_what_every_probe_would(monkeypatch):
+    """The probes go down the grid from its largest step: an implicit solver's probes that hold are the
+    costly ones (20 s each of newton's VBD on the liver), and none below the largest that holds can change
+    its largest stable step or the first diverged step above it. A scan that passes one step and fails the
+    next below it (a stability that is not monotone) still reports the largest that held."""
+    from verification.scene_file import load_scene
+
+    engines = _study_with_fake_runs(monkeypatch, stop_at=None)
+    out = engines.engines_study(load_scene("cantilever"))
+    probes = [r for r in out["runs"] if r["model"] == "mujoco-flex-euler" and r["knob"] == "stability"]
+    # the made-up probe holds below 1e-4 s only: down the grid, the first that holds ends the scan
+    assert [r["status"] for r in probes] == ["diverged"] * (len(probes) - 1) + ["ok"]
+    assert [r["dt"] for r in probes] == sorted((r["dt"] for r in probes), reverse=True)
+    (s,) = [s for s in out["summary"] if s["model"] == "mujoco-flex-euler"]
+    assert s["largest_stable_dt"] == probes[-1]["dt"] and s["first_diverged_dt"] == probes[-2]["dt"]
 
 
 @pytest.mark.slow
@@ -706,7 +728,7 @@ def test_an_engine_that_cannot_represent_the_scene_is_not_applicable_not_unsettl
 
     monkeypatch.setattr(engines, "_run", refuse)
     out = engines.engines_study(load_scene("cantilever"))
-    assert len(asked) == 1 and len(out["runs"]) == 10  # asked once; every planned run says why
+    assert len(asked) == 1 and len(out["runs"]) == 6  # asked once; every planned item says why
     (s,) = out["summary"]
     assert s["not_applicable"] == reason and s["largest_stable_dt"] is None and s["first_diverged_dt"] is None
     text = engines.format_engines(out)

@@ -14,7 +14,9 @@ The plan is fixed before anything runs, so that ``mpirun -n P`` spreads it over 
 Each planned step is also probed for stability as the built-in models' are (``STABLE_STEPS`` plain steps
 from rest under the scene's loads, no damping of ours: ``AdapterSimulation.probe``). The largest stable
 step is the largest planned one the probe passed, bracketed by the smallest above it that blew up (a
-factor of 2 to 3 apart: the grid's resolution). It can exceed the largest step whose static relaxation
+factor of 2 to 3 apart: the grid's resolution). The probes go down the grid from its largest step and
+stop at the first that holds: the steps below it cannot change that answer, and an implicit solver's
+probes that hold are the costly ones (newton's VBD: 20 s each on the liver). It can exceed the largest step whose static relaxation
 settles: kinetic damping's velocity resets make some steps gradient descent, stable only below
 sqrt(2) / omega_max (adapters/exported.py, RELAX_FRACTION). The answer depends on
 the iteration count when the answers at the two largest counts differ by more than ``DEPENDS`` of the
@@ -34,6 +36,7 @@ from reference.progress import line
 from verification.engines import ENGINES, engine_for
 from verification.engines.adapters import AdapterEngine
 from verification.engines.builtin import BUILTIN
+from verification.engines.settling import omega2_min_rest
 from verification.inputs import scene_inputs
 from verification.runs.compare import cancelling
 from verification.runs.reference import P1_OWN_MESH, REFERENCE_DEFAULTS, reference_result
@@ -48,13 +51,16 @@ EXPLICIT_FRACTIONS = (0.25, 0.5, 1.0, 2.0, 4.0)
 IMPLICIT_STEPS = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
 #: Iteration counts, at ITERATION_DT s.
 ITERATIONS, ITERATION_DT = (1, 2, 5, 10, 20, 50), 1e-3
-#: A static run's step budget in the study: an answer the engine does not reach in this many steps at a
-#: planned step is "not settled" there. Without it a relaxation caught in a cycle (kinetic damping above
-#: its stable step, newton's semi-implicit solver at half the cantilever's critical step) ran into the
-#: adapter's 300 s wall: a verdict of the machine's load, and 300 s of the study's five minutes. The
-#: slowest settling measured here took 28 000 steps (newton's semi-implicit solver at a quarter of the
-#: cantilever's critical step, its damped tail included), MuJoCo's explicit flex 75 000 to 1.9e-10.
-STUDY_MAX_STEPS = 200_000
+#: A static run's step budget in the study: an answer the engine does not reach in SETTLE_PERIODS of the
+#: scene's slowest period (at rest, the built-in linear model's on the scene mesh), or STUDY_MIN_STEPS
+#: where that is more, and at most STUDY_MAX_STEPS, is "not settled" at that step. Kinetic damping's
+#: restarts settle a run in slowest periods, not steps. Every settled run of the study on cantilever and
+#: sofa-liver: those past 20 000 steps took 2.5 to 5.4 periods (newton's semi-implicit solver, MuJoCo's
+#: flex, PyBullet at their small steps); those that took more periods (VBD at 1 ms and 2 iterations: 47,
+#: MuJoCo's discrete flex at 10 ms: 167) took at most 5 700 steps. Without a budget a relaxation caught
+#: in a cycle ran into the adapter's 300 s wall (a verdict of the machine's load); with 200 000 steps
+#: alone, newton's XPBD at 0.3 ms on the liver (60 s simulated, 140 periods) took 269 s of the study.
+SETTLE_PERIODS, STUDY_MIN_STEPS, STUDY_MAX_STEPS = 30.0, 20_000, 200_000
 #: Two answers closer than this (their distance, relative L2 over the reference's norm) are the same:
 #: three times the relaxation's own round-off in float32 (measured 2.8e-4 with newton's semi-implicit
 #: solver on the built-in cantilever). A run whose relaxation stalled (adapters/exported.py: ``stalled_at``,
@@ -70,22 +76,36 @@ def adapter_models(models=None) -> list[tuple[AdapterEngine, str]]:
 
 
 def engines_plan(scene: Scene, pairs, device: str | None = None) -> list[dict]:
-    """Every run of the study: model, dt (s), options, and the knob it varies ("dt" or "iterations");
-    ``device``, warp's device, goes in the options of every model whose engine takes one (newton's, MuJoCo
-    Warp's)."""
-    dt_crit = BUILTIN.build(scene_inputs(scene), linear_tm.NAME, "symplectic-euler", {}).critical_dt()
+    """Every run of the study: model, dt (s), options, the knob it varies ("dt", "iterations", or
+    "stability": one item a model, its probes' steps largest first in ``dts``), and a static run's step
+    budget ``max_steps`` (``study_budget``); ``device``, warp's device, goes in the options of every model
+    whose engine takes one (newton's, MuJoCo Warp's)."""
+    sim = BUILTIN.build(scene_inputs(scene), linear_tm.NAME, "symplectic-euler", {})
+    dt_crit, slowest = sim.critical_dt(), omega2_min_rest(sim.inputs, sim.model_obj)
     plan = []
     for engine, model in pairs:
         base = {"device": device} if device is not None and "device" in engine.knobs else {}
         steps = [f * dt_crit for f in EXPLICIT_FRACTIONS] if model in engine.explicit else list(IMPLICIT_STEPS)
         plan += [{"model": model, "dt": float(dt), "options": dict(base), "knob": "dt"} for dt in steps]
-        plan += [{"model": model, "dt": float(dt), "options": dict(base), "knob": "stability"} for dt in steps]
+        down = sorted((float(dt) for dt in steps), reverse=True)
+        plan.append({"model": model, "dt": down[0], "dts": down, "options": dict(base), "knob": "stability"})
         if model in engine.iterative:
             plan += [
                 {"model": model, "dt": ITERATION_DT, "options": {**base, "iterations": k}, "knob": "iterations"}
                 for k in ITERATIONS
             ]
+    for item in plan:
+        item["max_steps"] = study_budget(slowest, item["dt"])
     return plan
+
+
+def study_budget(omega2_slowest: float | None, dt: float) -> int:
+    """A static run's step budget at step ``dt`` (s) (STUDY_MAX_STEPS's comment), from the scene's slowest
+    omega^2 (1/s^2; None where it is not cheap to find: STUDY_MAX_STEPS)."""
+    if not omega2_slowest or omega2_slowest <= 0.0:
+        return STUDY_MAX_STEPS
+    periods = SETTLE_PERIODS * 2.0 * np.pi / np.sqrt(omega2_slowest) / dt
+    return int(min(STUDY_MAX_STEPS, max(STUDY_MIN_STEPS, np.ceil(periods))))
 
 
 def _own_law_truths(scene: Scene, pairs) -> None:
@@ -115,7 +135,7 @@ def _run(scene: Scene, item: dict, ref, use_cache: bool) -> Row:
 
 def _compare(scene: Scene, item: dict, ref, use_cache: bool) -> Row:
     return cached_compare(
-        scene, item["model"], "own", item["dt"], None, ref, use_cache=use_cache, max_steps=STUDY_MAX_STEPS,
+        scene, item["model"], "own", item["dt"], None, ref, use_cache=use_cache, max_steps=item["max_steps"],
         budget=scene.time.mode == "static", options=item["options"] or None,
         keep_answer=item["knob"] == "iterations",  # the iteration counts' answers are compared with each other
     )  # fmt: skip
@@ -127,7 +147,7 @@ def _answer(scene: Scene, item: dict):
 
     budget, options = scene.time.mode == "static", item["options"] or None
     return cached_answer(scene, item["model"], "own", item["dt"], None, budget=budget, options=options,
-                         max_steps=STUDY_MAX_STEPS)  # fmt: skip
+                         max_steps=item["max_steps"])  # fmt: skip
 
 
 def _probe(scene: Scene, item: dict) -> Row:
@@ -214,13 +234,22 @@ def engines_study(
              f"{_knob_value(item)}: {_state(row)} ({time.perf_counter() - t0:.0f} s)")  # fmt: skip
         return item, row
 
+    def runs(k: int, item: dict) -> list[tuple[dict, Row]]:
+        """A planned item's runs: one, or a stability scan's probes down its steps to the first that holds."""
+        out = []
+        for dt in item.get("dts", [item["dt"]]):
+            out.append(one(k, {**item, "dt": dt}))
+            if out[-1][1].status in ("ok", "not applicable"):
+                break
+        return out
+
     pool = ThreadPoolExecutor(max_workers=max(1, jobs))
     try:
-        for done in as_completed([pool.submit(one, k, item) for k, item in mine]):
-            item, row = done.result()
-            rows.append((item, row))
-            if on_run is not None:
-                on_run(_entry(item, row))
+        for done in as_completed([pool.submit(runs, k, item) for k, item in mine]):
+            for item, row in done.result():
+                rows.append((item, row))
+                if on_run is not None:
+                    on_run(_entry(item, row))
     except KeyboardInterrupt:
         stopped = f"stopped after {len(rows)} of the {len(plan)} runs; the same command resumes from the cache"
     finally:
