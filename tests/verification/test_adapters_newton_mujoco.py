@@ -442,7 +442,10 @@ def test_the_plan_gives_each_solver_its_knobs():
     assert scan["dts"] == sorted(steps, reverse=True) and len(explicit) == 6
     assert max(steps) / min(steps) == pytest.approx(16.0)
     assert {p["knob"] for p in vbd} == {"dt", "stability", "iterations"}
-    assert [p["options"]["iterations"] for p in vbd if p["knob"] == "iterations"] == [1, 2, 5, 10, 20, 50]
+    # the counts at 1 ms; 10, the adapters' own, is the time steps' run at 1 ms, named
+    assert [p["options"]["iterations"] for p in vbd if p["knob"] == "iterations"] == [1, 2, 5, 20, 50]
+    (ten,) = [p for p in vbd if p.get("counts")]
+    assert ten["knob"] == "dt" and ten["dt"] == 1e-3 and ten["options"] == {"iterations": 10}
     # a static run's budget: 30 of the cantilever's slowest periods (0.121 s), within 20 000 to 200 000 steps
     budget = {p["dt"]: p["max_steps"] for p in plan if p["knob"] == "dt"}
     assert budget[steps[2]] == pytest.approx(30 * 0.1207 / steps[2], rel=1e-2)

@@ -49,8 +49,9 @@ from verification.studies.stable_step import STABLE_STEPS
 EXPLICIT_FRACTIONS = (0.25, 0.5, 1.0, 2.0, 4.0)
 #: Implicit solvers' steps, s: 10 kHz, about 3 kHz, 1 kHz, about 300 Hz, 100 Hz.
 IMPLICIT_STEPS = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
-#: Iteration counts, at ITERATION_DT s.
-ITERATIONS, ITERATION_DT = (1, 2, 5, 10, 20, 50), 1e-3
+#: Iteration counts, at ITERATION_DT s. An iterative solver's time-step runs take ADAPTER_ITERATIONS (the
+#: adapters' default, adapters/exported.py ``arguments``), named: its run at ITERATION_DT is that count's.
+ITERATIONS, ITERATION_DT, ADAPTER_ITERATIONS = (1, 2, 5, 10, 20, 50), 1e-3, 10
 #: A static run's step budget in the study: an answer the engine does not reach in SETTLE_PERIODS of the
 #: scene's slowest period (at rest, the built-in linear model's on the scene mesh), or STUDY_MIN_STEPS
 #: where that is more, and at most STUDY_MAX_STEPS, is "not settled" at that step. Kinetic damping's
@@ -86,13 +87,19 @@ def engines_plan(scene: Scene, pairs, device: str | None = None) -> list[dict]:
     for engine, model in pairs:
         base = {"device": device} if device is not None and "device" in engine.knobs else {}
         steps = [f * dt_crit for f in EXPLICIT_FRACTIONS] if model in engine.explicit else list(IMPLICIT_STEPS)
-        plan += [{"model": model, "dt": float(dt), "options": dict(base), "knob": "dt"} for dt in steps]
+        counted = model in engine.iterative
+        run = {**base, "iterations": ADAPTER_ITERATIONS} if counted else base
+        plan += [
+            {"model": model, "dt": float(dt), "options": dict(run), "knob": "dt", "counts": counted and dt == ITERATION_DT}
+            for dt in steps
+        ]  # fmt: skip
         down = sorted((float(dt) for dt in steps), reverse=True)
         plan.append({"model": model, "dt": down[0], "dts": down, "options": dict(base), "knob": "stability"})
-        if model in engine.iterative:
+        if counted:
             plan += [
                 {"model": model, "dt": ITERATION_DT, "options": {**base, "iterations": k}, "knob": "iterations"}
                 for k in ITERATIONS
+                if not (k == ADAPTER_ITERATIONS and ITERATION_DT in steps)  # that run is in the steps' already
             ]
     for item in plan:
         item["max_steps"] = study_budget(slowest, item["dt"])
@@ -137,8 +144,14 @@ def _compare(scene: Scene, item: dict, ref, use_cache: bool) -> Row:
     return cached_compare(
         scene, item["model"], "own", item["dt"], None, ref, use_cache=use_cache, max_steps=item["max_steps"],
         budget=scene.time.mode == "static", options=item["options"] or None,
-        keep_answer=item["knob"] == "iterations",  # the iteration counts' answers are compared with each other
+        keep_answer=_counts(item),  # the iteration counts' answers are compared with each other
     )  # fmt: skip
+
+
+def _counts(item: dict) -> bool:
+    """Whether a planned run is one of the iteration counts' (its own knob's, or the time steps' run at
+    ITERATION_DT with the adapters' count)."""
+    return item["knob"] == "iterations" or bool(item.get("counts"))
 
 
 def _answer(scene: Scene, item: dict):
@@ -334,9 +347,7 @@ def _summary(model: str, runs: list[tuple[dict, Row]], answer=lambda item: None,
         "iterations": None,
         "not_applicable": next((r.message for _, r in runs if r.status == "not applicable"), None),
     }
-    by_count = sorted(
-        ((i["options"]["iterations"], r, i) for i, r in runs if i["knob"] == "iterations"), key=lambda t: t[0]
-    )
+    by_count = sorted(((i["options"]["iterations"], r, i) for i, r in runs if _counts(i)), key=lambda t: t[0])
     if by_count:
         done = [(k, r, answer(i)) for k, r, i in by_count if r.ok]
         out["iterations"] = {
