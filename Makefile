@@ -16,7 +16,7 @@ export OMPI_ALLOW_RUN_AS_ROOT := 1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM := 1
 export OMPI_MCA_rmaps_base_oversubscribe := 1
 
-.PHONY: setup apt venv precompile engines report test check lint bench bench-peers clean-cache
+.PHONY: setup apt venv precompile engines genesis report test check lint bench bench-peers clean-cache
 
 setup: apt $(STAMP) precompile
 
@@ -69,6 +69,19 @@ $(ENGINES_STAMP): adapters/requirements.txt | apt
 	[ -x $(ENGINES_VENV)/bin/python ] || /usr/bin/python3 -m venv $(ENGINES_VENV)
 	$(ENGINES_VENV)/bin/python -m pip install -q -r adapters/requirements.txt
 	$(ENGINES_VENV)/bin/python -c "import mujoco, mujoco_warp, newton, pybullet, warp"
+	touch $@
+
+# Genesis and the PyTorch it needs, in a venv of their own and never part of `make test`: PyPI's Linux torch
+# wheels bring the CUDA libraries (8.5 GB in all, loaded and unused on a CPU). This target builds it and runs
+# the Genesis adapter's tests, which fail there, never skip, when it is missing (docs/engines.md).
+GENESIS_VENV := .venv-genesis
+GENESIS_STAMP := $(GENESIS_VENV)/.tissuebench-installed
+genesis: setup $(GENESIS_STAMP)
+	TISSUEBENCH_REQUIRE_GENESIS=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist worksteal tests/verification/test_adapter_genesis.py
+$(GENESIS_STAMP): adapters/requirements-genesis.txt | apt
+	[ -x $(GENESIS_VENV)/bin/python ] || /usr/bin/python3 -m venv $(GENESIS_VENV)
+	$(GENESIS_VENV)/bin/python -m pip install -q -r adapters/requirements-genesis.txt
+	$(GENESIS_VENV)/bin/python -c "import genesis, torch"
 	touch $@
 
 # One worker process per core this process may use (pytest-xdist; xdist's own "auto" counts physical

@@ -93,6 +93,22 @@ class AdapterError(Exception):
     """A scene an adapter cannot run; the message is printed as the adapter's one line, exit 2."""
 
 
+def gravity_only(scene: Exported, who: str) -> np.ndarray:
+    """(3,) m/s^2: the scene's gravity, where its loads are gravity alone (the export's nodal forces equal
+    each vertex's lumped mass times it); AdapterError naming ``who`` (an engine that takes no nodal force)
+    where they are not."""
+    g = np.asarray(scene.spec.get("gravity_m_s2") or (0.0, 0.0, 0.0), dtype=float)
+    weight = scene.lumped_masses()[:, None] * g
+    free = ~scene.held()
+    other = np.abs(scene.external_force - weight)[free].max(initial=0.0)
+    if other > 1e-9 * max(float(np.abs(weight).max()), 1e-300):
+        raise AdapterError(
+            f"{who} takes gravity as its only load (no nodal force): this scene has other loads "
+            f"(up to {other:.3g} N on a vertex)"
+        )
+    return g
+
+
 def warp_device(wp, name: str):
     """warp's device ``name`` (``cpu``, ``cuda``, ``cuda:N``), where this machine has it; AdapterError
     naming the devices it has where not (a machine without a CUDA driver has ``cpu`` alone)."""
@@ -607,10 +623,13 @@ def arguments(description: str, solvers: tuple[str, ...]) -> argparse.ArgumentPa
     return ap
 
 
-def main(run, description: str, solvers: tuple[str, ...], argv=None) -> int:
-    """Parse, run ``run(scene, args, progress) -> (run dict, law, engine)``, write; one line and exit 2 on
-    an AdapterError."""
-    args = arguments(description, solvers).parse_args(argv)
+def main(run, description: str, solvers: tuple[str, ...], argv=None, more=None) -> int:
+    """Parse (``more(parser)`` adds an engine's own options), run ``run(scene, args, progress) -> (run dict,
+    law, engine)``, write; one line and exit 2 on an AdapterError."""
+    parser = arguments(description, solvers)
+    if more is not None:
+        more(parser)
+    args = parser.parse_args(argv)
     name = Path(sys.argv[0]).stem
 
     def progress(text: str) -> None:

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from exported import RELAX_FRACTION, AdapterError, Exported, Stepper, drive, main
+from exported import RELAX_FRACTION, AdapterError, Exported, Stepper, drive, gravity_only, main
 
 SOLVERS = ("explicit",)
 
@@ -52,21 +52,6 @@ def write_vtk(path: Path, points: np.ndarray, tets: np.ndarray) -> None:
     lines.append(f"CELL_TYPES {len(tets)}")
     lines += ["10"] * len(tets)
     path.write_text("\n".join(lines) + "\n")
-
-
-def gravity(scene: Exported) -> np.ndarray:
-    """(3,) m/s^2: the scene's gravity, where its loads are gravity alone (the export's nodal forces equal
-    each vertex's lumped mass times it); AdapterError where they are not."""
-    g = np.asarray(scene.spec.get("gravity_m_s2") or (0.0, 0.0, 0.0), dtype=float)
-    weight = scene.lumped_masses()[:, None] * g
-    free = ~scene.held()
-    other = np.abs(scene.external_force - weight)[free].max(initial=0.0)
-    if other > 1e-9 * max(float(np.abs(weight).max()), 1e-300):
-        raise AdapterError(
-            "PyBullet's soft body takes gravity as its only load (no nodal force): this scene has other loads "
-            f"(up to {other:.3g} N on a vertex)"
-        )
-    return g
 
 
 def check(scene: Exported) -> None:
@@ -102,7 +87,7 @@ class PyBulletStepper(Stepper):
         self.p, self.h, self.substeps = p, dt / substeps, substeps
         self.client = p.connect(p.DIRECT)
         p.resetSimulation(p.RESET_USE_DEFORMABLE_WORLD, physicsClientId=self.client)
-        p.setGravity(*gravity(scene), physicsClientId=self.client)
+        p.setGravity(*gravity_only(scene, "PyBullet's soft body"), physicsClientId=self.client)
         p.setTimeStep(self.h, physicsClientId=self.client)
         lam, mu, rho = scene.lame()
         self.total = float((rho * scene.volumes()).sum())

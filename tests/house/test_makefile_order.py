@@ -16,9 +16,9 @@ def test_every_venv_use_waits_for_the_debian_packages():
 
 
 def test_the_database_sees_the_venvs_and_the_apt_target():
-    """The check is only as good as what it reads: the three venvs the Makefile makes and its apt target."""
+    """The check is only as good as what it reads: the four venvs the Makefile makes and its apt target."""
     rules, _ = database()
-    assert venvs(rules) == {".venv", ".venv-engines", ".venv-peers"}
+    assert venvs(rules) == {".venv", ".venv-engines", ".venv-genesis", ".venv-peers"}
     assert apt_targets(rules) == {"apt"}
 
 

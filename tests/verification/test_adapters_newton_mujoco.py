@@ -101,10 +101,10 @@ def _uniaxial_export(directory, law="linear"):
 BAR, BAR_H, BAR_E, BAR_RHO = (0.01, 0.01, 0.08), 0.005, 1.0e6, 1000.0
 
 
-def _hanging_export(directory):
+def _hanging_export(directory, young: float = BAR_E):
     """The bar in the export format, held at its top face in every direction and loaded by gravity alone
-    (each vertex's lumped mass times g), numpy alone. Away from its ends its stress is uniaxial, the
-    weight below each section over the section's area."""
+    (each vertex's lumped mass times g), numpy alone; Young's modulus ``young`` Pa. Away from its ends its
+    stress is uniaxial, the weight below each section over the section's area."""
     from meshes.generators import grid
 
     mesh = grid(BAR, BAR_H)
@@ -116,14 +116,14 @@ def _hanging_export(directory):
     mass = np.zeros(len(p))
     np.add.at(mass, t.ravel(), np.repeat(BAR_RHO * vol / 4, 4))
     g = np.array([0.0, 0.0, -9.81])
-    lam, mu = BAR_E * NU / ((1 + NU) * (1 - 2 * NU)), BAR_E / (2 * (1 + NU))
+    lam, mu = young * NU / ((1 + NU) * (1 - 2 * NU)), young / (2 * (1 + NU))
     spec = {
         "format": "tissuebench-scene",
         "version": 1,
         "scene": "hanging-bar",
         "law": "linear",
         "materials": [
-            {"law": "linear", "young_pa": BAR_E, "poisson": NU, "density_kg_m3": BAR_RHO, "lambda_pa": lam, "mu_pa": mu}
+            {"law": "linear", "young_pa": young, "poisson": NU, "density_kg_m3": BAR_RHO, "lambda_pa": lam, "mu_pa": mu}
         ],  # fmt: skip
         "time": {"mode": "static", "end_s": None, "output_times_s": [0.0]},
         "gravity_m_s2": g.tolist(),

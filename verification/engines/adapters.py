@@ -1,5 +1,5 @@
-"""The engines users pick, through the seam: NVIDIA newton, MuJoCo, PyBullet and MuJoCo Warp, each run by its
-adapter in the engines' own venv (docs/engines.md).
+"""The engines users pick, through the seam: NVIDIA newton, MuJoCo, PyBullet, MuJoCo Warp and Genesis, each run
+by its adapter in the engines' own venv (Genesis in its own: ``make genesis``) (docs/engines.md).
 
 ``--engine newton`` or ``--engine mujoco`` registers one (``load_engine``); its models are then named like
 the built-in ones (``newton-vbd``, ``mujoco-flex``). An adapter is a script in ``adapters/`` that reads the
@@ -32,7 +32,7 @@ from .protocol import SceneInputs, Settling, foreign_spec
 
 ROOT = Path(__file__).resolve().parents[2]
 #: Where the adapters are, and the venv ``make engines`` builds for them.
-ADAPTERS_DIR, ENGINES_VENV = ROOT / "adapters", ROOT / ".venv-engines"
+ADAPTERS_DIR = ROOT / "adapters"
 
 
 @dataclass
@@ -63,6 +63,11 @@ class AdapterEngine:
     #: device for a study of many runs is asked for by name)
     default: bool = True
     timeout: float = TIMEOUT
+    #: the venv its adapter runs in (under the repository), the make target that builds it, and the
+    #: environment variable that names another Python instead
+    venv: str = ".venv-engines"
+    make_target: str = "engines"
+    python_variable: str = "TISSUEBENCH_ENGINES_PYTHON"
     cacheable: bool = True
     isolated: bool = True  # its adapter runs in a process of its own
     spec: str = ""
@@ -81,6 +86,10 @@ class AdapterEngine:
     def build(self, inputs: SceneInputs, model: str, integrator: str, options: dict):
         self.check_options(model, options)
         return AdapterSimulation(self, inputs, model, dict(options))
+
+    def python(self) -> Path:
+        """The Python its adapter runs with: its variable's, else its venv's."""
+        return Path(os.environ.get(self.python_variable) or ROOT / self.venv / "bin" / "python")
 
     def check_options(self, model: str, options: dict) -> None:
         """InputError naming the option and its value where ``options`` are not the knobs this engine takes
@@ -177,6 +186,35 @@ ADAPTERS = {
             ),
         ),
     ),
+    "genesis": AdapterEngine(
+        "genesis",
+        "genesis_fem.py",
+        {
+            "genesis-explicit": "explicit-linear",
+            "genesis-explicit-snh": "explicit-snh",
+            "genesis-implicit": "implicit-linear",
+            "genesis-implicit-corotated": "implicit-corotated",
+        },
+        knobs=("iterations", "substeps"),
+        # Genesis's Elastic models (adapters/genesis_fem.py): the small-strain law, and Smith et al.'s with its
+        # log term at the matched constants; its corotated linear law is none of the truth's
+        laws={"genesis-explicit": "linear", "genesis-explicit-snh": "stable-neo-hookean", "genesis-implicit": "linear"},
+        explicit=("genesis-explicit", "genesis-explicit-snh"),
+        iterative=("genesis-implicit", "genesis-implicit-corotated"),  # its Newton iterations a step
+        # PyTorch and Genesis (8.5 GB with the CUDA libraries PyPI's wheels bring) in a venv of their own,
+        # built by `make genesis` and never by `make test`: a study asks for it by name
+        venv=".venv-genesis",
+        make_target="genesis",
+        python_variable="TISSUEBENCH_GENESIS_PYTHON",
+        default=False,
+        known_warnings=(
+            (
+                r"is not a recognized feature for this target \(ignoring feature\)",
+                "Genesis's kernel compiler (quadrants, on LLVM) names CPU features this LLVM does not know "
+                "(avx512er, avx512pf, prefetchwt1) and ignores them; nothing is wrong",
+            ),
+        ),
+    ),
 }
 
 #: The warnings already explained in this process (one explanation each, not one a run).
@@ -184,16 +222,18 @@ _EXPLAINED: set = set()
 
 
 def engines_python() -> Path:
-    """The Python the adapters run with: ``TISSUEBENCH_ENGINES_PYTHON``, else ``.venv-engines``'s."""
-    return Path(os.environ.get("TISSUEBENCH_ENGINES_PYTHON") or ENGINES_VENV / "bin" / "python")
+    """The Python the engines' venv's adapters run with: ``TISSUEBENCH_ENGINES_PYTHON``, else
+    ``.venv-engines``'s."""
+    return ADAPTERS["newton"].python()
 
 
 def adapter(name: str) -> AdapterEngine:
     """The adapter ``name``, checked runnable; InputError naming what is missing."""
-    python = engines_python()
+    engine = ADAPTERS[name]
+    python = engine.python()
     if not python.exists():
-        raise InputError(f"--engine {name}: the engines' venv is not built ({python}): run `make engines`")
-    return ADAPTERS[name]
+        raise InputError(f"--engine {name}: its venv is not built ({python}): run `make {engine.make_target}`")
+    return engine
 
 
 class AdapterSimulation(CommandSimulation):
@@ -213,7 +253,7 @@ class AdapterSimulation(CommandSimulation):
         return f"engine {self.engine.name}, model {self.model}"
 
     def command(self, scene_dir: Path, result: Path) -> list[str]:
-        args = [str(engines_python()), str(ADAPTERS_DIR / self.engine.script), str(scene_dir), str(result)]
+        args = [str(self.engine.python()), str(ADAPTERS_DIR / self.engine.script), str(scene_dir), str(result)]
         args += ["--solver", self.engine.solvers[self.model]]
         if self.asked_dt is not None:
             args += ["--dt", repr(float(self.asked_dt))]

@@ -67,12 +67,13 @@ def run_key(
 
 
 def engine_versions(model: str) -> dict:
-    """What the engines' venv holds (every installed distribution and its version) when ``model`` runs
+    """What its adapter's venv holds (every installed distribution and its version) when ``model`` runs
     there, an adapter's; {} for the built-in engine's and a plug-in's own models."""
-    from verification.engines.adapters import ADAPTERS, engines_python
+    from verification.engines.adapters import ADAPTERS
 
-    if any(model in a.models for a in ADAPTERS.values()):
-        return installed_versions(engines_python())
+    for a in ADAPTERS.values():
+        if model in a.models:
+            return installed_versions(a.python())
     return {}
 
 
