@@ -247,18 +247,9 @@ def engines_study(
              f"{_knob_value(item)}: {_state(row)} ({time.perf_counter() - t0:.0f} s)")  # fmt: skip
         return item, row
 
-    def runs(k: int, item: dict) -> list[tuple[dict, Row]]:
-        """A planned item's runs: one, or a stability scan's probes down its steps to the first that holds."""
-        out = []
-        for dt in item.get("dts", [item["dt"]]):
-            out.append(one(k, {**item, "dt": dt}))
-            if out[-1][1].status in ("ok", "not applicable"):
-                break
-        return out
-
     pool = ThreadPoolExecutor(max_workers=max(1, jobs))
     try:
-        for done in as_completed([pool.submit(runs, k, item) for k, item in mine]):
+        for done in as_completed([pool.submit(_item_runs, one, k, item) for k, item in mine]):
             for item, row in done.result():
                 rows.append((item, row))
                 if on_run is not None:
@@ -285,6 +276,17 @@ def engines_study(
         ],
         **({"stopped": stopped} if stopped else {}),
     }
+
+
+def _item_runs(one, k: int, item: dict) -> list[tuple[dict, Row]]:
+    """Planned item ``k``'s runs (``one(k, item)`` makes each): one, or a stability scan's probes down its
+    steps to the first that holds."""
+    out = []
+    for dt in item.get("dts", [item["dt"]]):
+        out.append(one(k, {**item, "dt": dt}))
+        if out[-1][1].status in ("ok", "not applicable"):
+            break
+    return out
 
 
 def _entry(item: dict, row: Row) -> dict:
