@@ -17,7 +17,7 @@ from tests.verification.test_adapters_newton_mujoco import (
     BAR_RHO,
     NU,
     _hanging_export,
-    _uniaxial_export,
+    gravity_and_full_hold_refusals,
 )
 from verification.engines.adapters import ADAPTERS, ADAPTERS_DIR
 
@@ -118,20 +118,6 @@ def test_genesis_is_refused_what_it_cannot_be_given(tmp_path):
     """A vertex held in some directions only (the uniaxial block's symmetry planes) and a load that is not
     gravity each give one line, exit 2, and no result."""
 
-    def refusal(directory) -> str:
-        result = directory / "result.npz"
-        args = [str(GENESIS.python()), str(ADAPTERS_DIR / GENESIS.script), str(directory / "scene"), str(result)]
-        done = subprocess.run(args, capture_output=True, text=True, timeout=600)
-        assert done.returncode == 2 and not result.exists(), done.stderr[-2000:]
-        return done.stderr.strip().splitlines()[-1]
-
-    _uniaxial_export(tmp_path / "block" / "scene")
-    assert "holds a vertex in all three directions" in refusal(tmp_path / "block")
-    _hanging_export(tmp_path / "bar" / "scene")
-    arrays = tmp_path / "bar" / "scene" / "arrays.npz"
-    with np.load(arrays) as z:
-        data = dict(z)
-    data["external_force"][0, 0] += 1e-3  # one vertex pushed sideways by 1 mN
-    np.savez(arrays, **data)
-    last = refusal(tmp_path / "bar")
-    assert last.startswith("genesis_fem:") and "gravity as its only load" in last and "0.001 N" in last
+    block, bar = gravity_and_full_hold_refusals(tmp_path, GENESIS.python(), GENESIS.script)
+    assert "holds a vertex in all three directions" in block
+    assert bar.startswith("genesis_fem:") and "gravity as its only load" in bar and "0.001 N" in bar
