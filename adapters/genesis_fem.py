@@ -25,7 +25,7 @@ material, held vertices and tools through its hard vertex constraints (``set_ver
   Genesis's answer as its users get it, and the distance from P1 of its own law shows it.
 - The implicit solver: backward Euler, Newton's method with PCG on the lumped (0.25 rho V) masses, and
   Rayleigh damping (alpha 0.5 1/s, beta 5e-4 s) by default, switched off here; ``--iterations`` is its Newton
-  iterations a step (Genesis's default 1). Its PCG stops at an absolute threshold on the residual's squared
+  iterations a step (Genesis's default, 1, unless asked). Its PCG stops at an absolute threshold on the residual's squared
   norm (1e-6 in its units, where volumes are scaled by 1e4): a relaxation then stalls short of equilibrium
   (5 to 6 % on a bar hanging under its weight, tests/verification/test_adapter_genesis.py). Genesis's
   default is kept; ``--pcg-threshold`` sets another. Its FEM floor (``floor_height``) is put far below the
@@ -212,9 +212,11 @@ def run(scene: Exported, args, progress):
 
 
 def options(parser) -> None:
-    """Genesis's own option: its implicit solver's PCG stops where the residual's squared norm, absolute in
-    its scaled units, is below ``pcg_threshold`` (FEMOptions, 1e-6 by default)."""
+    """Genesis's own: its implicit solver's PCG stops where the residual's squared norm, absolute in its
+    scaled units, is below ``pcg_threshold`` (FEMOptions, 1e-6 by default); ``--iterations``, its Newton
+    iterations a step, defaults to Genesis's 1."""
     parser.add_argument("--pcg-threshold", type=float, help="the implicit solver's PCG threshold (Genesis's: 1e-6)")
+    parser.set_defaults(iterations=1)
 
 
 if __name__ == "__main__":
