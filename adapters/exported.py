@@ -15,9 +15,9 @@ by the residual of the load where the engine gives its net force (``residual``),
 displacement change over the last quarter of the run against the largest displacement (or the engine's
 round-off in a position, 8 ulp of the largest coordinate, if that is larger); or until round-off stops it
 first (the residual no longer halves, the change stops shrinking below ``STALLED`` or below ``WALK``
-round-offs). The state is then released from rest and must stay where it is (``HOLD``). A dynamic scene is run
-from rest to its end, and sampled at its output instants; the tools' prescribed displacements come from
-the export at those instants, linearly interpolated in between.
+round-offs). The state is then released from rest and must stay where it is (``HOLD``). A dynamic scene
+is run from rest to its end, and sampled at its output instants; the tools' prescribed displacements come
+from the export at those instants, linearly interpolated in between.
 
 A scene's rigid tools (``scene.json`` ``rigid_tools``: a sphere, a capsule or a plane, frictionless) are the
 engine's own contact: the adapter builds each as its engine's shape, the driver moves it along its travel with
@@ -392,9 +392,10 @@ def relax(
     the run (at least ``check`` steps, so that a slow mode still on its way is seen however few steps one
     of its cycles takes), is. Either stops first at round-off: the change stalled below ``STALLED`` (or
     ``WALK`` round-offs), or the residual no longer halving over the last half of the run (``stalled_at``,
-    ``residual`` in the result), and then runs the damped tail (``_stalled``). When its budget (``max_steps`` steps or
-    ``max_wall`` seconds, whichever comes first) runs out before the stall rules' windows, they act on the run
-    it had: a change below ``STALLED`` that failed to halve, a residual below it that no longer halves, or
+    ``residual`` in the result), and then runs the damped tail (``_stalled``). When its budget
+    (``max_steps`` steps or ``max_wall`` seconds, whichever comes first) runs out before the stall rules'
+    windows, they act on the run it had: a change below ``STALLED`` (or ``WALK`` round-offs) that failed to
+    halve, one within ``WALK`` round-offs, a residual below ``STALLED`` that no longer halves, or
     either within ``BUDGET_TOLERANCE`` however it still falls, is a stall there too (``budget_spent`` 1 in
     the result: MuJoCo's discrete flex on the liver, its residual at 4e-8 after 300 s of 63 ms steps, was
     "not settled"). Otherwise it stops unsettled."""

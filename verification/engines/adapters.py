@@ -31,7 +31,7 @@ from .command import TIMEOUT, CommandSimulation
 from .protocol import SceneInputs, Settling, foreign_spec
 
 ROOT = Path(__file__).resolve().parents[2]
-#: Where the adapters are, and the venv ``make engines`` builds for them.
+#: Where the adapters are (each runs in its engine's venv: ``AdapterEngine.venv``).
 ADAPTERS_DIR = ROOT / "adapters"
 
 

@@ -16,8 +16,8 @@ from rest under the scene's loads, no damping of ours: ``AdapterSimulation.probe
 step is the largest planned one the probe passed, bracketed by the smallest above it that blew up (a
 factor of 2 to 3 apart: the grid's resolution). The probes go down the grid from its largest step and
 stop at the first that holds: the steps below it cannot change that answer, and an implicit solver's
-probes that hold are the costly ones (newton's VBD: 20 s each on the liver). It can exceed the largest step whose static relaxation
-settles: kinetic damping's velocity resets make some steps gradient descent, stable only below
+probes that hold are the costly ones (newton's VBD: 20 s each on the liver). It can exceed the largest
+step whose static relaxation settles: kinetic damping's velocity resets make some steps gradient descent, stable only below
 sqrt(2) / omega_max (adapters/exported.py, RELAX_FRACTION). The answer depends on
 the iteration count when the answers at the two largest counts differ by more than ``DEPENDS`` of the
 reference's norm.
