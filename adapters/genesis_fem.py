@@ -67,7 +67,10 @@ def check(scene: Exported) -> np.ndarray:
     if len(set(np.asarray(scene.material_index).tolist())) > 1:
         raise AdapterError("Genesis's adapter makes one FEM entity of one material: this scene has several")
     if any(scene.damping):
-        raise AdapterError("Genesis's FEM damping is not Rayleigh's of the scene: this dynamic scene's is not taken")
+        raise AdapterError(
+            "the adapter does not map a dynamic scene's Rayleigh damping onto Genesis's (its implicit solver's "
+            "alpha and beta, its explicit solver's velocity decay)"
+        )
     return gravity_only(scene, "Genesis's FEM entity")
 
 
@@ -121,7 +124,7 @@ class GenesisStepper(Stepper):
             ),
             show_viewer=False,
         )  # fmt: skip
-        self.entity = self.gs_scene.add_entity(
+        self.entity = self.gs_scene.add_entity(  # a box Genesis meshes, its mesh then replaced by the scene's
             morph=gs.morphs.Box(pos=tuple(scene.points.mean(axis=0)), size=(scene.size,) * 3),
             material=gs.materials.FEM.Elastic(E=young, nu=poisson, rho=float(rho[0]), model=model),
         )
