@@ -462,8 +462,8 @@ def test_the_plan_gives_each_solver_its_knobs():
 def test_the_stability_scan_stops_at_the_first_step_that_holds_and_finds_what_every_probe_would(monkeypatch):
     """The probes go down the grid from its largest step: an implicit solver's probes that hold are the
     costly ones (20 s each of newton's VBD on the liver), and none below the largest that holds can change
-    its largest stable step or the first diverged step above it. A scan that passes one step and fails the
-    next below it (a stability that is not monotone) still reports the largest that held."""
+    its largest stable step or the first diverged step above it: the summary reads them off the probes
+    the scan made."""
     from verification.scene_file import load_scene
 
     engines = _study_with_fake_runs(monkeypatch, stop_at=None)
