@@ -74,11 +74,15 @@ $(ENGINES_STAMP): adapters/requirements.txt | apt
 # Genesis and the PyTorch it needs, in a venv of their own and never part of `make test`: PyPI's Linux torch
 # wheels bring the CUDA libraries (8.5 GB in all, loaded and unused on a CPU). This target builds it and runs
 # the Genesis adapter's tests, which fail there, never skip, when it is missing (docs/engines.md).
+# `import genesis` maps libGL and X11's client libraries (its viewer's, pyrender and PyOpenGL, even headless):
+# GENESIS_APT_PACKAGES (tests/house/test_debian_packages.py checks the import against them).
 GENESIS_VENV := .venv-genesis
 GENESIS_STAMP := $(GENESIS_VENV)/.tissuebench-installed
+GENESIS_APT_PACKAGES := libgl1 libopengl0 libglx0 libx11-6 libxext6 libxinerama1 libxrandr2 libxrender1 libxxf86vm1
 genesis: setup $(GENESIS_STAMP)
 	TISSUEBENCH_REQUIRE_GENESIS=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist worksteal tests/verification/test_adapter_genesis.py
 $(GENESIS_STAMP): adapters/requirements-genesis.txt | apt
+	$(MAKE) --no-print-directory apt APT_PACKAGES="$(GENESIS_APT_PACKAGES)"
 	[ -x $(GENESIS_VENV)/bin/python ] || /usr/bin/python3 -m venv $(GENESIS_VENV)
 	$(GENESIS_VENV)/bin/python -m pip install -q -r adapters/requirements-genesis.txt
 	$(GENESIS_VENV)/bin/python -c "import genesis, torch"

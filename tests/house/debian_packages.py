@@ -26,11 +26,11 @@ OPTIONAL = {
 }
 
 
-def makefile_packages(makefile: Path = MAKEFILE) -> list[str]:
-    """The Debian packages of the Makefile's ``APT_PACKAGES :=`` line."""
-    m = re.search(r"^APT_PACKAGES\s*:?=\s*(.*)$", Path(makefile).read_text(), flags=re.MULTILINE)
+def makefile_packages(makefile: Path = MAKEFILE, variable: str = "APT_PACKAGES") -> list[str]:
+    """The Debian packages of the Makefile's ``APT_PACKAGES :=`` line (or ``variable``'s)."""
+    m = re.search(rf"^{variable}\s*:?=\s*(.*)$", Path(makefile).read_text(), flags=re.MULTILINE)
     if m is None:
-        raise ValueError(f"{makefile}: no APT_PACKAGES line")
+        raise ValueError(f"{makefile}: no {variable} line")
     return m.group(1).split()
 
 
@@ -177,11 +177,14 @@ def loaded_files() -> dict[str, list[str]]:
     return {**outside_venv_files(), **loaded_libraries()}
 
 
-def missing_packages(makefile: Path = MAKEFILE, files: dict[str, list[str]] | None = None) -> dict[str, list[str]]:
+def missing_packages(
+    makefile: Path = MAKEFILE, files: dict[str, list[str]] | None = None, also: tuple[str, ...] = ()
+) -> dict[str, list[str]]:
     """Debian packages (or ``<no package>: FILE``) that loaded files came from and that the Makefile
-    neither installs nor pulls in: package -> the modules or libraries. The files are ``files`` if given
-    (what other processes loaded, say), else this process's loaded_files()."""
-    closure = dependency_closure(makefile_packages(makefile))
+    neither installs nor pulls in (with its variables ``also``, a target's own packages, beside
+    APT_PACKAGES): package -> the modules or libraries. The files are ``files`` if given (what other
+    processes loaded, say), else this process's loaded_files()."""
+    closure = dependency_closure([p for v in ("APT_PACKAGES", *also) for p in makefile_packages(makefile, v)])
     from_pip = pip_supplied()
     if files is None:
         files = loaded_files()

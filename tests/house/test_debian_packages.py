@@ -117,3 +117,31 @@ def test_under_xdist_the_controller_checks_what_every_worker_loaded(tmp_path):
     assert run.returncode == 1, run.stdout[-3000:] + run.stderr[-2000:]
     assert len(lines) == 1 and "python3-h5py" in lines[0] and "h5py" in lines[0], run.stdout[-3000:]
     assert "1 passed" in run.stdout, run.stdout[-3000:]  # the h5py test; the run_last one left the workers
+
+
+GENESIS_PYTHON = MAKEFILE.parent / ".venv-genesis" / "bin" / "python"
+
+
+@pytest.mark.skipif(not GENESIS_PYTHON.exists(), reason="make genesis builds Genesis's venv")
+def test_genesis_maps_only_libraries_make_genesis_installs(tmp_path):
+    """``import genesis`` maps libGL and X11's client libraries (its viewer's pyrender and PyOpenGL, headless
+    too), which a fresh Debian 12 lacks. Today python3-gmsh and chromium pull them in by chance (without
+    python3-gmsh, libopengl0 is missing); make genesis installs GENESIS_APT_PACKAGES beside APT_PACKAGES.
+    Every system library the import maps comes from those; with Genesis's own packages and python3-gmsh
+    dropped, the check names libopengl0."""
+    import re
+    import subprocess
+
+    from .debian_packages import loaded_libraries
+
+    code = "import genesis; print(open('/proc/self/maps').read())"
+    run = subprocess.run([str(GENESIS_PYTHON), "-c", code], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    (tmp_path / "maps").write_text(run.stdout)
+    files = loaded_libraries(str(tmp_path / "maps"))
+    assert any("libGL.so" in f for f in files), "import genesis mapped no libGL: the check sees nothing"
+    assert not missing_packages(files=files, also=("GENESIS_APT_PACKAGES",))
+    text = re.sub(r"(?m)^GENESIS_APT_PACKAGES\s*:=.*$", "GENESIS_APT_PACKAGES :=", MAKEFILE.read_text())
+    assert "python3-gmsh" not in makefile_packages_of(text.replace(" python3-gmsh", ""), tmp_path)
+    missing = missing_packages(tmp_path / "Makefile", files, also=("GENESIS_APT_PACKAGES",))
+    assert "libopengl0" in missing, missing
