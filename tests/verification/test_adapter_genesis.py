@@ -18,6 +18,7 @@ from tests.verification.test_adapters_newton_mujoco import (
     BAR_RHO,
     NU,
     _hanging_export,
+    bar_constants,
     gravity_and_full_hold_refusals,
 )
 from verification.engines.adapters import ADAPTERS, ADAPTERS_DIR
@@ -51,22 +52,6 @@ def _run(tmp_path, solver: str, *extra) -> tuple[np.ndarray, dict]:
         return z["displacement"][0], {k: z[k].item() for k in z.files if z[k].ndim == 0}
 
 
-def _bar_constants(points: np.ndarray, u: np.ndarray, weight) -> list[tuple[float, float]]:
-    """(E Pa, nu) of the hanging bar's sections 4 to 12 layers from its free end: ``weight(k)`` (N), the
-    weight hanging below the element layer k, over its area and axial strain; the lateral strain over the
-    axial."""
-    layers = int(round(BAR[2] / BAR_H)) + 1
-    at = [np.isclose(points[:, 2], k * BAR_H) for k in range(layers)]
-    uz = np.array([u[k, 2].mean() for k in at])
-    out = []
-    for k in range(4, 12):  # the element layer between z[k] and z[k + 1]
-        axial = (uz[k + 1] - uz[k]) / BAR_H
-        side = u[at[k] & (points[:, 0] > BAR[0] - 1e-12), 0].mean() - u[at[k] & (points[:, 0] < 1e-12), 0].mean()
-        strain_here = 0.5 * ((uz[k + 1] - uz[k]) + (uz[k] - uz[k - 1])) / BAR_H
-        out.append((weight(k) / (BAR[0] * BAR[1] * axial), -(side / BAR[0]) / strain_here))
-    return out
-
-
 def lumped(k: int) -> float:
     """The scene's weight below element layer k (N): lumped masses, the end layer of nodes holding half."""
     return (k + 0.5) / (BAR[2] / BAR_H) * BAR_RHO * np.prod(BAR) * 9.81
@@ -93,10 +78,10 @@ def test_genesis_explicit_fem_loads_each_vertex_with_one_elements_weight(tmp_pat
     points = _hanging_export(tmp_path / "scene", young=young_asked)
     u, report = _run(tmp_path, solver)
     assert report["settled"] == 1
-    for young, poisson in _bar_constants(points, u, one_element_each):
+    for young, poisson in bar_constants(points, u, one_element_each):
         assert young == pytest.approx(young_asked, rel=0.01)
         assert poisson == pytest.approx(NU, rel=0.01)
-    ratio = [y / young_asked for y, _ in _bar_constants(points, u, lumped)]
+    ratio = [y / young_asked for y, _ in bar_constants(points, u, lumped)]
     assert min(ratio) > 2.3 and max(ratio) < 2.6  # against the scene's load: the bar sags 40 % of its sag
 
 
@@ -110,19 +95,18 @@ def test_genesis_implicit_fem_has_its_constants_and_stops_short_at_its_default_t
     points = _hanging_export(tmp_path / "scene", young=SOFT)
     u, report = _run(tmp_path, solver, "--dt", "1e-2", "--iterations", "1", "--pcg-threshold", "1e-14")
     assert report["settled"] == 1
-    for young, poisson in _bar_constants(points, u, lumped):
+    for young, poisson in bar_constants(points, u, lumped):
         assert young == pytest.approx(SOFT, rel=0.01)
         assert poisson == pytest.approx(NU, rel=0.01)
     u, report = _run(tmp_path, solver, "--dt", "1e-2", "--iterations", "1")
     assert report["settled"] == 1
-    assert all(0.9 < young / SOFT < 0.97 for young, _ in _bar_constants(points, u, lumped))
+    assert all(0.9 < young / SOFT < 0.97 for young, _ in bar_constants(points, u, lumped))
 
 
 @needs_genesis
 def test_genesis_is_refused_what_it_cannot_be_given(tmp_path):
     """A vertex held in some directions only (the uniaxial block's symmetry planes) and a load that is not
     gravity each give one line, exit 2, and no result."""
-
     block, bar = gravity_and_full_hold_refusals(tmp_path, GENESIS.python(), GENESIS.script)
     assert "holds a vertex in all three directions" in block
     assert bar.startswith("genesis_fem:") and "gravity as its only load" in bar and "0.001 N" in bar

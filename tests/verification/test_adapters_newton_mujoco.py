@@ -152,17 +152,26 @@ def test_pybullets_soft_body_has_the_young_modulus_and_poisson_ratio_asked(tmp_p
     u, report, _ = run_adapter(tmp_path, "pybullet_tets.py", "explicit")
     assert report["settled"] == 1
     layers = int(round(BAR[2] / BAR_H)) + 1
-    z = np.arange(layers) * BAR_H
-    at = [np.isclose(points[:, 2], zk) for zk in z]
+    even = lambda k: (k + 1) / layers * BAR_RHO * np.prod(BAR) * 9.81  # noqa: E731  (layers 0..k's nodes)
+    for young, poisson in bar_constants(points, u, even):
+        assert young == pytest.approx(BAR_E, rel=0.01)
+        assert poisson == pytest.approx(NU, rel=0.01)
+
+
+def bar_constants(points: np.ndarray, u: np.ndarray, weight) -> list[tuple[float, float]]:
+    """(E Pa, nu) of the hanging bar's sections 4 to 12 layers from its free end, away from its held top:
+    ``weight(k)`` (N), the weight an engine hangs below the element layer k (between node layers k and
+    k + 1), over the section's area and its axial strain; the lateral strain there over the axial."""
+    layers = int(round(BAR[2] / BAR_H)) + 1
+    at = [np.isclose(points[:, 2], k * BAR_H) for k in range(layers)]
     uz = np.array([u[k, 2].mean() for k in at])
-    mass = BAR_RHO * np.prod(BAR)
-    for k in range(4, 12):  # the element layer between z[k] and z[k + 1] carries layers 0..k's weight
+    out = []
+    for k in range(4, 12):
         axial = (uz[k + 1] - uz[k]) / BAR_H
-        weight = (k + 1) / layers * mass * 9.81
-        assert weight / (BAR[0] * BAR[1] * axial) == pytest.approx(BAR_E, rel=0.01)
         side = u[at[k] & (points[:, 0] > BAR[0] - 1e-12), 0].mean() - u[at[k] & (points[:, 0] < 1e-12), 0].mean()
         strain_here = 0.5 * ((uz[k + 1] - uz[k]) + (uz[k] - uz[k - 1])) / BAR_H
-        assert -(side / BAR[0]) / strain_here == pytest.approx(NU, rel=0.01)
+        out.append((weight(k) / (BAR[0] * BAR[1] * axial), -(side / BAR[0]) / strain_here))
+    return out
 
 
 @needs_engines
