@@ -77,7 +77,10 @@ def _blowup_reason(model: Model, u: np.ndarray) -> str:
 
 
 class NotConvergedError(RuntimeError):
-    """Damped dynamics did not reach static equilibrium within the step budget."""
+    """Damped dynamics did not reach static equilibrium within the step budget. ``u``: the displacement
+    (N, 3) m where it stopped, where the solver gives it (``realtime.statics.solve_static``), else None."""
+
+    u: np.ndarray | None = None
 
 
 def blowup_bound(model: Model) -> float:

@@ -127,11 +127,11 @@ def solve_static(
             if _converged(model, state.u, residual, rtol, scale, f, best, since_best, force):
                 break
             if since_best >= STALLED_CHUNKS:
-                raise _not_settled(model, residual, rtol, taken, dt, omega2, damping.alpha, chunk * since_best)
+                raise _not_settled(model, residual, rtol, taken, dt, omega2, damping.alpha, state.u, chunk * since_best)
         damping.update(model, state.u, free, omega2, force)
     else:
         if steps is None:
-            raise _not_settled(model, residual, rtol, taken, dt, omega2, damping.alpha)
+            raise _not_settled(model, residual, rtol, taken, dt, omega2, damping.alpha, state.u)
     state.v[:] = 0.0
     state.steps = taken
     return StaticResult(state=state, steps=taken, residual=residual, dt=dt)
@@ -203,10 +203,17 @@ class _Damping:
             self.alpha = _damping(model, u, free, omega2, self.alpha, force)
 
 
-def _not_settled(model: Model, residual, rtol, taken: int, dt: float, omega2: float, alpha: float, stalled: int = 0):
+def _not_settled(model: Model, residual, rtol, taken: int, dt: float, omega2: float, alpha: float, u, stalled: int = 0):
     """The error of a settling that ran out of steps, or (``stalled`` > 0) whose residual has not fallen
     by 10% in its last ``stalled`` steps; omega2 (1/s^2) and alpha (1/s): its fastest mode and damping,
-    as last estimated (alpha = 2 omega_1)."""
+    as last estimated (alpha = 2 omega_1); u (N, 3) m where it stopped (the error's ``u``)."""
+    error = _not_settled_text(model, residual, rtol, taken, dt, omega2, alpha, stalled)
+    error.u = np.array(u)
+    return error
+
+
+def _not_settled_text(model: Model, residual, rtol, taken: int, dt: float, omega2: float, alpha: float, stalled: int):
+    """``_not_settled``'s error, its words."""
     slow = math.sqrt(omega2) / max(0.5 * alpha, 1e-300)
     if stalled:
         return NotConvergedError(

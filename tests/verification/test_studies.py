@@ -223,12 +223,20 @@ def test_references_solved_ahead_on_two_processes_are_the_ones_a_study_finds(tmp
         assert np.linalg.norm(cached.displacement - fresh) <= 1e-12 * np.linalg.norm(fresh)
 
 
+#: A settling made in a spawned process against the same made in the test's: on an AMD EPYC with AVX-512,
+#: adaptive-tm's critical step came out one unit in the last place apart (its step, 0.9 of it, with it),
+#: and its equilibrium 3e-15 of its largest displacement (14 machine epsilons), where two runs in one
+#: process, or in two spawned ones, agree bit for bit (on an Intel Xeon every pair did). Its 19 800 steps
+#: carry such a difference on: a thousand times it, still far below any error the suite judges.
+AHEAD_ROUND_OFF = 1e4 * float(np.finfo(float).eps)
+
+
 @pytest.mark.slow
 def test_settlings_made_ahead_on_two_processes_are_the_ones_a_run_makes(tmp_path, monkeypatch):
     """settle_ahead settles a static scene in spawned processes into the cache that run_model reads;
-    the run then only times. Its equilibrium and step count are what it would have settled itself, bit
-    for bit (one code, one machine; only the process differs), and a diverging fraction is left to the
-    run, which reports it."""
+    the run then only times. Its equilibrium and step count are what it would have settled itself, to
+    AHEAD_ROUND_OFF (one code, one machine; only the process differs), and a diverging fraction is left
+    to the run, which reports it."""
     from realtime import DivergenceError
     from verification.engines.builtin import scene_model
     from verification.engines.settling import settled, settled_path
@@ -249,14 +257,17 @@ def test_settlings_made_ahead_on_two_processes_are_the_ones_a_run_makes(tmp_path
         ahead = run_model(scene, model, dt_fraction=0.9)
         path.unlink()
         here = settled(scene_inputs(scene), scene_model(scene, model), dt_fraction=0.9)
-        assert np.array_equal(ahead.displacement[0], here.state.u[: scene.mesh.n_vertices])
-        assert ahead.meta["static"]["steps"] == here.steps and ahead.meta["dt"] == here.dt
+        gap = np.abs(ahead.displacement[0] - here.state.u[: scene.mesh.n_vertices]).max()
+        assert gap <= AHEAD_ROUND_OFF * np.abs(here.state.u).max(), (model, gap)
+        assert ahead.meta["static"]["steps"] == here.steps
+        assert abs(ahead.meta["dt"] - here.dt) <= 4.0 * np.finfo(float).eps * here.dt
     implicit = settled_path(scene_inputs(scene), "linear-tm", "implicit-euler", None, None, 1e-10, 2_000_000, None)
     assert implicit.exists()  # the advisor's implicit Euler row, settled ahead too
     ahead = run_model(scene, "linear-tm", integrator="implicit-euler")
     implicit.unlink()
     here = settled(scene_inputs(scene), scene_model(scene, "linear-tm"), "implicit-euler")
-    assert np.array_equal(ahead.displacement[0], here.state.u) and ahead.meta["static"]["steps"] == here.steps
+    gap = np.abs(ahead.displacement[0] - here.state.u).max()
+    assert gap <= AHEAD_ROUND_OFF * np.abs(here.state.u).max() and ahead.meta["static"]["steps"] == here.steps
     with pytest.raises(DivergenceError):
         run_model(scene, "linear-tm", dt_fraction=1.1)
     assert not list((tmp_path / "settled").glob("cantilever-dynamic-*"))  # dynamic scenes are not settled
@@ -760,14 +771,18 @@ def test_the_stability_map_shows_stvk_inverting_under_compression_where_neo_hook
     """The extreme "compression to half the length" of the cantilever, which the StVK truth cannot follow
     (its Newton meets inverted elements): the map records each model's own fate there. stvk-tm settles
     with elements turned inside out (StVK's stress vanishes as a tetrahedron flattens); neohookean-tm,
-    whose energy is infinite at J = 0, settles with none."""
+    whose energy is infinite at J = 0, ends with none. Whether neohookean-tm settles there within the
+    budget is the machine's round-off's to decide: it did on an Intel Xeon; on an AMD EPYC its residual
+    stayed at 1.1e-3 of the load from its 40 000th step to its 200 000th, where the map says where it
+    stopped."""
     from verification.studies.stability import _alone, _far_face_tool
 
     squeezed = _far_face_tool(load_scene("cantilever"), "compression")
     stvk = _alone(squeezed, "stvk-tm", "symplectic-euler", "no reference")
     nh = _alone(squeezed, "neohookean-tm", "symplectic-euler", "no reference")
-    assert stvk["status"] == nh["status"] == "settled, no reference"
-    assert stvk["inverted"] > 0 and nh["inverted"] == 0
+    assert stvk["status"] == "settled, no reference" and stvk["inverted"] > 0
+    assert nh["status"] in ("settled, no reference", "not settled") and nh["inverted"] == 0, nh
+    assert f"{nh['inverted']} inverted elements" in nh["detail"]
 
 
 def test_a_run_kept_with_its_answer_gives_it_back_and_one_kept_without_is_run_again():

@@ -139,22 +139,29 @@ def _cell(scene: Scene, model: str, integrator: str, tol: float, baseline: float
 
 def _alone(scene: Scene, model: str, integrator: str, why: str) -> dict:
     """A cell whose reference failed (buckling, StVK softening): the model's own fate, and how many of
-    its elements ended inverted."""
+    its elements ended inverted (settled, or where a run that did not settle stopped)."""
     from realtime import DivergenceError, NotConvergedError
     from realtime.geometry import signed_volumes
     from verification.runs.simulate import run_model
+
+    def inverted(u: np.ndarray) -> int:
+        return int(np.sum(signed_volumes(scene.mesh.points + u[: scene.mesh.n_vertices], scene.mesh.tets) <= 0.0))
 
     try:
         res = run_model(scene, model, integrator=integrator, max_steps=STABILITY_BUDGET)
     except DivergenceError as exc:
         return {"status": "diverged", "detail": f"{why}; the model diverged at step {exc.step}"}
-    except NotConvergedError:
-        return {"status": "not settled", "detail": f"{why}; the model did not settle in {STABILITY_BUDGET} steps"}
-    inverted = int(np.sum(signed_volumes(scene.mesh.points + res.displacement[-1], scene.mesh.tets) <= 0.0))
+    except NotConvergedError as exc:
+        out = {"status": "not settled", "detail": f"{why}; the model did not settle in {STABILITY_BUDGET} steps"}
+        if exc.u is not None:  # where it stopped: whether it had turned elements inside out on its way
+            out["inverted"] = inverted(exc.u)
+            out["detail"] += f", and stopped with {out['inverted']} inverted elements"
+        return out
+    n = inverted(res.displacement[-1])
     return {
         "status": "settled, no reference",
-        "inverted": inverted,
-        "detail": f"{why}; the model settled with {inverted} inverted elements",
+        "inverted": n,
+        "detail": f"{why}; the model settled with {n} inverted elements",
     }
 
 
