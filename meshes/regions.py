@@ -30,6 +30,12 @@ class Region:
     def contains(self, x: np.ndarray, mesh: TetMesh) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def rule(self) -> dict | None:
+        """The region as data another program can apply to a mesh of its own (an engine that meshes the
+        body itself: ``tissuebench export``'s "regions"); None where the region is drawn on this mesh (its
+        tags, a field, vertex ids) and no rule carries it to another."""
+        return None
+
 
 @dataclass(frozen=True)
 class BoxRegion(Region):
@@ -41,6 +47,9 @@ class BoxRegion(Region):
 
     def describe(self):
         return f"box = [{list(self.lo)}, {list(self.hi)}]"
+
+    def rule(self):
+        return {"box": {"lo_m": [float(v) for v in self.lo], "hi_m": [float(v) for v in self.hi]}}
 
 
 @dataclass(frozen=True)
@@ -54,6 +63,9 @@ class SphereRegion(Region):
     def describe(self):
         return f"sphere = {{ center = {list(self.center)}, radius = {self.radius} }}"
 
+    def rule(self):
+        return {"sphere": {"center_m": [float(v) for v in self.center], "radius_m": float(self.radius)}}
+
 
 @dataclass(frozen=True)
 class AllRegion(Region):
@@ -62,6 +74,9 @@ class AllRegion(Region):
 
     def describe(self):
         return "all = true"
+
+    def rule(self):
+        return {"all": True}
 
 
 @dataclass(frozen=True)

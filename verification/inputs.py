@@ -185,7 +185,17 @@ def scene_inputs(scene) -> SceneInputs:
         time=TimeMode(ts.mode, ts.end, ts.output_every, ts.damping_mass, ts.damping_stiffness),
         gravity=next((tuple(ld.value) for ld in scene.problem.loads if isinstance(ld, Gravity)), (0.0, 0.0, 0.0)),
         loading_on=_loading_on(scene),
+        regions=_region_rules(scene.problem),
     )
+
+
+def _region_rules(problem: Problem) -> dict:
+    """``SceneInputs.regions``: the held and driven regions of ``problem`` by their rule."""
+
+    def entry(c) -> dict:
+        return {"rule": c.region.rule(), "components": list(c.components)}
+
+    return {"fixed": [entry(fx) for fx in problem.fixed], "tools": [entry(ld) for ld in problem.tools]}
 
 
 def _loading_on(scene):

@@ -15,6 +15,9 @@ DIR receives, each written whole (a temporary file, then a rename):
 - a scene with rigid tools (``[[tool]] shape``) lists them in ``scene.json`` under ``rigid_tools``: each
   one's shape (sphere, capsule, plane), its place at t = 0, its size and its translation along its ramp,
   for the engine's own contact to meet (``rigid_tools``);
+- ``regions`` in ``scene.json``: the held regions and the tools' regions by their rule (a box, a sphere,
+  the whole body; null where the scene draws one by its mesh's tags, a field or vertex ids), for an engine
+  that meshes the body itself and must find them on its own vertices (``SceneInputs.regions``);
 - ``mesh.vtu`` and ``mesh.msh`` (gmsh 2.2 ASCII): the mesh, with the material index per tetrahedron.
 
 A scene with events (a cut) is one static problem per state: DIR holds the body as meshed, and
@@ -131,6 +134,7 @@ def describe(inputs: SceneInputs) -> dict:
         "gravity_m_s2": list(inputs.gravity),
         "tools": tools,
         "rigid_tools": rigid_tools(inputs),
+        "regions": dict(inputs.regions),
         "mesh": {"vtu": "mesh.vtu", "gmsh22": "mesh.msh", "n_vertices": len(inputs.points), "n_tets": len(inputs.tets)},
         "arrays": {
             "file": "arrays.npz",

@@ -60,6 +60,10 @@ class SceneInputs:
             the scene mesh's (adaptive refinement), the loading of the same scene on that mesh
             (a function of its points (V, 3) m, tetrahedra (K, 4) and densities (K,) kg/m^3);
             None where the scene crossed a process boundary.
+        regions: for an engine that meshes the body itself, the scene's held and driven regions by their
+            rule (``meshes.regions.Region.rule``): "fixed", one entry a [[fixed]] table, and "tools", one
+            a tool in ``loading``'s order, each {"rule": dict or None, "components": ["x", ...]}; empty
+            where the scene was not made from a scene file.
     """
 
     name: str
@@ -72,6 +76,7 @@ class SceneInputs:
     time: TimeMode
     gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
     loading_on: Callable | None = field(default=None, repr=False, compare=False)
+    regions: Mapping = field(default_factory=dict, compare=False)
 
     @property
     def n_vertices(self) -> int:
