@@ -11,7 +11,9 @@ material, held vertices and tools through its hard vertex constraints (``set_ver
   the entity the scene's own tetrahedra through its public ``instantiate(verts, elems)``, before the scene is
   built: the scene's vertices in their order, each tetrahedron ordered as Genesis asks (a negative
   determinant of (a - d, b - d, c - d)). Genesis's own mesher splits the tetrahedra whose four vertices lie on
-  the surface, for its hydroelastic contact; the scene's are given as they are (no contact here).
+  the surface, for its hydroelastic contact; the scene's are given as they are (no contact here). With
+  ``--mesh own`` Genesis meshes the scene's surface itself, as a user's file (``GenesisStepper._own_mesh``),
+  and the result, on its vertices, is for ``tissuebench judge``.
 - The laws (``materials.FEM.Elastic``, its ``model``), from Genesis's source (``engine/materials/FEM/elastic.py``):
   ``linear``, P = mu (F + F^T - 2 I) + lambda tr(F - I) I, the small-strain law (explicit and implicit);
   ``stable_neohookean``, P = mu (1 - 1 / (I_C + 1)) F + lambda (J - 1 - 3/4 mu / lambda) dJ/dF, Smith, de Goes
