@@ -624,9 +624,17 @@ def arguments(description: str, solvers: tuple[str, ...]) -> argparse.ArgumentPa
     return ap
 
 
+#: The line a served adapter (``main``'s ``--serve``) writes on stderr after each run, with its exit status.
+SERVED = "tissuebench-adapter-served:"
+
+
 def main(run, description: str, solvers: tuple[str, ...], argv=None, more=None) -> int:
     """Parse (``more(parser)`` adds an engine's own options), run ``run(scene, args, progress) -> (run dict,
-    law, engine)``, write; one line and exit 2 on an AdapterError."""
+    law, engine)``, write; one line and exit 2 on an AdapterError. With the single argument ``--serve``,
+    many runs in this one process (``serve``)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv == ["--serve"]:
+        return serve(run, description, solvers, more)
     parser = arguments(description, solvers)
     if more is not None:
         more(parser)
@@ -643,6 +651,27 @@ def main(run, description: str, solvers: tuple[str, ...], argv=None, more=None) 
         print(f"{name}: {exc}", file=sys.stderr)
         return 2
     write(args.result, scene, result, law, engine)
+    return 0
+
+
+def serve(run, description: str, solvers: tuple[str, ...], more=None) -> int:
+    """Runs one after another in this process, each a line of stdin (a JSON list: the command line a run
+    would have), each ended by ``SERVED`` and the status it would have exited with on stderr: the engine is
+    imported once (newton and warp take 2.6 s to import, a run on the liver a few seconds more). A run that
+    fails otherwise than by an AdapterError ends the service (its engine may be left in any state)."""
+    import traceback
+
+    for line in sys.stdin:
+        try:
+            status = main(run, description, solvers, json.loads(line), more)
+        except SystemExit as exc:  # argparse's own exit on a command line it refuses
+            status = exc.code if isinstance(exc.code, int) else 2
+        except Exception:
+            traceback.print_exc()
+            status = 1
+        print(f"{SERVED} {status}", file=sys.stderr, flush=True)
+        if status not in (0, 2):
+            return status
     return 0
 
 

@@ -29,6 +29,7 @@ from realtime.errors import InputError, ModelRestriction
 
 from .command import TIMEOUT, CommandSimulation
 from .protocol import SceneInputs, Settling, foreign_spec
+from .served import served_call
 
 ROOT = Path(__file__).resolve().parents[2]
 #: Where the adapters are (each runs in its engine's venv: ``AdapterEngine.venv``).
@@ -70,6 +71,9 @@ class AdapterEngine:
     python_variable: str = "TISSUEBENCH_ENGINES_PYTHON"
     cacheable: bool = True
     isolated: bool = True  # its adapter runs in a process of its own
+    #: its adapter serves many runs in one process (``engines.served``); False where a run leaves its engine
+    #: in a state the next could see (Genesis's ``gs.init`` once a process, PyBullet's connection a run)
+    serves: bool = True
     spec: str = ""
     #: The engine's own warnings the harness knows: a regular expression of the line, and what it means
     #: here. Each is explained once a process, in place of the engine's line and the element line after it.
@@ -160,6 +164,7 @@ ADAPTERS = {
         # Bullet's btDeformableNeoHookeanForce is Smith et al.'s law with its log term (adapters/pybullet_tets.py)
         laws={"pybullet-deformable": "stable-neo-hookean"},
         explicit=("pybullet-deformable",),
+        serves=False,
     ),
     "mujoco-warp": AdapterEngine(
         "mujoco-warp",
@@ -208,6 +213,7 @@ ADAPTERS = {
         make_target="genesis",
         python_variable="TISSUEBENCH_GENESIS_PYTHON",
         default=False,
+        serves=False,
         known_warnings=(
             (
                 r"is not a recognized feature for this target \(ignoring feature\)",
@@ -263,6 +269,11 @@ class AdapterSimulation(CommandSimulation):
         for k, v in sorted(self.options.items()):
             args += [f"--{k}", str(v)]
         return args
+
+    def _call(self, args: list[str], cwd: str) -> tuple[int, str]:
+        if not self.engine.serves:
+            return super()._call(args, cwd)
+        return served_call(args, self.engine.timeout, self.relay, self.label)
 
     def failed(self, status: int, last: str) -> None:
         """An adapter exits 2 with one line when its engine cannot represent the scene (several

@@ -84,19 +84,22 @@ class CommandSimulation:
     def _run(self) -> None:
         if self._answer is not None:
             return
-        e = self.engine
         with tempfile.TemporaryDirectory(prefix="tissuebench-engine-") as work:
             scene_dir, result = Path(work) / "scene", Path(work) / "result.npz"
             export(self.inputs, scene_dir)
             args = self.command(scene_dir, result)
             t0 = time.perf_counter()
-            status, last = _call(args, e.timeout, self.relay, self.label, work)
+            status, last = self._call(args, work)
             wall = time.perf_counter() - t0
             if status != 0:
                 self.failed(status, last)
             if not result.exists():
                 raise CommandError(f"{self.label}: wrote no {{result}} file (it ran {wall:.3g} s)")
             self._answer = self._read(result)
+
+    def _call(self, args: list[str], cwd: str) -> tuple[int, str]:
+        """The command run in ``cwd``: its exit status and last stderr line (``_call``)."""
+        return _call(args, self.engine.timeout, self.relay, self.label, cwd)
 
     def failed(self, status: int, last: str) -> None:
         """The command exited with ``status`` (not 0), ``last`` its last stderr line: CommandError."""
