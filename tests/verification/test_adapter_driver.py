@@ -167,3 +167,43 @@ def test_a_change_within_the_walk_has_stalled_though_it_still_halves(driver):
     out = driver.relax(engine, scene, 1e-4, 1e-10, 60_000, lambda text: None)
     assert out["settled"] == 1 and out["steps"] < 10_000 and out["budget_spent"] == 0
     assert out["stalled_at"] * 1e-3 < driver.WALK * driver.round_off(engine, scene)
+
+
+def test_a_residual_on_a_plateau_near_its_tolerance_stops_as_the_built_in_models_do(driver, monkeypatch):
+    """Springs of 100, 1 and 0.05 N/m whose net force, as the engine gives it, carries a floor of twice the
+    tolerance (MuJoCo's explicit flex sat at 1.6e-10 of the load against 1e-10 from step 40 000 on): the run
+    stops PLATEAU_STEPS after its residual last fell by 10 %, as a built-in model's settling accepts such a
+    plateau (realtime/statics.py), with its answer; the halving rule alone, which looks back over half the
+    run, waits about as long again as the run took to reach the floor. A floor above PLATEAU_FACTOR times
+    the tolerance is left to the halving rule."""
+    scene = _scene(driver, 1e-3)
+    k = np.array([0.0, 100.0, 1.0, 0.05])[:, None]
+    rtol = 1e-9
+
+    class Floored(_numpy_stepper(driver, scene)):
+        def __init__(self, floor: float = 2.0 * rtol * np.sqrt(3.0) * 1e-3):  # N: twice the tolerance of the
+            super().__init__()  # residual's scale, the elastic force's norm at equilibrium (three 1 mN)
+            self.floor = floor
+
+        def step(self, dt):
+            f = -k * (self.x - scene.points) + scene.external_force
+            self.v = np.where(scene.held(), 0.0, self.v + dt * f / 1e-3)
+            self.x = self.x + dt * self.v
+
+        def internal_force(self):
+            return -k * (self.x - scene.points)
+
+        def net_force(self):
+            net = np.where(scene.held(), 0.0, self.internal_force() + scene.external_force)
+            net[1, 0] += self.floor
+            return net
+
+    plateau = driver.relax(Floored(), scene, 1e-4, rtol, 200_000, lambda text: None)
+    assert plateau["settled"] == 1 and plateau["residual"] / rtol == pytest.approx(2.0, rel=0.1)
+    np.testing.assert_allclose(plateau["u"][1:, 2], 1e-3 / k[1:, 0], rtol=1e-6)
+    above = 2e3 * rtol * np.sqrt(3.0) * 1e-3  # a floor above PLATEAU_FACTOR times the tolerance
+    high = driver.relax(Floored(above), scene, 1e-4, rtol, 200_000, lambda text: None)
+    monkeypatch.setattr(driver, "PLATEAU_STEPS", 10**9)  # the halving rule alone
+    halving = driver.relax(Floored(), scene, 1e-4, rtol, 200_000, lambda text: None)
+    assert halving["steps"] > plateau["steps"] + 5000, (plateau["steps"], halving["steps"])  # measured 6850 more
+    assert driver.relax(Floored(above), scene, 1e-4, rtol, 200_000, lambda text: None)["steps"] == high["steps"]
