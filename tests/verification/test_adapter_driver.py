@@ -78,6 +78,22 @@ def _engine(driver, scene, noise: float, epsilon: float = 2.0**-52, seed: int = 
     return engine
 
 
+def _springs(driver, scene, k: np.ndarray):
+    """Springs of stiffness ``k`` (N, 1) N/m from each vertex to its rest place, no noise, stepped by
+    symplectic Euler, with the engine's own elastic force."""
+
+    class Springs(_numpy_stepper(driver, scene)):
+        def step(self, dt):
+            f = -k * (self.x - scene.points) + scene.external_force
+            self.v = np.where(scene.held(), 0.0, self.v + dt * f / 1e-3)
+            self.x = self.x + dt * self.v
+
+        def internal_force(self):
+            return -k * (self.x - scene.points)
+
+    return Springs
+
+
 def test_an_unloaded_body_holds_at_its_round_off(driver):
     """A body nothing loads yet (a rigid tool short of it) sits at rest to its engine's round-off: the hold
     measured that noise against a displacement of nothing and read "no equilibrium" (newton's float32 on
@@ -111,15 +127,7 @@ def test_a_budget_spent_within_its_tolerance_is_the_answer_however_it_still_fall
     scene = _scene(driver, 1e-3)
     k = np.array([0.0, 100.0, 1.0, 0.05])[:, None]
 
-    class Soft(_numpy_stepper(driver, scene)):
-        def step(self, dt):
-            f = -k * (self.x - scene.points) + scene.external_force
-            self.v = np.where(scene.held(), 0.0, self.v + dt * f / 1e-3)
-            self.x = self.x + dt * self.v
-
-        def internal_force(self):
-            return -k * (self.x - scene.points)
-
+    class Soft(_springs(driver, scene, k)):
         def net_force(self):
             return np.where(scene.held(), 0.0, self.internal_force() + scene.external_force) if residual else None
 
@@ -180,18 +188,10 @@ def test_a_residual_on_a_plateau_near_its_tolerance_stops_as_the_built_in_models
     k = np.array([0.0, 100.0, 1.0, 0.05])[:, None]
     rtol = 1e-9
 
-    class Floored(_numpy_stepper(driver, scene)):
+    class Floored(_springs(driver, scene, k)):
         def __init__(self, floor: float = 2.0 * rtol * np.sqrt(3.0) * 1e-3):  # N: twice the tolerance of the
             super().__init__()  # residual's scale, the elastic force's norm at equilibrium (three 1 mN)
             self.floor = floor
-
-        def step(self, dt):
-            f = -k * (self.x - scene.points) + scene.external_force
-            self.v = np.where(scene.held(), 0.0, self.v + dt * f / 1e-3)
-            self.x = self.x + dt * self.v
-
-        def internal_force(self):
-            return -k * (self.x - scene.points)
 
         def net_force(self):
             net = np.where(scene.held(), 0.0, self.internal_force() + scene.external_force)

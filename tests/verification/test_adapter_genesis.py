@@ -20,6 +20,7 @@ from tests.verification.test_adapters_newton_mujoco import (
     _hanging_export,
     bar_constants,
     gravity_and_full_hold_refusals,
+    hanging_scene,
 )
 from verification.engines.adapters import ADAPTERS, ADAPTERS_DIR
 
@@ -112,26 +113,6 @@ def test_genesis_is_refused_what_it_cannot_be_given(tmp_path):
     assert bar.startswith("genesis_fem:") and "gravity as its only load" in bar and "0.001 N" in bar
 
 
-#: The hanging bar as a scene file (its reference and judge need one): held at its top face, gravity alone.
-HANGING = f"""
-name = "hanging-bar"
-[mesh]
-generator = "box"
-size = {list(BAR)}
-h = {BAR_H}
-[material]
-law = "linear"
-young = {SOFT}
-poisson = {NU}
-density = {BAR_RHO}
-[[fixed]]
-box = [[-1.0, -1.0, {BAR[2] - 1e-9}], [1.0, 1.0, 1.0]]
-[[load]]
-kind = "gravity"
-value = [0.0, 0.0, -9.81]
-"""
-
-
 @needs_genesis
 def test_genesis_on_its_own_mesh_is_p1_on_that_mesh_as_judge_reads_it(tmp_path):
     """``--mesh own``: Genesis tetrahedralises the scene's surface itself (tetgen, its Mesh morph's defaults),
@@ -142,11 +123,9 @@ def test_genesis_on_its_own_mesh_is_p1_on_that_mesh_as_judge_reads_it(tmp_path):
     mesh part (1.5e-2) is the mesh's."""
     from verification.engines.export import export
     from verification.inputs import scene_inputs
-    from verification.scene_file import load_scene
     from verification.studies.judge import judge
 
-    (tmp_path / "hanging.toml").write_text(HANGING)
-    scene = load_scene(tmp_path / "hanging.toml")
+    scene = hanging_scene(tmp_path, "linear", SOFT)
     export(scene_inputs(scene), tmp_path / "scene")
     extra = ("--mesh", "own", "--dt", "1e-2", "--iterations", "1", "--pcg-threshold", "1e-14")
     _, report = _run(tmp_path, "implicit-linear", *extra)

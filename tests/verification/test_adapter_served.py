@@ -12,7 +12,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from tests.verification.test_adapters_newton_mujoco import needs_engines
+from tests.verification.test_adapters_newton_mujoco import hanging_scene, needs_engines
 from verification.engines import served
 from verification.engines.command import CommandError
 
@@ -75,36 +75,14 @@ def test_a_served_run_past_its_timeout_is_stopped_with_its_server(fake):
     assert _pid(lines) != slow
 
 
-#: A small StVK bar held at its top and hanging under its weight (a scene file: run_model takes one).
-BAR = """
-name = "served-bar"
-[mesh]
-generator = "box"
-size = [0.01, 0.01, 0.04]
-h = 0.005
-[material]
-law = "stvk"
-young = 1e4
-poisson = 0.3
-density = 1000.0
-[[fixed]]
-box = [[-1.0, -1.0, 0.039999999], [1.0, 1.0, 1.0]]
-[[load]]
-kind = "gravity"
-value = [0.0, 0.0, -9.81]
-"""
-
-
 @needs_engines
 def test_a_served_run_is_the_run_of_a_process_of_its_own(tmp_path):
     """MuJoCo's flex on a hanging bar at 1 ms, run twice by one server and once by a process of its own: the
     same displacement bit for bit, the same steps (one code, one machine: the process is all that differs)."""
     from verification.engines.adapters import ADAPTERS
     from verification.runs.simulate import run_model
-    from verification.scene_file import load_scene
 
-    (tmp_path / "bar.toml").write_text(BAR)
-    scene, mujoco = load_scene(tmp_path / "bar.toml"), ADAPTERS["mujoco"]
+    scene, mujoco = hanging_scene(tmp_path, "stvk", 1e4, length=0.04), ADAPTERS["mujoco"]
     try:
         first, second = (run_model(scene, "mujoco-flex", dt=1e-3, engine=mujoco) for _ in range(2))
     finally:

@@ -158,6 +158,33 @@ def test_pybullets_soft_body_has_the_young_modulus_and_poisson_ratio_asked(tmp_p
         assert poisson == pytest.approx(NU, rel=0.01)
 
 
+def hanging_scene(directory, law: str, young: float, length: float = BAR[2]):
+    """The hanging bar (BAR's section, ``length`` m long) as a scene file in ``directory`` (what a reference, a
+    run through the harness and judge need), held at its top face, gravity alone: the loaded Scene."""
+    from verification.scene_file import load_scene
+
+    text = f"""
+name = "hanging-bar"
+[mesh]
+generator = "box"
+size = {[BAR[0], BAR[1], length]}
+h = {BAR_H}
+[material]
+law = "{law}"
+young = {young}
+poisson = {NU}
+density = {BAR_RHO}
+[[fixed]]
+box = [[-1.0, -1.0, {length - 1e-9}], [1.0, 1.0, 1.0]]
+[[load]]
+kind = "gravity"
+value = [0.0, 0.0, -9.81]
+"""
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / "hanging.toml").write_text(text)
+    return load_scene(directory / "hanging.toml")
+
+
 def bar_constants(points: np.ndarray, u: np.ndarray, weight) -> list[tuple[float, float]]:
     """(E Pa, nu) of the hanging bar's sections 4 to 12 layers from its free end, away from its held top:
     ``weight(k)`` (N), the weight an engine hangs below the element layer k (between node layers k and
