@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 import textwrap
+import threading
 
 import numpy as np
 import pytest
@@ -64,15 +65,15 @@ def test_one_server_serves_runs_and_a_refusal_and_a_crash_ends_it(fake):
 
 
 def test_a_served_run_past_its_timeout_is_stopped_with_its_server(fake):
-    """A run past its timeout is one line naming it (as a process a run's is) and its server is killed: the
-    next run starts another."""
+    """A run past its timeout is one line naming it (as a process a run's is) and its server is killed and
+    dropped: the next run starts another."""
+    with pytest.raises(CommandError, match="fake: still running after 2 s, stopped"):
+        served.served_call(fake + ["ok", "60"], 2.0, lambda line: None, "fake")
+    key = (fake[0], fake[1], threading.get_ident())  # this thread's server of the fake adapter
+    assert key not in served._SERVERS  # killed with its run
     lines: list[str] = []
-    with pytest.raises(CommandError, match="fake: still running after 0.5 s, stopped"):
-        served.served_call(fake + ["ok", "5"], 0.5, lines.append, "fake")
-    slow = _pid(lines)
-    lines.clear()
     assert served.served_call(fake + ["ok", "0"], 30.0, lines.append, "fake")[0] == 0
-    assert _pid(lines) != slow
+    assert _pid(lines) == str(served._SERVERS[key].proc.pid)
 
 
 @needs_engines
