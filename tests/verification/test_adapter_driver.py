@@ -14,13 +14,19 @@ import pytest
 from verification.engines.adapters import ADAPTERS_DIR
 
 
+def adapter_module(name: str):
+    """The module ``adapters/NAME.py``, loaded from its file once (the adapters import each other by name)."""
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, ADAPTERS_DIR / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
 @pytest.fixture(scope="module")
 def driver():
-    spec = importlib.util.spec_from_file_location("exported", ADAPTERS_DIR / "exported.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("exported", module)
-    spec.loader.exec_module(module)
-    return module
+    return adapter_module("exported")
 
 
 def _scene(driver, load: float):

@@ -7,31 +7,21 @@ another mesh what the scene means (a box's faces, a sphere's inside, a rotation 
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 
 import numpy as np
 import pytest
 
-from verification.engines.adapters import ADAPTERS_DIR
+from tests.verification.test_adapter_driver import adapter_module
 from verification.engines.export import export
 from verification.inputs import scene_inputs
 from verification.scene_file import load_scene
 
 
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, ADAPTERS_DIR / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault(name, module)
-    spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
 @pytest.fixture(scope="module")
 def adapters():
     """The adapters' ``exported`` and ``own_mesh`` modules, loaded from their files."""
-    return _load("exported"), _load("own_mesh")
+    return adapter_module("exported"), adapter_module("own_mesh")
 
 
 def _exported(tmp_path, adapters, name: str):
