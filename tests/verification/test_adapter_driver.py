@@ -213,3 +213,29 @@ def test_a_residual_on_a_plateau_near_its_tolerance_stops_as_the_built_in_models
     halving = driver.relax(Floored(), scene, 1e-4, rtol, 200_000, lambda text: None)
     assert halving["steps"] > plateau["steps"] + 5000, (plateau["steps"], halving["steps"])  # measured 6850 more
     assert driver.relax(Floored(above), scene, 1e-4, rtol, 200_000, lambda text: None)["steps"] == high["steps"]
+
+
+def test_a_residual_level_where_the_state_no_longer_moves_is_the_engines_fixed_point(driver):
+    """An engine whose step stops moving the state once its own measure of the net force is below its own
+    tolerance (an implicit step solved to 1e-6 of the load: MuJoCo's discrete flex sat at 3.7e-6 of it on
+    the hanging bar, 9.6e-8 on the cantilever, its state not moving at all) ends at that fixed point, said
+    so (``fixed_point``): no tolerance finer than its own can be reached by more steps. Here the soft
+    spring brings the residual to the engine's tolerance at step 20 000; the run stops 3700 steps later, when
+    it has not halved over the last half, and its answer is its own tolerance's."""
+    scene = _scene(driver, 1e-3)
+    k = np.array([0.0, 100.0, 1.0, 0.05])[:, None]
+    own = 1e-6 * np.sqrt(3.0) * 1e-3  # N: 1e-6 of the residual's scale (the three 1 mN loads' norm)
+
+    class Frozen(_springs(driver, scene, k)):
+        def step(self, dt):
+            if np.linalg.norm(self.net_force()) > own:
+                super().step(dt)
+
+        def net_force(self):
+            return np.where(scene.held(), 0.0, self.internal_force() + scene.external_force)
+
+    out = driver.relax(Frozen(), scene, 1e-4, 1e-10, 200_000, lambda text: None)
+    assert out["fixed_point"] == 1 and out["settled"] == 1 and out["budget_spent"] == 0
+    assert out["steps"] - out["tail_steps"] < 25_000
+    assert 1e-10 < out["residual"] <= 1e-6
+    np.testing.assert_allclose(out["u"][1:, 2], 1e-3 / k[1:, 0], rtol=1e-5)

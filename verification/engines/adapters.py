@@ -356,7 +356,7 @@ class AdapterSimulation(CommandSimulation):
         self._run()
         r = self.report
         keep = ("engine", "law", "iterations", "substeps", "stalled_at", "residual", "tail_omega", "tail_steps")
-        keep += ("hold_drift", "device", "budget_spent")
+        keep += ("hold_drift", "device", "budget_spent", "fixed_point")
         return {k: r[k] for k in keep if k in r}
 
     def start(self, dt) -> None:
