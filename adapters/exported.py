@@ -459,6 +459,8 @@ def relax(
                 at_fixed_point = fixed and not spent and not plateau
                 if at_fixed_point:
                     why = " (a fixed point of the engine's step: the state no longer moves)"
+                elif not (spent or plateau):
+                    why = " (no longer halving over the last half of the run, the state still moving)"
                 progress(f"step {n}: the residual stalled at {res:.2e} of the load, asked {rtol:g}{why}")
                 run = {"steps": n, "dt": dt, "step_us": clock.us(), "residual": res, "budget_spent": int(spent)}
                 run["fixed_point"] = int(at_fixed_point)
