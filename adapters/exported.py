@@ -400,12 +400,12 @@ def relax(
     engine gives its net force, it stops when the residual (``residual``) is below ``rtol``, the harness's
     own measure, twice in a row; elsewhere when the displacement change, measured over the last quarter of
     the run (at least ``check`` steps, so that a slow mode still on its way is seen however few steps one
-    of its cycles takes), is. Either stops first at round-off: the change stalled below ``STALLED`` (or
-    ``WALK`` round-offs), or the residual no longer halving over the last half of the run or on a plateau
-    near the tolerance (``PLATEAU_STEPS``) (``stalled_at``, ``residual`` in the result), or at a fixed point
-    of the engine's step, the residual level and the state still (``fixed_point`` 1: an implicit step solved
-    to the engine's own tolerance, not round-off), and then runs the damped tail (``_stalled``). When its budget
-    (``max_steps`` steps or ``max_wall`` seconds, whichever comes first) runs out before the stall rules'
+    of its cycles takes), is. Either stops first where it makes no more progress: the change stalled
+    below ``STALLED`` (or ``WALK`` round-offs), or the residual no longer halving over the last half of the
+    run or on a plateau near the tolerance (``PLATEAU_STEPS``) (``stalled_at``, ``residual`` in the
+    result), or at a fixed point of the engine's step, the residual level and the state still
+    (``fixed_point`` 1: an implicit step solved to the engine's own tolerance, not round-off), and then
+    runs the damped tail (``_stalled``). When its budget (``max_steps`` steps or ``max_wall`` seconds, whichever comes first) runs out before the stall rules'
     windows, they act on the run it had: a change below ``STALLED`` (or ``WALK`` round-offs) that failed to
     halve, one within ``WALK`` round-offs, a residual below ``STALLED`` that no longer halves, or
     either within ``BUDGET_TOLERANCE`` however it still falls, is a stall there too (``budget_spent`` 1 in
