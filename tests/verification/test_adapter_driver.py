@@ -239,3 +239,24 @@ def test_a_residual_level_where_the_state_no_longer_moves_is_the_engines_fixed_p
     assert out["steps"] - out["tail_steps"] < 25_000
     assert 1e-10 < out["residual"] <= 1e-6
     np.testing.assert_allclose(out["u"][1:, 2], 1e-3 / k[1:, 0], rtol=1e-5)
+
+
+def test_a_level_residual_within_the_budget_tolerance_is_a_floor_however_the_state_jitters(driver):
+    """A contact solver keeps its engine's residual at a noise floor, the state jittering by as much for as
+    long as it runs (MuJoCo's on the plane press: 3e-10 to 3e-8 of the load). A level within
+    BUDGET_TOLERANCE is such a floor: the run stops once its last half makes no progress on its first (from
+    RESIDUAL_WINDOW ramps), not a fixed point, its answer within the noise. Made up: springs whose positions take 1e-12 m of noise a step (10 um loads)."""
+    scene = _scene(driver, 1e-3)
+    Noisy = type(_engine(driver, scene, noise=1e-12))
+
+    class Jittering(Noisy):
+        def net_force(self):
+            return np.where(scene.held(), 0.0, -100.0 * (self.x - scene.points) + scene.external_force)
+
+    engine = Jittering()
+    engine.epsilon = 2.0**-52
+    out = driver.relax(engine, scene, 1e-4, 1e-10, 200_000, lambda text: None)
+    assert out["fixed_point"] == 0 and out["settled"] == 1 and out["budget_spent"] == 0
+    assert out["steps"] < 40 * 200  # before the halving rule's window (measured 3500)
+    assert 1e-10 < out["residual"] <= driver.BUDGET_TOLERANCE
+    np.testing.assert_allclose(out["u"][1:, 2], 1e-5, rtol=1e-5)
