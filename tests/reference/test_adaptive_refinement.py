@@ -132,7 +132,7 @@ def test_mpirun_adapted_truth_equals_serial(tmp_path):
     """Adapted twice on one rank and on two: the meshes are made on rank 0 and the indicator gathered
     there by the cells' midpoints, so the levels, the answer and its bar are the serial ones (1e-8:
     Newtons stopped at 1e-10 of the force scale). The swing beam: its levels end at 52 000 P3 dofs
-    where cantilever-pull's end at 107 000 (5 s for both runs here, 32 s with cantilever-pull)."""
+    where cantilever-pull's end at 107 000 (8 s for both runs here, 32 s with cantilever-pull)."""
     scene = tmp_path / "swing.toml"
     scene.write_text(SWING)
     out = {n: tmp_path / f"{n}.npz" for n in (1, 2)}

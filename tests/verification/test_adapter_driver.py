@@ -245,7 +245,8 @@ def test_a_level_residual_within_the_budget_tolerance_is_a_floor_however_the_sta
     """A contact solver keeps its engine's residual at a noise floor, the state jittering by as much for as
     long as it runs (MuJoCo's on the plane press: 3e-10 to 3e-8 of the load). A level within
     BUDGET_TOLERANCE is such a floor: the run stops once its last half makes no progress on its first (from
-    RESIDUAL_WINDOW ramps), not a fixed point, its answer within the noise. Made up: springs whose positions take 1e-12 m of noise a step (10 um loads)."""
+    RESIDUAL_WINDOW ramps), not a fixed point, its answer within the noise. Made up: springs whose positions
+    take 1e-12 m of noise a step (10 um loads)."""
     scene = _scene(driver, 1e-3)
     Noisy = type(_engine(driver, scene, noise=1e-12))
 
