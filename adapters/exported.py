@@ -399,20 +399,20 @@ def relax(
     engine: Stepper, scene: Exported, dt: float, rtol: float, max_steps: int, progress, max_wall: float = 300.0
 ) -> dict:
     """A static scene's equilibrium by kinetic-damped dynamic relaxation (the module docstring). Where the
-    engine gives its net force, it stops when the residual (``residual``) is below ``rtol``, the harness's
-    own measure, twice in a row; elsewhere when the displacement change, measured over the last quarter of
-    the run (at least ``check`` steps, so that a slow mode still on its way is seen however few steps one
-    of its cycles takes), is. Either stops first where it makes no more progress: the change stalled
-    below ``STALLED`` (or ``WALK`` round-offs), or the residual no longer halving over the last half of the
-    run or on a plateau near the tolerance (``PLATEAU_STEPS``) (``stalled_at``, ``residual`` in the
-    result), or at a fixed point of the engine's step, the residual level and the state still
-    (``fixed_point`` 1: an implicit step solved to the engine's own tolerance, not round-off), and then
-    runs the damped tail (``_stalled``). When its budget (``max_steps`` steps or ``max_wall`` seconds, whichever comes first) runs out before the stall rules'
+    engine gives its net force, it stops when the residual (``residual``) is below ``rtol``, the harness's own
+    measure, twice in a row; elsewhere when the displacement change, measured over the last quarter of the run
+    (at least ``check`` steps, so that a slow mode still on its way is seen however few steps one of its cycles
+    takes), is. Either stops first where it makes no more progress: the change stalled below ``STALLED`` (or
+    ``WALK`` round-offs), or the residual no longer halving over the last half of the run or on a plateau near
+    the tolerance (``PLATEAU_STEPS``) (``stalled_at``, ``residual`` in the result), or at a fixed point of the
+    engine's step, the residual level and the state still (``fixed_point`` 1: an implicit step solved to the
+    engine's own tolerance, not round-off), and then runs the damped tail (``_stalled``). When its budget
+    (``max_steps`` steps or ``max_wall`` seconds, whichever comes first) runs out before the stall rules'
     windows, they act on the run it had: a change below ``STALLED`` (or ``WALK`` round-offs) that failed to
-    halve, one within ``WALK`` round-offs, a residual below ``STALLED`` that no longer halves, or
-    either within ``BUDGET_TOLERANCE`` however it still falls, is a stall there too (``budget_spent`` 1 in
-    the result: MuJoCo's discrete flex on the liver, its residual at 4e-8 after 300 s of 63 ms steps, was
-    "not settled"). Otherwise it stops unsettled."""
+    halve, one within ``WALK`` round-offs, a residual below ``STALLED`` that no longer halves, or either within
+    ``BUDGET_TOLERANCE`` however it still falls, is a stall there too (``budget_spent`` 1 in the result:
+    MuJoCo's discrete flex on the liver, its residual at 4e-8 after 300 s of 63 ms steps, was "not settled").
+    Otherwise it stops unsettled."""
     held, final = scene.held(), scene.prescribed(0.0)
     t_start = time.perf_counter()
     ramp_steps = max(1, min(max_steps // 10, 200))
@@ -459,13 +459,15 @@ def relax(
             due = (n >= RESIDUAL_WINDOW * ramp_steps and still) or (n >= 40 * ramp_steps and slow) or plateau
             ends = spent and (res <= BUDGET_TOLERANCE or ((still or slow) and res < STALLED))
             if res > rtol and (due or ends):
-                at_fixed_point = fixed and not spent and not plateau
+                at_fixed_point = fixed and not (spent or plateau)
                 if at_fixed_point:
                     why = " (a fixed point of the engine's step: the state no longer moves)"
-                elif still and not (spent or plateau):
-                    why = f" (no progress over the last half of the run, within {BUDGET_TOLERANCE:g} of the load)"
                 elif not (spent or plateau):
-                    why = " (no longer halving over the last half of the run, the state still moving)"
+                    why = (
+                        f" (no progress over the last half of the run, within {BUDGET_TOLERANCE:g} of the load)"
+                        if still
+                        else " (no longer halving over the last half of the run, the state still moving)"
+                    )
                 progress(f"step {n}: the residual stalled at {res:.2e} of the load, asked {rtol:g}{why}")
                 run = {"steps": n, "dt": dt, "step_us": clock.us(), "residual": res, "budget_spent": int(spent)}
                 run["fixed_point"] = int(at_fixed_point)
